@@ -1,0 +1,159 @@
+"""The one place where poses are converted.
+
+Conventions (pycolmap's):
+- a pose is a 4x4 rigid transform as a float64 numpy array;
+- ``cam_from_world`` maps world points into the camera frame, ``world_from_cam`` is its inverse;
+- camera axes are OpenCV's: x right, y down, z forward;
+- pixel coordinates follow COLMAP: the centre of the top-left pixel is (0.5, 0.5).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# OpenGL / NeRF camera axes (x right, y up, z backward) -> OpenCV axes.
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of one rigid transform (4x4) or a batch (...,4,4)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def cam_from_world_from_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
+    return inverse(world_from_cam)
+
+
+def world_from_cam_from_cam_from_world(cam_from_world: np.ndarray) -> np.ndarray:
+    return inverse(cam_from_world)
+
+
+def world_from_cam_opengl_to_opencv(world_from_cam_gl: np.ndarray) -> np.ndarray:
+    """NeRF/instant-ngp/LLFF camera-to-world (OpenGL axes) -> world_from_cam (OpenCV axes)."""
+    return np.asarray(world_from_cam_gl, dtype=np.float64) @ _GL_TO_CV
+
+
+def camera_centers(cam_from_world: np.ndarray) -> np.ndarray:
+    """Camera centres in world coordinates, (...,3)."""
+    R = cam_from_world[..., :3, :3]
+    t = cam_from_world[..., :3, 3]
+    return -np.einsum("...ji,...j->...i", R, t)
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply one 4x4 transform to (N,3) points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def quat_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) (x, y, z, w) -> rotation matrix(es)."""
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    m = R
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0 else -q
+
+
+def pose_from_quat_t(q_xyzw, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(q_xyzw)
+    T[:3, 3] = t
+    return T
+
+
+def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rodrigues rotation matrix."""
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """cam_from_world of an OpenCV camera at ``eye`` looking at ``target`` (``up`` = image-up hint,
+    given as the world direction that should point up in the image)."""
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    down = -np.asarray(up, float)
+    x = np.cross(down, z)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(np.array([1.0, 0, 0]), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ eye
+    return T
+
+
+def pose_error(cam_from_world_est: np.ndarray, cam_from_world_gt: np.ndarray) -> tuple[float, float]:
+    """(translation error in map units between camera centres, rotation error in degrees)."""
+    dt = float(np.linalg.norm(camera_centers(cam_from_world_est) - camera_centers(cam_from_world_gt)))
+    dR = cam_from_world_est[:3, :3] @ cam_from_world_gt[:3, :3].T
+    cos = np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)
+    return dt, float(np.degrees(np.arccos(cos)))
+
+
+def perturb_pose(cam_from_world: np.ndarray, trans: float, rot_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Move a camera by exactly ``trans`` units (random direction) and rotate it by exactly
+    ``rot_deg`` degrees (random axis) about its own centre."""
+    wfc = inverse(cam_from_world)
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    a = rng.normal(size=3)
+    wfc_new = wfc.copy()
+    wfc_new[:3, :3] = rotation_about(a, np.radians(rot_deg)) @ wfc[:3, :3]
+    wfc_new[:3, 3] = wfc[:3, 3] + trans * d
+    return inverse(wfc_new)
+
+
+def to_rigid3d(cam_from_world: np.ndarray):
+    """4x4 -> pycolmap.Rigid3d."""
+    import pycolmap
+
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world[:3, :3]), cam_from_world[:3, 3])
+
+
+def from_rigid3d(rigid) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :4] = rigid.matrix()
+    return T

@@ -1,0 +1,43 @@
+"""io: posed image sequences in, images out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import SequenceError
+from .images import load_image, prepare_image, read_rgb, working_camera
+from .readers import READERS
+from .types import Camera, Frame, Sequence
+
+__all__ = ["Camera", "Frame", "Sequence", "read_sequence", "detect_format", "load_image", "prepare_image",
+           "read_rgb", "working_camera", "READERS"]
+
+
+def detect_format(root: Path) -> str:
+    root = Path(root)
+    for name, mod in READERS.items():
+        if mod.detect(root):
+            return name
+    raise SequenceError(f"cannot recognise the sequence format of {root} (supported: {', '.join(READERS)}); use --format")
+
+
+def read_sequence(root, format: str | None = None) -> Sequence:
+    """Read a posed image sequence. ``format`` is auto-detected when None."""
+    root = Path(root)
+    if not root.exists():
+        raise SequenceError(f"sequence not found: {root}")
+    if root.is_file():
+        # allow pointing at the descriptor file itself (transforms.json, sequence.json, ...)
+        root = root.parent
+    if not any(root.iterdir()):
+        raise SequenceError(f"sequence folder is empty: {root}")
+    name = format or detect_format(root)
+    if name not in READERS:
+        raise SequenceError(f"unknown sequence format {name!r} (supported: {', '.join(READERS)})")
+    seq = READERS[name].read(root)
+    if not seq.frames:
+        raise SequenceError(f"sequence {root} has no frames")
+    missing = [f.name for f in seq.frames if not Path(f.image_path).is_file()]
+    if missing:
+        raise SequenceError(f"{len(missing)} image(s) of {root} are missing, e.g. {missing[0]}")
+    return seq

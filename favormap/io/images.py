@@ -1,0 +1,57 @@
+"""Image loading: read, undistort to the pinhole model, resize. Build and localize share it, so a
+query image goes through exactly the same steps as the mapping images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from .types import Camera
+
+
+def working_camera(camera: Camera, max_side: int | None) -> Camera:
+    """The pinhole camera that images of ``camera`` have after :func:`load_image`."""
+    cam = camera.pinhole()
+    if max_side and max(camera.width, camera.height) > max_side:
+        s = max_side / max(camera.width, camera.height)
+        cam = cam.scaled(max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+    return cam
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"image not found: {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(f"cannot read image: {path}")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def load_image(path: Path, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
+    """Read an image taken with ``camera``; return it undistorted and resized (RGB uint8) together
+    with its pinhole working camera."""
+    img = read_rgb(path)
+    h, w = img.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(f"image {path} is {w}x{h} but its camera is {camera.width}x{camera.height}")
+    return prepare_image(img, camera, max_side)
+
+
+def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
+    """Undistort (to the same K) and resize an in-memory RGB image."""
+    if not camera.is_pinhole:
+        dist = camera.opencv_distortion()
+        if np.any(dist != 0):
+            # OpenCV's pixel-centre convention is COLMAP's minus 0.5.
+            K_cv = camera.K.copy()
+            K_cv[0, 2] -= 0.5
+            K_cv[1, 2] -= 0.5
+            img = cv2.undistort(img, K_cv, dist, None, K_cv)
+    out_cam = working_camera(camera, max_side)
+    if (out_cam.width, out_cam.height) != (camera.width, camera.height):
+        img = cv2.resize(img, (out_cam.width, out_cam.height), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(img), out_cam
