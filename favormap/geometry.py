@@ -41,6 +41,55 @@ def world_from_cam_opengl_to_opencv(world_from_cam_gl: np.ndarray) -> np.ndarray
     return np.asarray(world_from_cam_gl, dtype=np.float64) @ _GL_TO_CV
 
 
+def world_from_cam_opencv_to_opengl(world_from_cam_cv: np.ndarray) -> np.ndarray:
+    """world_from_cam (OpenCV axes) -> NeRF/instant-ngp camera-to-world (OpenGL axes)."""
+    return np.asarray(world_from_cam_cv, dtype=np.float64) @ _GL_TO_CV
+
+
+def world_from_cam_llff_to_opencv(pose_3x4: np.ndarray) -> np.ndarray:
+    """LLFF ``poses_bounds.npy`` pose(s) (...,3,>=4; rotation columns [down, right, backwards],
+    4th column the camera centre) -> world_from_cam (...,4,4) in OpenCV axes [right, down, forward]."""
+    P = np.asarray(pose_3x4, dtype=np.float64)
+    T = np.zeros(P.shape[:-2] + (4, 4))
+    T[..., :3, 0] = P[..., :3, 1]
+    T[..., :3, 1] = P[..., :3, 0]
+    T[..., :3, 2] = -P[..., :3, 2]
+    T[..., :3, 3] = P[..., :3, 3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def world_from_cam_opencv_to_llff(world_from_cam_cv: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`world_from_cam_llff_to_opencv`: (...,4,4) -> LLFF (...,3,4)."""
+    T = np.asarray(world_from_cam_cv, dtype=np.float64)
+    P = np.zeros(T.shape[:-2] + (3, 4))
+    P[..., :, 0] = T[..., :3, 1]
+    P[..., :, 1] = T[..., :3, 0]
+    P[..., :, 2] = -T[..., :3, 2]
+    P[..., :, 3] = T[..., :3, 3]
+    return P
+
+
+def cam_from_world_from_center(R_cam_from_world: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """cam_from_world from its rotation and the camera centre in world coordinates (t = -R c)."""
+    R = np.asarray(R_cam_from_world, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ np.asarray(center, dtype=np.float64)
+    return T
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    """True for a finite 4x4 (or 3x4) matrix whose rotation block is orthonormal with det +1."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(T)):
+        return False
+    if T.shape == (4, 4) and not np.allclose(T[3], [0, 0, 0, 1], atol=tol):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)
+
+
 def camera_centers(cam_from_world: np.ndarray) -> np.ndarray:
     """Camera centres in world coordinates, (...,3)."""
     R = cam_from_world[..., :3, :3]

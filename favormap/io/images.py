@@ -43,6 +43,11 @@ def load_image(path: Path, camera: Camera, max_side: int | None = 640) -> tuple[
 
 def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
     """Undistort (to the same K) and resize an in-memory RGB image."""
+    out_cam = working_camera(camera, max_side)
+    if (out_cam.width, out_cam.height) != (camera.width, camera.height):
+        # resize first (cheaper), then undistort with the camera scaled to the new size
+        img = cv2.resize(img, (out_cam.width, out_cam.height), interpolation=cv2.INTER_AREA)
+        camera = camera.scaled(out_cam.width, out_cam.height)
     if not camera.is_pinhole:
         dist = camera.opencv_distortion()
         if np.any(dist != 0):
@@ -51,7 +56,4 @@ def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -
             K_cv[0, 2] -= 0.5
             K_cv[1, 2] -= 0.5
             img = cv2.undistort(img, K_cv, dist, None, K_cv)
-    out_cam = working_camera(camera, max_side)
-    if (out_cam.width, out_cam.height) != (camera.width, camera.height):
-        img = cv2.resize(img, (out_cam.width, out_cam.height), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(img), out_cam

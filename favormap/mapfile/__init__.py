@@ -1,0 +1,8 @@
+"""mapfile: the persistent HDF5 map (schema in schemas/), atomic writer, lazy reader."""
+
+from .model import MapData, new_landmark_ids
+from .reader import Map
+from .schema import FORMAT, FORMAT_VERSION, check_file, load_schema
+from .writer import atomic_path, write_map
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "Map", "MapData", "atomic_path", "check_file", "load_schema", "new_landmark_ids", "write_map"]

@@ -1,0 +1,133 @@
+"""tracking: keypoints followed through a posed sequence.
+
+Frames are matched with their next ``window`` neighbours by mutual nearest neighbours on the
+descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
+are joined into tracks by connected components; a track that holds two different keypoints of one
+frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .features import Features
+from .geometry import inverse
+from .io import Camera
+
+
+@dataclass
+class Tracks:
+    """Observations sorted by track: track j owns rows ``offsets[j]:offsets[j+1]``."""
+
+    frame_idx: np.ndarray  # (O,) int32
+    keypoint_idx: np.ndarray  # (O,) int32
+    xy: np.ndarray  # (O, 2) float64 pixels
+    offsets: np.ndarray  # (T+1,) int64
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    @property
+    def track_of_obs(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self)), self.lengths)
+
+    def select(self, keep_obs: np.ndarray, min_len: int = 1) -> "Tracks":
+        """Keep the observations where ``keep_obs`` is True, then the tracks with >= min_len."""
+        tid = self.track_of_obs
+        counts = np.bincount(tid[keep_obs], minlength=len(self))
+        keep = keep_obs & (counts[tid] >= min_len)
+        return Tracks.from_obs(self.frame_idx[keep], self.keypoint_idx[keep], self.xy[keep], tid[keep])
+
+    @classmethod
+    def from_obs(cls, frame_idx, keypoint_idx, xy, track_id) -> "Tracks":
+        order = np.lexsort((frame_idx, track_id))
+        track_id = track_id[order]
+        _, new_id = np.unique(track_id, return_inverse=True)
+        counts = np.bincount(new_id) if len(new_id) else np.zeros(0, int)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        return cls(frame_idx[order].astype(np.int32), keypoint_idx[order].astype(np.int32), xy[order].astype(np.float64), offsets)
+
+
+def fundamental(cam_from_world_a, K_a, cam_from_world_b, K_b) -> np.ndarray:
+    """F with x_b^T F x_a = 0 (pixels)."""
+    b_from_a = cam_from_world_b @ inverse(cam_from_world_a)
+    R, t = b_from_a[:3, :3], b_from_a[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    E = tx @ R
+    return np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
+
+
+def epipolar_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distance in pixels."""
+    ha = np.concatenate([xa, np.ones((len(xa), 1))], 1)
+    hb = np.concatenate([xb, np.ones((len(xb), 1))], 1)
+    la = ha @ F.T  # lines in b
+    lb = hb @ F  # lines in a
+    num = np.abs(np.sum(hb * la, 1))
+    return 0.5 * (num / np.maximum(np.linalg.norm(la[:, :2], axis=1), 1e-12) + num / np.maximum(np.linalg.norm(lb[:, :2], axis=1), 1e-12))
+
+
+def mutual_nn(da: torch.Tensor, db: torch.Tensor, min_sim: float) -> tuple[np.ndarray, np.ndarray]:
+    sim = da @ db.T
+    ab = sim.argmax(1)
+    ba = sim.argmax(0)
+    ia = torch.arange(len(da))
+    ok = (ba[ab] == ia) & (sim[ia, ab] >= min_sim)
+    return ia[ok].numpy(), ab[ok].numpy()
+
+
+def track_features(
+    features: list[Features],
+    cam_from_world: np.ndarray,
+    cameras: list[Camera],
+    min_track: int = 5,
+    window: int = 3,
+    max_epipolar_px: float = 2.0,
+    min_similarity: float = 0.7,
+) -> Tracks:
+    """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras."""
+    n = len(features)
+    counts = np.array([len(f) for f in features])
+    base = np.concatenate([[0], np.cumsum(counts)])
+    desc = [torch.from_numpy(f.descriptors) for f in features]
+    rows, cols = [], []
+    for a in range(n):
+        for b in range(a + 1, min(n, a + 1 + window)):
+            if counts[a] == 0 or counts[b] == 0:
+                continue
+            ia, ib = mutual_nn(desc[a], desc[b], min_similarity)
+            if len(ia) == 0:
+                continue
+            F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
+            ok = epipolar_distance(F, features[a].keypoints[ia], features[b].keypoints[ib]) <= max_epipolar_px
+            rows.append(base[a] + ia[ok])
+            cols.append(base[b] + ib[ok])
+    total = int(base[-1])
+    if not rows:
+        return Tracks(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(total, total))
+    _, label = connected_components(graph, directed=False)
+    node_frame = np.repeat(np.arange(n), counts)
+    node_kp = np.concatenate([np.arange(k) for k in counts])
+    # component sizes and consistency (one keypoint per frame)
+    size = np.bincount(label)
+    used = size[label] >= 2
+    lab, fr = label[used], node_frame[used]
+    pairs = lab.astype(np.int64) * n + fr
+    uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
+    bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
+    frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
+    ok = used & ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
+    xy = np.concatenate([f.keypoints for f in features if len(f)], 0) if total else np.zeros((0, 2))
+    return Tracks.from_obs(node_frame[ok], node_kp[ok], xy[ok], label[ok])

@@ -1,0 +1,181 @@
+"""triangulation: DLT initialisation + robust Levenberg-Marquardt, batched over all tracks.
+
+The refinement follows the paper's supplement: the landmark is parameterised by inverse depth
+(alpha, beta, rho) in an anchor camera of its track, the residual is the reprojection error and the
+cost is Geman-McClure (solved by iteratively re-weighted, damped Gauss-Newton steps). Tracks are
+padded to the longest one, so every step is one numpy operation over all tracks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import camera_centers, inverse
+from .tracking import Tracks
+
+
+@dataclass
+class TriangulationConfig:
+    max_reproj_px: float = 5.0
+    min_angle_deg: float = 1.0
+    robust_c_px: float = 3.0
+    iterations: int = 15
+    min_track: int = 5
+
+
+@dataclass
+class Landmarks:
+    """Triangulated tracks: stage boundary between triangulation and voxels."""
+
+    positions: np.ndarray  # (L, 3) world
+    tracks: Tracks  # observations, track j <-> landmark j
+    reproj_errors: np.ndarray  # (O,) pixels, per observation
+    angles_deg: np.ndarray  # (L,) maximal triangulation angle
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def mean_reproj_error(self) -> np.ndarray:
+        tid = self.tracks.track_of_obs
+        return np.bincount(tid, self.reproj_errors, len(self)) / np.maximum(self.tracks.lengths, 1)
+
+    def select(self, idx: np.ndarray) -> "Landmarks":
+        idx = np.asarray(idx)
+        keep_obs = np.isin(self.tracks.track_of_obs, idx)
+        tr = self.tracks.select(keep_obs)
+        idx = np.sort(idx)  # Tracks.select keeps the track order
+        return Landmarks(self.positions[idx], tr, self.reproj_errors[keep_obs], self.angles_deg[idx])
+
+
+def _pad(tracks: Tracks, values: np.ndarray, fill=0.0):
+    """Scatter per-observation values into a (T, Lmax, ...) array plus a mask."""
+    T = len(tracks)
+    lens = tracks.lengths
+    Lmax = int(lens.max()) if T else 0
+    tid = tracks.track_of_obs
+    pos = np.arange(len(tid)) - tracks.offsets[tid]
+    out = np.full((T, Lmax) + values.shape[1:], fill, dtype=values.dtype)
+    out[tid, pos] = values
+    mask = np.zeros((T, Lmax), bool)
+    mask[tid, pos] = True
+    return out, mask, (tid, pos)
+
+
+def dlt(P: np.ndarray, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Batched linear triangulation. P: (T, L, 3, 4) projection matrices (pixels), xy: (T, L, 2)."""
+    A1 = xy[..., 0:1] * P[..., 2, :] - P[..., 0, :]
+    A2 = xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]
+    A = np.concatenate([A1, A2], axis=1) * np.concatenate([mask, mask], axis=1)[..., None]
+    # normalise rows for conditioning
+    A = A / np.maximum(np.linalg.norm(A, axis=-1, keepdims=True), 1e-12)
+    _, _, Vt = np.linalg.svd(A)
+    X = Vt[:, -1]
+    return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
+
+
+def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig = TriangulationConfig()) -> Landmarks:
+    """Triangulate every track. ``cam_from_world``: (M,4,4) per frame; ``Ks``: (M,3,3) pinhole."""
+    if len(tracks) == 0:
+        return Landmarks(np.zeros((0, 3)), tracks, np.zeros(0), np.zeros(0))
+    fi = tracks.frame_idx
+    Rcw = cam_from_world[fi, :3, :3]  # (O,3,3)
+    tcw = cam_from_world[fi, :3, 3]
+    K = Ks[fi]
+    P = K @ cam_from_world[fi, :3, :]  # (O,3,4)
+    Pp, mask, (tid, pos) = _pad(tracks, P)
+    xyp, _, _ = _pad(tracks, tracks.xy)
+    X0 = dlt(Pp, xyp, mask)
+
+    # --- anchored inverse-depth parameterisation -------------------------------------------------
+    anchor = tracks.frame_idx[tracks.offsets[:-1]]  # first frame of each track
+    wfc_a = inverse(cam_from_world[anchor])
+    R_wa, c_a = wfc_a[:, :3, :3], wfc_a[:, :3, 3]
+    Xa = np.einsum("tji,tj->ti", R_wa, X0 - c_a)  # landmark in anchor camera
+    za = np.where(np.abs(Xa[:, 2]) < 1e-6, 1e-6, Xa[:, 2])
+    theta = np.stack([Xa[:, 0] / za, Xa[:, 1] / za, 1.0 / za], 1)  # (T,3): alpha, beta, rho
+
+    # per observation constants: h = A m + rho b with m = (alpha, beta, 1)
+    A = Rcw @ R_wa[tid]  # (O,3,3)
+    b = np.einsum("oij,oj->oi", Rcw, c_a[tid]) + tcw  # (O,3)
+    fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
+    c2 = config.robust_c_px ** 2
+    lam = np.full(len(tracks), 1e-3)
+
+    def residuals(th):
+        m = np.concatenate([th[tid, :2], np.ones((len(tid), 1))], 1)
+        h = np.einsum("oij,oj->oi", A, m) + th[tid, 2:3] * b
+        hz = np.where(np.abs(h[:, 2]) < 1e-9, 1e-9, h[:, 2])
+        u = fx * h[:, 0] / hz + cx
+        v = fy * h[:, 1] / hz + cy
+        return np.stack([u, v], 1) - tracks.xy, h, hz
+
+    def cost(e):
+        u2 = np.sum(e * e, 1)
+        return np.bincount(tid, 0.5 * c2 * u2 / (c2 + u2), len(tracks))
+
+    e, h, hz = residuals(theta)
+    cur = cost(e)
+    for _ in range(config.iterations):
+        u2 = np.sum(e * e, 1)
+        w = (c2 / (c2 + u2)) ** 2  # Geman-McClure IRLS weight
+        # Jacobian of (u, v) wrt (alpha, beta, rho): (O,2,3)
+        dh = np.concatenate([A[:, :, :2], b[:, :, None]], 2)  # (O,3,3) dh/dtheta
+        J = np.empty((len(tid), 2, 3))
+        J[:, 0] = fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
+        J[:, 1] = fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
+        H = np.zeros((len(tracks), 3, 3))
+        g = np.zeros((len(tracks), 3))
+        np.add.at(H, tid, w[:, None, None] * np.einsum("oki,okj->oij", J, J))
+        np.add.at(g, tid, w[:, None] * np.einsum("oki,ok->oi", J, e))
+        Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
+        try:
+            step = -np.linalg.solve(Hd, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = -np.einsum("tij,tj->ti", np.linalg.pinv(Hd), g)
+        cand = theta + step
+        e_c, h_c, hz_c = residuals(cand)
+        new = cost(e_c)
+        better = np.isfinite(new) & (new < cur)
+        theta = np.where(better[:, None], cand, theta)
+        lam = np.where(better, lam * 0.3, lam * 10.0).clip(1e-9, 1e9)
+        cur = np.where(better, new, cur)
+        e, h, hz = residuals(theta)
+
+    rho = theta[:, 2]
+    rho_safe = np.where(np.abs(rho) < 1e-12, 1e-12, rho)
+    Xa = np.stack([theta[:, 0], theta[:, 1], np.ones(len(theta))], 1) / rho_safe[:, None]
+    X = np.einsum("tij,tj->ti", R_wa, Xa) + c_a
+
+    # --- checks ----------------------------------------------------------------------------------
+    err = np.linalg.norm(e, axis=1)
+    depth = np.einsum("oj,oj->o", Rcw[:, 2], X[tid]) + tcw[:, 2]
+    ok_obs = (err <= config.max_reproj_px) & (depth > 0) & np.isfinite(err) & np.isfinite(X[tid]).all(1)
+    centers = camera_centers(cam_from_world[fi])
+    rays = X[tid] - centers
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    angles = _max_angle(rays, tracks, ok_obs)
+    track_ok = (angles >= config.min_angle_deg) & (rho > 0)
+    keep = ok_obs & track_ok[tid]
+    counts = np.bincount(tid[keep], minlength=len(tracks))
+    keep &= counts[tid] >= config.min_track
+    kept_tracks = np.flatnonzero(np.bincount(tid[keep], minlength=len(tracks)) > 0)
+    new_tracks = tracks.select(keep)
+    return Landmarks(X[kept_tracks], new_tracks, err[keep], angles[kept_tracks])
+
+
+def _max_angle(rays: np.ndarray, tracks: Tracks, valid: np.ndarray) -> np.ndarray:
+    """Largest angle (degrees) between the valid viewing rays of each track (vs. their mean ray)."""
+    tid = tracks.track_of_obs
+    r = np.where(valid[:, None], rays, 0.0)
+    mean = np.zeros((len(tracks), 3))
+    np.add.at(mean, tid, r)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    cos = np.clip(np.sum(rays * mean[tid], 1), -1, 1)
+    ang = np.degrees(np.arccos(cos))
+    ang = np.where(valid, ang, 0.0)
+    out = np.zeros(len(tracks))
+    np.maximum.at(out, tid, ang)
+    return 2.0 * out  # spread of the rays ~ twice the largest deviation from the mean
