@@ -1,0 +1,69 @@
+"""The ``favormap`` command line: a thin layer over the Python API.
+
+Each subcommand lives in its own module here with ``register(subparsers)`` that adds its parser and
+sets ``func``. Every failure ends in one line on stderr and a non-zero exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from ..errors import FavormapError
+
+# subcommand modules, in --help order
+_COMMANDS = ["build", "info", "localize", "eval", "query", "merge", "prune", "export", "validate", "view", "demo"]
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line instead of usage + error
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def make_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
+    p = _Parser(prog="favormap", description="Visual relocalization with persistent feature-voxel maps (FaVoR).")
+    p.add_argument("--version", action="version", version=f"favormap {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in _COMMANDS:
+        try:
+            mod = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"{__name__}.{name}":
+                continue
+            raise
+        mod.register(sub)
+    return p
+
+
+def main(argv=None) -> int:
+    os.environ.setdefault("RERUN_ANALYTICS", "false")  # never phone home (rerun-sdk honours this)
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except FavormapError as e:
+        print(f"favormap {args.command}: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print(f"favormap {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 1
+    except Exception as e:  # noqa: BLE001 - last line of defence: one line, no traceback
+        if args.debug:
+            raise
+        msg = str(e).splitlines()[0] if str(e) else ""
+        print(f"favormap {args.command}: internal error: {type(e).__name__}: {msg} (rerun with --debug for details)", file=sys.stderr)
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""favormap build SEQ -o map.h5"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .common import StageBars, auto_device, human_size, print_json
+
+
+def register(sub):
+    p = sub.add_parser("build", help="build a map from a posed image sequence",
+                       description="Track features through a posed image sequence, triangulate landmarks, train their "
+                                   "feature voxels and write one HDF5 map.")
+    p.add_argument("sequence", help="sequence folder (nerf, 7scenes, colmap, cambridge, tum, llff or favormap layout)")
+    p.add_argument("-o", "--output", required=True, help="map file to write (HDF5)")
+    p.add_argument("--format", help="force the sequence format instead of auto-detecting it")
+    p.add_argument("--resize", type=int, default=640, metavar="MAX_SIDE", help="downscale images to this longest side (0: keep; default 640)")
+    p.add_argument("--extractor", default="xfeat", help="feature extractor (xfeat, sift; default xfeat)")
+    p.add_argument("--max-keypoints", type=int, default=2048)
+    p.add_argument("--min-track", type=int, default=5, help="shortest track that becomes a landmark (default 5)")
+    p.add_argument("--max-landmarks", type=int, default=1500, help="landmark budget (default 1500)")
+    p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
+    p.add_argument("--grid", type=int, default=3, help="voxel grid resolution R (default 3)")
+    p.add_argument("--patch", type=int, default=7, help="descriptor patch size S (default 7)")
+    p.add_argument("--iterations", type=int, default=200, help="voxel training iterations (default 200)")
+    p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def config_from_args(args):
+    from ..build import BuildConfig
+    from ..errors import InputError
+    from ..voxels import VoxelConfig
+
+    for name in ("min_track", "max_landmarks", "grid", "patch", "iterations", "max_keypoints"):
+        if getattr(args, name) < (2 if name in ("min_track", "grid") else 1):
+            raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
+    if args.resize < 0:
+        raise InputError("--resize must be >= 0")
+    vox = VoxelConfig(resolution=args.grid, patch_size=args.patch, iterations=args.iterations, device=auto_device(args.device))
+    return BuildConfig(extractor=args.extractor, max_keypoints=args.max_keypoints, max_side=args.resize, min_track=args.min_track,
+                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, voxel=vox)
+
+
+def summary(m, path: Path) -> dict:
+    st = m.provenance["stats"]
+    return {**st, "file": str(path), "file_size": path.stat().st_size, "timings": m.provenance["timings"],
+            "total_seconds": round(sum(m.provenance["timings"].values()), 2)}
+
+
+def print_summary(s: dict) -> None:
+    print(f"frames              {s['frames']}")
+    print(f"tracks              {s['tracks']}")
+    print(f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']})")
+    print(f"mean track length   {s['mean_track_length']:.2f}")
+    print(f"median reproj error {s['median_reproj_error_px']:.3f} px")
+    print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
+    print(f"file                {s['file']}  ({human_size(s['file_size'])})")
+    print("seconds per stage   " + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items()) + f"  (total {s['total_seconds']:.1f})")
+
+
+def run(args) -> int:
+    from ..build import build_map
+    from ..io import read_sequence
+    from ..mapfile import write_map
+
+    out = Path(args.output)
+    config = config_from_args(args)
+    seq = read_sequence(args.sequence, args.format)
+    bars = StageBars(args.quiet or args.json)
+    try:
+        m = build_map(seq, config, progress=bars)
+    finally:
+        bars.close()
+    write_map(m, out)
+    s = summary(m, out)
+    print_json(s) if args.json else print_summary(s)
+    return 0

@@ -1,0 +1,66 @@
+"""Helpers shared by the subcommands."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+
+def auto_device(name: str | None) -> str:
+    import torch
+
+    if name in (None, "auto"):
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        from ..errors import InputError
+
+        raise InputError("--device cuda requested but no CUDA device is available")
+    return name
+
+
+def print_json(obj) -> None:
+    def default(o):
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        return str(o)
+
+    sys.stdout.write(json.dumps(obj, default=default) + "\n")
+
+
+def human_size(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} B"
+
+
+class StageBars:
+    """One tqdm progress bar per pipeline stage (on stderr); silent when ``quiet``."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self.bars = {}
+
+    def __call__(self, stage: str, done: int, total: int):
+        if self.quiet:
+            return
+        from tqdm import tqdm
+
+        bar = self.bars.get(stage)
+        if bar is None:
+            for b in self.bars.values():
+                b.close()
+            bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit="", leave=True, file=sys.stderr,
+                                          bar_format="{desc} {bar:30} {n_fmt}/{total_fmt} [{elapsed}]")
+        bar.n = done
+        bar.refresh()
+
+    def close(self):
+        for b in self.bars.values():
+            b.close()
+        self.bars = {}

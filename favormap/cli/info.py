@@ -1,0 +1,35 @@
+"""favormap info map.h5 [--json]"""
+
+from __future__ import annotations
+
+from .common import human_size, print_json
+
+
+def register(sub):
+    p = sub.add_parser("info", help="describe a map", description="Print a map's metadata and statistics.")
+    p.add_argument("map")
+    p.add_argument("--json", action="store_true", help="one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..mapfile import Map
+
+    with Map.open(args.map) as m:
+        info = m.info()
+    if args.json:
+        print_json(info)
+        return 0
+    print(f"{info['path']}: favormap map v{info['format_version']} (favormap {info['favormap_version']}, created {info['created']})")
+    print(f"landmarks           {info['num_landmarks']}")
+    print(f"frames / cameras    {info['num_frames']} / {info['num_cameras']}")
+    print(f"extractor           {info['extractor']} ({info['channels']} channels)")
+    print(f"grid / patch        R={info['grid_resolution']} / S={info['patch_size']}  (render samples {info['render_samples']}, images max side {info['max_side']})")
+    if info["num_landmarks"]:
+        print(f"mean track length   {info['mean_track_length']:.2f}")
+        print(f"median reproj error {info['median_reproj_error_px']:.3f} px")
+        print(f"median PSNR         {info['median_psnr']:.2f} dB")
+        lo, hi = info["bbox"]
+        print("bounding box        " + " .. ".join("(" + ", ".join(f"{v:.3f}" for v in c) + ")" for c in (lo, hi)))
+    print(f"file size           {human_size(info['file_size'])}")
+    return 0

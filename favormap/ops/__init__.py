@@ -1,0 +1,1 @@
+"""ops: map operations (visibility, merge, prune, export)."""

@@ -1,0 +1,43 @@
+"""Shared fixtures: small synthetic scenes and maps built by code (no external data)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("RERUN_ANALYTICS", "false")
+
+SMALL = dict(n_frames=16, width=320, height=240, fov_deg=60.0, seed=0)
+
+
+def small_build_config(**over):
+    from favormap.build import BuildConfig
+    from favormap.voxels import VoxelConfig
+
+    vox = VoxelConfig(iterations=over.pop("iterations", 120))
+    cfg = BuildConfig(max_keypoints=1024, max_side=0, max_landmarks=over.pop("max_landmarks", 400), voxel=vox)
+    for k, v in over.items():
+        setattr(cfg, k, v)
+    return cfg
+
+
+@pytest.fixture(scope="session")
+def small_sequence(tmp_path_factory):
+    """A 16-frame 320x240 synthetic room sequence in the favormap layout (with depth maps)."""
+    from favormap.synthetic import write_sequence
+
+    root = tmp_path_factory.mktemp("seq_small")
+    return write_sequence(root, depth=True, **SMALL)
+
+
+@pytest.fixture(scope="session")
+def small_map(small_sequence, tmp_path_factory):
+    """(MapData, path) of a map built from ``small_sequence``."""
+    from favormap.build import build_map
+    from favormap.mapfile import write_map
+
+    m = build_map(small_sequence, small_build_config())
+    path = tmp_path_factory.mktemp("map_small") / "small.h5"
+    write_map(m, path)
+    return m, path
