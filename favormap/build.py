@@ -51,6 +51,18 @@ class FrameFeatures:
     cam_from_world: np.ndarray  # (M, 4, 4)
 
 
+class BuildObserver:
+    """Hooks called at the stage boundaries of :func:`build_map` (e.g. the rerun recorder).
+    Every method is optional; the default does nothing."""
+
+    def on_frames(self, seq: Sequence, ff: FrameFeatures, images: list | None) -> None: ...
+    def on_tracks(self, tracks: Tracks, ff: FrameFeatures) -> None: ...
+    def on_landmarks(self, lms: Landmarks, ff: FrameFeatures) -> None: ...
+    def on_train_step(self, iteration: int, loss: float, psnr: float) -> None: ...
+    def on_map(self, m: MapData, timings: dict) -> None: ...
+    wants_images: bool = False  # keep the working images for on_frames
+
+
 class _Progress:
     """Per-stage progress reporting; ``callback(stage, done, total)``."""
 
@@ -65,12 +77,14 @@ class _Progress:
         self.timings[name] = round(time.perf_counter() - t, 3)
 
 
-def extract_sequence(seq: Sequence, extractor: Extractor, max_side: int, progress=None) -> FrameFeatures:
+def extract_sequence(seq: Sequence, extractor: Extractor, max_side: int, progress=None, keep_images: list | None = None) -> FrameFeatures:
     features, cams = [], []
     for i, fr in enumerate(seq.frames):
         img, wcam = load_image(fr.image_path, seq.cameras[fr.camera_id], max_side)
         features.append(extractor.extract(img))
         cams.append(wcam)
+        if keep_images is not None:
+            keep_images.append(img)
         if progress:
             progress("extract", i + 1, len(seq.frames))
     return FrameFeatures(features, cams, np.stack([f.cam_from_world for f in seq.frames]))
@@ -140,16 +154,22 @@ def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
     return mean, amax, np.stack([dmin, dmax], 1)
 
 
-def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Callable | None = None, logger=None) -> MapData:
-    """Run the whole map-building pipeline on a posed sequence."""
+def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Callable | None = None,
+              observer: BuildObserver | None = None) -> MapData:
+    """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
+    reports progress; ``observer`` sees every stage's result (visualisation, debugging)."""
     pr = _Progress(progress)
+    obs = observer or BuildObserver()
+    images = [] if obs.wants_images else None
     extractor = feats_mod.create(config.extractor, max_keypoints=config.max_keypoints, device=config.voxel.device if config.voxel.device != "cpu" else None)
     with pr.stage("extract"):
-        ff = extract_sequence(seq, extractor, config.max_side, pr.callback)
+        ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images)
+    obs.on_frames(seq, ff, images)
     with pr.stage("track"):
         tracks = track_features(ff.features, ff.cam_from_world, ff.cameras, config.min_track, config.match_window,
                                 config.max_epipolar_px, config.min_similarity)
         pr.callback("track", 1, 1)
+    obs.on_tracks(tracks, ff)
     if len(tracks) == 0:
         raise FavormapError(f"no feature tracks of length >= {config.min_track} in {seq.root}: too few frames, too little overlap, or wrong poses")
     with pr.stage("triangulate"):
@@ -158,13 +178,18 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
         all_lms = triangulate(tracks, ff.cam_from_world, Ks, tri_cfg)
         lms = select_landmarks(all_lms, config.max_landmarks)
         pr.callback("triangulate", 1, 1)
+    obs.on_landmarks(lms, ff)
     if len(lms) == 0:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     with pr.stage("patches"):
         rays = training_rays(lms, ff, extractor, config.voxel.patch_size)
         pr.callback("patches", 1, 1)
     with pr.stage("train"):
-        grids = train_voxels(rays, config.voxel, progress=(lambda it, loss, psnr: pr.callback("train", it + 1, config.voxel.iterations)))
+        def on_step(it, loss, psnr):
+            pr.callback("train", it + 1, config.voxel.iterations)
+            obs.on_train_step(it, loss, psnr)
+
+        grids = train_voxels(rays, config.voxel, progress=on_step)
         pr.callback("train", config.voxel.iterations, config.voxel.iterations)
     view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
     mean_desc = np.zeros((len(lms), extractor.channels), np.float64)
@@ -181,7 +206,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
         "median_cosine": float(np.median(grids.cosine)),
     }
     R = config.voxel.resolution
-    return MapData(
+    m = MapData(
         extractor=config.extractor,
         channels=extractor.channels,
         grid_resolution=R,
@@ -211,3 +236,5 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
         provenance={"source": str(seq.root), "source_format": seq.format, "config": config.to_dict(),
                     "timings": pr.timings, "stats": stats, "training_history": grids.history},
     )
+    obs.on_map(m, pr.timings)
+    return m
