@@ -1,0 +1,174 @@
+"""favormap localize map.h5 query.png --prior pose.txt | favormap localize map.h5 queries/ --priors priors.txt"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .common import auto_device, print_json
+
+IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+
+
+def add_localize_options(p):
+    p.add_argument("--iters", type=int, default=3, help="render-match-PnP iterations (default 3)")
+    p.add_argument("--threshold", type=float, default=0.7, help="descriptor similarity threshold (default 0.7)")
+    p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
+    p.add_argument("--ransac-px", type=float, default=8.0, help="RANSAC inlier threshold in pixels (default 8)")
+    p.add_argument("--min-inliers", type=int, default=12, help="inliers needed for success (default 12)")
+    p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
+
+
+def register(sub):
+    p = sub.add_parser("localize", help="localize query image(s) against a map from a pose prior",
+                       description="Render the descriptors of the landmarks visible from the prior, match them to the "
+                                   "query's features and solve PnP-RANSAC, iteratively. Pose files: a 4x4 world_from_cam "
+                                   "matrix (OpenCV axes) or one line 'tx ty tz qx qy qz qw' (TUM).")
+    p.add_argument("map")
+    p.add_argument("query", help="query image, or a folder of images (with --priors)")
+    p.add_argument("--prior", help="pose file of the prior (world_from_cam)")
+    p.add_argument("--priors", help="for a folder: text file with lines 'IMAGE_NAME tx ty tz qx qy qz qw' or "
+                                    "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major)")
+    p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
+    add_localize_options(p)
+    p.add_argument("--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)")
+    p.add_argument("--output", help="write the estimated pose (world_from_cam 4x4) here; for a folder: one line per image")
+    p.add_argument("--json", action="store_true", help="one JSON object per query")
+    p.set_defaults(func=run)
+
+
+def config_from_args(args):
+    from ..errors import InputError
+    from ..localize import LocalizeConfig
+
+    if args.iters < 1:
+        raise InputError("--iters must be >= 1")
+    if not 0 < args.threshold <= 1:
+        raise InputError("--threshold must be in (0, 1]")
+    return LocalizeConfig(iterations=args.iters, match_threshold=args.threshold, max_keypoints=args.max_keypoints,
+                          ransac_max_error_px=args.ransac_px, min_inliers=args.min_inliers,
+                          descriptors=getattr(args, "descriptors", "rendered"), device=auto_device(args.device))
+
+
+def read_priors(path: Path) -> dict[str, np.ndarray]:
+    """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world."""
+    from ..errors import InputError
+    from ..geometry import inverse, pose_from_quat_t
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"priors file not found: {path}")
+    out = {}
+    for ln, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            nums = np.array([float(x) for x in parts[1:]])
+        except ValueError:
+            raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers") from None
+        if not np.all(np.isfinite(nums)):
+            raise InputError(f"{path}:{ln}: non-finite numbers")
+        if len(nums) == 7:
+            wfc = pose_from_quat_t(nums[3:7], nums[:3])
+        elif len(nums) == 16:
+            wfc = nums.reshape(4, 4)
+        else:
+            raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers, got {len(nums)} numbers")
+        out[parts[0]] = inverse(wfc)
+    if not out:
+        raise InputError(f"priors file {path} holds no poses")
+    return out
+
+
+def run(args) -> int:
+    from ..errors import InputError
+    from ..geometry import inverse
+    from ..io.posefile import read_camera, read_pose, write_pose
+    from ..localize import Localizer
+    from ..mapfile import Map
+
+    query = Path(args.query)
+    if not query.exists():
+        raise InputError(f"query not found: {query}")
+    if query.is_dir():
+        if not args.priors:
+            raise InputError("a folder of queries needs --priors")
+        priors = read_priors(Path(args.priors))
+        images = sorted(p for p in query.iterdir() if p.suffix.lower() in IMAGE_EXT)
+        if not images:
+            raise InputError(f"no images in {query}")
+        jobs = []
+        for p in images:
+            key = p.name if p.name in priors else (p.stem if p.stem in priors else None)
+            if key is None:
+                raise InputError(f"no prior for {p.name} in {args.priors}")
+            jobs.append((p, priors[key]))
+    else:
+        if not args.prior:
+            raise InputError("--prior pose file is required for a single query image")
+        jobs = [(query, read_pose(args.prior))]
+    config = config_from_args(args)
+    m = Map.open(args.map)
+    camera = read_camera(args.camera) if args.camera else None
+    loc = Localizer(m, config)
+    rec = None
+    try:
+        from ..viz import recording_from_args  # rerun flags, when the viz module provides them
+        rec = recording_from_args(args, "favormap localize", m)
+    except ImportError:
+        pass
+    failures = 0
+    lines = []
+    try:
+        for i, (img, prior) in enumerate(jobs):
+            res = loc.localize(img, prior, camera)
+            if rec is not None:
+                rec.log_localization(i, str(img), res, prior)
+            failures += not res.success
+            if args.json:
+                print_json({"query": str(img), **res.to_json()})
+            else:
+                print_result(str(img), res)
+            lines.append((img, res))
+    finally:
+        loc.close()
+        if rec is not None:
+            rec.close()
+    if args.output:
+        from ..mapfile import atomic_path
+
+        if len(jobs) == 1:
+            with atomic_path(Path(args.output)) as tmp:
+                write_pose(tmp, lines[0][1].cam_from_world)
+        else:
+            with atomic_path(Path(args.output)) as tmp:
+                with open(tmp, "w") as fh:
+                    for img, res in lines:
+                        fh.write(img.name + " " + " ".join(f"{v:.9g}" for v in inverse(res.cam_from_world).ravel()) + "\n")
+    if failures:
+        if not args.json:
+            msgs = [f"{img.name}: {res.message}" for img, res in lines if not res.success]
+            print(f"favormap localize: {failures} of {len(jobs)} queries not localized ({msgs[0]})", file=sys.stderr)
+        return 2
+    return 0
+
+
+def print_result(name: str, res) -> None:
+    from ..geometry import camera_centers, rotmat_to_quat
+
+    T = res.cam_from_world
+    status = "localized" if res.success else f"NOT localized: {res.message}"
+    print(f"{name}: {status}")
+    for k, it in enumerate(res.iterations, 1):
+        c = camera_centers(it.cam_from_world)
+        print(f"  iter {k}: visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
+              f"centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f})")
+    if res.success:
+        q = rotmat_to_quat(T[:3, :3])
+        print(f"  cam_from_world: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t ({', '.join(f'{v:.6f}' for v in T[:3, 3])})")
+    print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))
