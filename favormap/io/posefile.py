@@ -1,0 +1,209 @@
+"""Pose, transform and camera files given on the command line (query, localize, merge).
+
+Pose files hold ``world_from_cam`` (camera-to-world, OpenCV camera axes; the 7-Scenes convention):
+
+- a 4x4 matrix as whitespace-separated text (16 numbers; 12 numbers are read as the top 3x4 rows);
+- or one TUM line ``tx ty tz qx qy qz qw`` (optionally preceded by a timestamp: 8 numbers).
+
+Lines starting with ``#`` are comments. :func:`read_pose` returns ``cam_from_world`` (favormap's
+convention everywhere else); :func:`write_pose` writes the 4x4 ``world_from_cam`` text form.
+
+Transform files (``merge --transform``) hold a 4x4 (or 3x4) matrix that maps points of one map's
+world into another's: a rigid transform, or a similarity (uniform scale times rotation).
+
+Camera specs: a COLMAP ``cameras.txt`` line (``ID MODEL W H params...`` or ``MODEL W H params...``),
+a JSON object ``{"model", "width", "height", "params"}``, or a file holding either (for a
+cameras.txt file, its first camera).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import geometry
+from ..errors import InputError
+from .types import SUPPORTED_MODELS, Camera
+
+_ROT_TOL = 1e-3  # orthonormality tolerance of rotation blocks (text files carry few digits)
+
+
+def _read_numbers(path: Path, what: str) -> tuple[np.ndarray, int]:
+    """All numbers of a text file (comments skipped) and the number of non-empty lines."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{what} file not found: {path}")
+    if path.is_dir():
+        raise InputError(f"{what} file {path} is a directory")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read {what} file {path}: {e}") from None
+    lines = [ln.split("#", 1)[0].replace(",", " ").strip() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    tokens = " ".join(lines).split()
+    try:
+        vals = np.array([float(t) for t in tokens], dtype=np.float64)
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise InputError(f"{what} file {path}: not a number: {bad!r}") from None
+    if not np.all(np.isfinite(vals)):
+        raise InputError(f"{what} file {path} contains non-finite numbers (nan/inf)")
+    return vals, len(lines)
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def _project_rotation(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD), to clean up rounding in text files."""
+    U, _, Vt = np.linalg.svd(R)
+    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
+    return U @ D @ Vt
+
+
+def _matrix(vals: np.ndarray, path: Path, what: str) -> np.ndarray:
+    T = np.eye(4)
+    if len(vals) == 16:
+        T[:] = vals.reshape(4, 4)
+        if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+            raise InputError(f"{what} file {path}: the last row of the 4x4 matrix must be 0 0 0 1, got {T[3].tolist()}")
+    else:
+        T[:3] = vals.reshape(3, 4)
+    return T
+
+
+def parse_pose(vals: np.ndarray, n_lines: int = 1, source: str = "<pose>") -> np.ndarray:
+    """world_from_cam 4x4 from 16/12 matrix numbers or 7/8 TUM numbers; raises InputError."""
+    path = source
+    vals = np.asarray(vals, np.float64).ravel()
+    if not np.all(np.isfinite(vals)):
+        raise InputError(f"pose file {path} contains non-finite numbers (nan/inf)")
+    if len(vals) in (16, 12):
+        T = _matrix(vals, path, "pose")
+        if not geometry.is_rigid(T, tol=_ROT_TOL):
+            raise InputError(f"pose file {path}: the rotation block is not a rotation (not orthonormal with det +1)")
+        T[:3, :3] = _project_rotation(T[:3, :3])
+        return T
+    if len(vals) in (7, 8) and n_lines == 1:
+        t, q = vals[-7:-4], vals[-4:]
+        nq = np.linalg.norm(q)
+        if abs(nq - 1) > 1e-2:
+            raise InputError(f"pose file {path}: the quaternion (qx qy qz qw) is not a unit quaternion (norm {nq:.4g})")
+        return geometry.pose_from_quat_t(q / nq, t)
+    raise InputError(f"pose file {path}: expected a 4x4 (16 numbers) or 3x4 (12) world_from_cam matrix, or one TUM line "
+                     f"'tx ty tz qx qy qz qw'; found {len(vals)} number(s) on {n_lines} line(s)")
+
+
+def read_world_from_cam(path) -> np.ndarray:
+    vals, n_lines = _read_numbers(Path(path), "pose")
+    return parse_pose(vals, n_lines, str(path))
+
+
+def read_pose(path) -> np.ndarray:
+    """cam_from_world (4x4, OpenCV axes) of a pose file holding world_from_cam."""
+    return geometry.inverse(read_world_from_cam(path))
+
+
+def write_pose(path, cam_from_world: np.ndarray) -> Path:
+    """Write ``cam_from_world`` as a 4x4 world_from_cam text matrix (readable by :func:`read_pose`)."""
+    T = np.asarray(cam_from_world, np.float64)
+    if not geometry.is_rigid(T, tol=_ROT_TOL):
+        raise InputError("write_pose: cam_from_world is not a rigid 4x4 transform")
+    path = Path(path)
+    np.savetxt(path, geometry.inverse(T), fmt="%.12g")
+    return path
+
+
+def format_pose_tum(cam_from_world: np.ndarray) -> str:
+    """One TUM line ``tx ty tz qx qy qz qw`` of world_from_cam."""
+    w = geometry.inverse(np.asarray(cam_from_world, np.float64))
+    q = geometry.rotmat_to_quat(w[:3, :3])
+    return " ".join(f"{v:.9g}" for v in np.r_[w[:3, 3], q])
+
+
+def read_transform(path, allow_scale: bool = True) -> tuple[np.ndarray, float]:
+    """A 4x4 transform file (rigid, or a similarity s*R|t with ``allow_scale``). Returns the 4x4
+    matrix (rotation block cleaned up) and the scale ``s``."""
+    path = Path(path)
+    vals, n_lines = _read_numbers(path, "transform")
+    if len(vals) not in (16, 12):
+        raise InputError(f"transform file {path}: expected a 4x4 (16 numbers) or 3x4 (12 numbers) matrix, found {len(vals)} number(s)")
+    T = _matrix(vals, path, "transform")
+    A = T[:3, :3]
+    det = float(np.linalg.det(A))
+    if det <= 0:
+        raise InputError(f"transform file {path}: the 3x3 block is not a rotation (determinant {det:.4g} <= 0)")
+    s = det ** (1 / 3)
+    if not allow_scale and abs(s - 1) > _ROT_TOL:
+        raise InputError(f"transform file {path}: expected a rigid transform, but it scales by {s:.6g}")
+    R = A / s
+    if not np.allclose(R.T @ R, np.eye(3), atol=_ROT_TOL):
+        raise InputError(f"transform file {path}: not a rigid (or uniformly scaled) transform: the 3x3 block is not a scaled rotation")
+    T[:3, :3] = s * _project_rotation(R)
+    return T, s
+
+
+# -- cameras ----------------------------------------------------------------------------------------
+def _camera_from_tokens(tokens: list[str], source: str) -> Camera:
+    if tokens and tokens[0].lstrip("-").isdigit():  # ID MODEL W H params...
+        tokens = tokens[1:]
+    if len(tokens) < 3:
+        raise InputError(f"camera {source}: expected 'MODEL WIDTH HEIGHT params...' (COLMAP cameras.txt line)")
+    model = tokens[0].upper()
+    if model not in SUPPORTED_MODELS:
+        raise InputError(f"camera {source}: unsupported camera model {tokens[0]!r} (supported: {', '.join(SUPPORTED_MODELS)})")
+    try:
+        w, h = int(tokens[1]), int(tokens[2])
+        params = [float(t) for t in tokens[3:]]
+    except ValueError:
+        raise InputError(f"camera {source}: width/height must be integers and params numbers: {' '.join(tokens)!r}") from None
+    return Camera(model, w, h, params)
+
+
+def _camera_from_json(obj, source: str) -> Camera:
+    if isinstance(obj, list) and len(obj) == 1:
+        obj = obj[0]
+    if not isinstance(obj, dict) or not {"model", "width", "height", "params"} <= set(obj):
+        raise InputError(f"camera {source}: a JSON camera needs the keys model, width, height, params")
+    try:
+        return Camera(str(obj["model"]).upper(), int(obj["width"]), int(obj["height"]), [float(p) for p in obj["params"]])
+    except (TypeError, ValueError):
+        raise InputError(f"camera {source}: invalid JSON camera {obj}") from None
+
+
+def read_camera(spec) -> Camera:
+    """A Camera from a COLMAP cameras.txt line, a JSON string, or a file holding either."""
+    if isinstance(spec, Camera):
+        return spec
+    if isinstance(spec, dict):
+        return _camera_from_json(spec, "<dict>")
+    spec = str(spec)
+    text, source = spec.strip(), repr(spec)
+    looks_inline = text.startswith("{") or len(text.split()) >= 3
+    if not looks_inline:
+        path = Path(spec)
+        if not path.is_file():
+            raise InputError(f"camera file not found: {path} (or give a COLMAP camera line 'MODEL W H params...' or a JSON camera)")
+        try:
+            text = path.read_text().strip()
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(f"cannot read camera file {path}: {e}") from None
+        source = str(path)
+    if text.startswith("{") or text.startswith("["):
+        try:
+            obj = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"camera {source}: invalid JSON ({e})") from None
+        return _camera_from_json(obj, source)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise InputError(f"camera {source}: no camera found")
+    return _camera_from_tokens(lines[0].split(), source)

@@ -1,0 +1,116 @@
+"""Localization on the synthetic room: accuracy from perturbed and constant priors, laziness, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from favormap.geometry import inverse, perturb_pose, pose_error
+from favormap.localize import LocalizeConfig, Localizer, match_descriptors
+
+
+@pytest.fixture(scope="module")
+def queries(small_sequence):
+    from favormap.synthetic import make_room, random_views_near, render
+
+    scene = make_room(0)
+    poses = [f.cam_from_world for f in small_sequence.frames]
+    views = random_views_near(poses, 6, seed=7, max_trans=0.1, max_rot_deg=5.0, scene=scene)
+    cam = small_sequence.cameras[0]
+    return [(render(scene, cam, T)[0], T) for T in views]
+
+
+def test_perturbed_prior_converges_to_sub_centimetre(small_map, queries):
+    _, path = small_map
+    rng = np.random.default_rng(0)
+    loc = Localizer(path, LocalizeConfig(iterations=3))
+    errs = []
+    for img, T in queries:
+        prior = perturb_pose(T, 0.3, 15.0, rng)
+        res = loc.localize(img, prior)
+        assert res.success, res.message
+        assert res.iterations[-1].num_inliers >= 30
+        errs.append(pose_error(res.cam_from_world, T))
+    errs = np.array(errs)
+    assert np.median(errs[:, 0]) <= 0.005, errs
+    assert np.median(errs[:, 1]) <= 0.2, errs
+    # the prior really was far off
+    assert pose_error(prior, T)[0] > 0.29
+
+
+def test_constant_prior_succeeds(small_map, queries):
+    m, path = small_map
+    loc = Localizer(path, LocalizeConfig(iterations=3))
+    ok = [loc.localize(img, m.cam_from_world[0]).success for img, _ in queries]
+    assert np.mean(ok) >= 0.9
+
+
+def test_localizing_reads_only_visible_voxels(small_map, queries):
+    m, path = small_map
+    loc = Localizer(path, LocalizeConfig(iterations=1))
+    assert loc.map.bytes_read == 0  # opening reads metadata only
+    img, T = queries[0]
+    res = loc.localize(img, T)
+    assert res.success
+    per_landmark = m.grid_resolution ** 3 * (m.channels * 2 + 4)  # float16 descriptors + float32 density
+    visible = res.iterations[0].num_visible
+    assert visible < m.num_landmarks
+    assert loc.map.bytes_read == visible * per_landmark  # exactly the visible landmarks' grids
+
+
+def test_prior_facing_away_fails_cleanly(small_map, queries):
+    _, path = small_map
+    img, T = queries[0]
+    wfc = inverse(T)
+    wfc[:3, :3] = wfc[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turn around the y axis
+    res = Localizer(path).localize(img, inverse(wfc))
+    assert not res.success and "inliers" in res.message
+
+
+def test_matching_keeps_best_above_threshold():
+    import torch
+
+    r = torch.nn.functional.normalize(torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]), dim=-1)
+    q = torch.nn.functional.normalize(torch.tensor([[0.9, 0.1, 0], [0, 1.0, 0.05], [1, 1, 1.0]]), dim=-1)
+    m = match_descriptors(r, q, 0.7)
+    assert m.tolist() == [[0, 0], [1, 1]]
+
+
+def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_path, capsys):
+    from favormap.cli import main
+
+    _, path = small_map
+    fr = small_sequence.frames[5]
+    pose = tmp_path / "prior.txt"
+    rng = np.random.default_rng(1)
+    np.savetxt(pose, inverse(perturb_pose(fr.cam_from_world, 0.1, 5.0, rng)))
+    out = tmp_path / "est.txt"
+    assert main(["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json", "--output", str(out)]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for k in ("success", "world_from_cam", "cam_from_world", "num_matches", "num_inliers", "iterations", "timings"):
+        assert k in res
+    est = np.loadtxt(out)
+    assert pose_error(inverse(est), fr.cam_from_world)[0] < 0.01
+    # TUM one-line prior looking away: not localized, exit code 2, still JSON
+    wfc = inverse(fr.cam_from_world)
+    from favormap.geometry import rotmat_to_quat
+
+    R = wfc[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    pose.write_text(" ".join(map(str, [*wfc[:3, 3], *rotmat_to_quat(R)])))
+    assert main(["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json"]) == 2
+    assert json.loads(capsys.readouterr().out)["success"] is False
+
+
+def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
+    from favormap.cli import main
+
+    _, path = small_map
+    root = str(small_sequence.root)
+    assert main(["eval", str(path), root, "--every", "5", "--json", "--noise", "0.2,10"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["methods"]) == {"rendered", "mean"}
+    for s in out["methods"].values():
+        assert s["success_rate"] == 1.0
+        assert len(s["per_iteration"]) == 3
