@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, auto_device, human_size, print_json
 
 
@@ -26,6 +27,7 @@ def register(sub):
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_rerun_args(p)
     p.set_defaults(func=run)
 
 
@@ -70,10 +72,13 @@ def run(args) -> int:
     config = config_from_args(args)
     seq = read_sequence(args.sequence, args.format)
     bars = StageBars(args.quiet or args.json)
+    rec = recording_from_args(args, "favormap build")
     try:
-        m = build_map(seq, config, progress=bars)
+        m = build_map(seq, config, progress=bars, observer=rec.build_observer() if rec else None)
     finally:
         bars.close()
+        if rec is not None:
+            rec.close()
     write_map(m, out)
     s = summary(m, out)
     print_json(s) if args.json else print_summary(s)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, print_json
 from .localize import add_localize_options, config_from_args
 
@@ -22,6 +23,7 @@ def register(sub):
     add_localize_options(p)
     p.add_argument("--json", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true")
+    add_rerun_args(p)
     p.set_defaults(func=run)
 
 
@@ -62,15 +64,11 @@ def run(args) -> int:
     m = Map.open(args.map)
     loc = Localizer(m, lcfg)
     bars = StageBars(args.quiet or args.json)
-    rec = None
-    try:
-        from ..viz import recording_from_args
-        rec = recording_from_args(args, "favormap eval", m)
-    except ImportError:
-        pass
+    rec = recording_from_args(args, "favormap eval", m)
     try:
         reports = evaluate(loc, queries, cfg, progress=bars,
-                           on_query=(lambda method, i, o: rec.log_eval_query(method, i, o)) if rec is not None else None)
+                           on_query=(lambda method, i, o: rec.log_eval_query(method, i, o, queries.frames[i], queries.cameras[queries.frames[i].camera_id]))
+                           if rec is not None else None)
     finally:
         bars.close()
         loc.close()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..viz import add_rerun_args, recording_from_args
 from .common import auto_device, print_json
 
 IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
@@ -37,6 +38,7 @@ def register(sub):
     p.add_argument("--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)")
     p.add_argument("--output", help="write the estimated pose (world_from_cam 4x4) here; for a folder: one line per image")
     p.add_argument("--json", action="store_true", help="one JSON object per query")
+    add_rerun_args(p)
     p.set_defaults(func=run)
 
 
@@ -116,19 +118,14 @@ def run(args) -> int:
     m = Map.open(args.map)
     camera = read_camera(args.camera) if args.camera else None
     loc = Localizer(m, config)
-    rec = None
-    try:
-        from ..viz import recording_from_args  # rerun flags, when the viz module provides them
-        rec = recording_from_args(args, "favormap localize", m)
-    except ImportError:
-        pass
+    rec = recording_from_args(args, "favormap localize", m)
     failures = 0
     lines = []
     try:
         for i, (img, prior) in enumerate(jobs):
             res = loc.localize(img, prior, camera)
             if rec is not None:
-                rec.log_localization(i, str(img), res, prior)
+                rec.log_localization(i, str(img), res, prior, camera=camera)
             failures += not res.success
             if args.json:
                 print_json({"query": str(img), **res.to_json()})

@@ -4,21 +4,30 @@ from __future__ import annotations
 
 import json
 from collections import OrderedDict
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from ..errors import MapFormatError
+from ..errors import FavormapError, MapFormatError
 from ..io import Camera
 from .model import MapData
-from .schema import FORMAT, FORMAT_VERSION, check_file
+from .schema import FORMAT, check_structure, check_values, open_view
 
 _LANDMARK_ARRAYS = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine",
                     "view_dir", "view_angle", "depth_range")
 
 
+def _first_line(e: BaseException) -> str:
+    s = str(e).strip()
+    return s.splitlines()[0] if s else type(e).__name__
+
+
 def _open_h5(path: Path) -> h5py.File:
+    """Open read-only without HDF5 file locking: a map at its final path is complete and never
+    modified (writers write beside it and rename), so readers need no lock, and locking fails on
+    file systems without it (NFS, some containers)."""
     path = Path(path)
     if not path.exists():
         raise MapFormatError(f"map not found: {path}")
@@ -26,41 +35,52 @@ def _open_h5(path: Path) -> h5py.File:
         raise MapFormatError(f"{path} is a directory, not a map file")
     try:
         return h5py.File(path, "r", locking=False)
+    except Exception as e:  # noqa: BLE001 - OSError mostly; anything from a hostile file
+        if isinstance(e, OSError) and "truncated" in str(e):
+            raise MapFormatError(f"{path} is not a complete favormap map (truncated HDF5 file)") from None
+        raise MapFormatError(f"{path} is not a favormap map (not a readable HDF5 file: {_first_line(e)})") from None
+
+
+@contextmanager
+def _guard(path: Path, what: str):
+    """Any failure of h5py on a damaged file becomes one MapFormatError (OSError: checksum or I/O)."""
+    try:
+        yield
+    except FavormapError:
+        raise
     except OSError as e:
-        raise MapFormatError(f"{path} is not a favormap map (not a readable HDF5 file: {str(e).splitlines()[0]})") from None
+        raise MapFormatError(f"{path}: {what} is corrupted (checksum or read error: {_first_line(e)})") from None
+    except Exception as e:  # noqa: BLE001 - h5py/numpy raise KeyError, ValueError, RuntimeError, ... on damage
+        raise MapFormatError(f"{path}: {what} is corrupted ({type(e).__name__}: {_first_line(e)})") from None
 
 
-def _check_header(f: h5py.File, path: Path):
-    fmt = f.attrs.get("format")
-    if isinstance(fmt, bytes):
-        fmt = fmt.decode()
-    if fmt != FORMAT:
-        raise MapFormatError(f"{path} is not a favormap map (HDF5 file without format={FORMAT!r}; maybe incomplete)")
-    ver = f.attrs.get("format_version")
-    if not isinstance(ver, (int, np.integer)):
-        raise MapFormatError(f"{path}: missing or invalid format_version")
-    if ver > FORMAT_VERSION:
-        raise MapFormatError(f"{path} has map format version {ver}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap")
-    if ver < 1:
-        raise MapFormatError(f"{path}: invalid format_version {ver}")
+def _strings(a) -> list[str]:
+    return [s.decode("utf-8", "replace") if isinstance(s, bytes) else str(s) for s in np.asarray(a).ravel().tolist()]
 
 
 class Map:
     """A favormap map opened lazily. Landmark metadata is in memory; voxel grids are read for the
-    landmarks asked for, in sorted chunk reads, through a small LRU cache."""
+    landmarks asked for, in sorted chunk reads, through a small LRU cache.
+
+    Opening checks the header (refusing newer format versions), the structure against the schema
+    and the values of the arrays read at open; maps of older versions are migrated in memory.
+    Every problem of a damaged file surfaces as :class:`~favormap.errors.MapFormatError`."""
 
     def __init__(self, path, cache_size: int = 4096):
         self.path = Path(path)
+        self._f = None
         self._f = _open_h5(self.path)
         self.bytes_read = 0  # voxel bytes read from disk (tests and benchmarks look at it)
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.cache_size = cache_size
         try:
-            _check_header(self._f, self.path)
-            problems = check_file(self._f)
+            with _guard(self.path, "the file header"):
+                view = open_view(self._f, self.path)
+            problems = check_structure(view)
             if problems:
                 raise MapFormatError(f"{self.path} is not a valid favormap map: {problems[0]}" + (f" (+{len(problems) - 1} more problems; run favormap validate)" if len(problems) > 1 else ""))
-            a = self._f.attrs
+            self._view = view
+            a = view.attrs
             self.extractor = str(a["extractor"])
             self.channels = int(a["channels"])
             self.grid_resolution = int(a["grid_resolution"])
@@ -71,29 +91,44 @@ class Map:
             self.created = str(a["created"])
             self.favormap_version = str(a["favormap_version"])
             self.provenance = json.loads(a["provenance"])
-            g = self._f["landmarks"]
-            self.ids = g["ids"][()]
+            arrays = {}
+            for p in ("landmarks/ids", *(f"landmarks/{k}" for k in _LANDMARK_ARRAYS), "frames/names",
+                      "frames/camera_ids", "frames/cam_from_world", "cameras/ids", "cameras/models",
+                      "cameras/sizes", "cameras/params"):
+                with _guard(self.path, repr(p)):
+                    arrays[p] = self._ds(p)[()]
+            self._check_values(arrays)
+            self.ids = arrays["landmarks/ids"]
             for k in _LANDMARK_ARRAYS:
-                setattr(self, k, g[k][()])
-            fr = self._f["frames"]
-            self.frame_names = [s.decode() if isinstance(s, bytes) else str(s) for s in fr["names"][()]]
-            self.frame_camera_ids = fr["camera_ids"][()]
-            self.cam_from_world = fr["cam_from_world"][()]
-            c = self._f["cameras"]
-            models = [s.decode() if isinstance(s, bytes) else str(s) for s in c["models"][()]]
-            self.cameras = {}
-            for cid, model, (w, h), params in zip(c["ids"][()], models, c["sizes"][()], c["params"][()]):
-                from ..io.types import SUPPORTED_MODELS
+                setattr(self, k, arrays[f"landmarks/{k}"])
+            self.frame_names = _strings(arrays["frames/names"])
+            self.frame_camera_ids = arrays["frames/camera_ids"]
+            self.cam_from_world = arrays["frames/cam_from_world"]
+            from ..io.types import SUPPORTED_MODELS
 
-                n = len(SUPPORTED_MODELS.get(model, ()))
-                self.cameras[int(cid)] = Camera(model, int(w), int(h), params[:n])
-        except MapFormatError:
-            self._f.close()
-            raise
-        except (OSError, KeyError, ValueError, TypeError, json.JSONDecodeError) as e:
-            self._f.close()
-            raise MapFormatError(f"{self.path} is corrupted: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
+            self.cameras = {}
+            for cid, model, (w, h), params in zip(arrays["cameras/ids"], _strings(arrays["cameras/models"]),
+                                                  arrays["cameras/sizes"], arrays["cameras/params"]):
+                try:
+                    self.cameras[int(cid)] = Camera(model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])])
+                except FavormapError as e:
+                    raise MapFormatError(f"{self.path}: invalid camera {int(cid)}: {e}") from None
+        except BaseException as e:
+            self.close()
+            if isinstance(e, FavormapError) or not isinstance(e, Exception):
+                raise
+            raise MapFormatError(f"{self.path} is corrupted: {type(e).__name__}: {_first_line(e)}") from None
         self._index = None
+
+    def _ds(self, path: str):
+        return self._view.datasets[path]
+
+    def _check_values(self, arrays: dict):
+        dims = self._view.dims()
+        for p, a in arrays.items():
+            problems = check_values(p, a, dims, arrays)[0]
+            if problems:
+                raise MapFormatError(f"{self.path} is not a valid favormap map: {problems[0]} (run favormap validate)")
 
     # -- basics ----------------------------------------------------------------------------------
     @classmethod
@@ -101,9 +136,12 @@ class Map:
         return cls(path, **kw)
 
     def close(self):
-        if self._f:
-            self._f.close()
-            self._f = None
+        f, self._f = self._f, None
+        if f is not None:
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - closing a damaged file must not mask the real error
+                pass
 
     def __enter__(self):
         return self
@@ -177,45 +215,50 @@ class Map:
 
     def _read_rows(self, rows: np.ndarray):
         """Read sorted landmark rows: contiguous runs are read with one slice each."""
-        dd = self._f["voxels/descriptors"]
-        ds = self._f["voxels/density"]
+        if self._f is None:
+            raise MapFormatError(f"{self.path}: map is closed")
+        dd = self._ds("voxels/descriptors")
+        ds = self._ds("voxels/density")
         R3 = self.grid_resolution ** 3
         out_d = np.empty((len(rows), R3, self.channels), np.float32)
         out_s = np.empty((len(rows), R3), np.float32)
         breaks = np.flatnonzero(np.diff(rows) != 1) + 1
-        try:
+        with _guard(self.path, "voxel data"):
             for run in np.split(np.arange(len(rows)), breaks):
                 a, b = int(rows[run[0]]), int(rows[run[-1]]) + 1
                 out_d[run] = dd[a:b].reshape(b - a, R3, self.channels)
                 out_s[run] = ds[a:b].reshape(b - a, R3)
                 self.bytes_read += (b - a) * R3 * (self.channels * dd.dtype.itemsize + ds.dtype.itemsize)
-        except OSError as e:
-            raise MapFormatError(f"{self.path}: voxel data is corrupted (checksum or read error: {str(e).splitlines()[0]})") from None
         return out_d, out_s
 
     def mean_descriptors(self, rows) -> np.ndarray:
-        rows = np.asarray(rows, np.int64)
-        order = np.argsort(rows)
+        rows = np.asarray(rows, np.int64).ravel()
+        if len(rows) and (rows.min() < 0 or rows.max() >= len(self)):
+            raise IndexError("landmark row out of range")
         out = np.empty((len(rows), self.channels), np.float32)
-        try:
-            out[order] = self._f["landmarks/mean_descriptor"][rows[order]] if len(rows) else out
-        except (OSError, TypeError) as e:
-            raise MapFormatError(f"{self.path}: corrupted mean descriptors ({e})") from None
+        if len(rows):
+            uniq, inv = np.unique(rows, return_inverse=True)  # h5py wants increasing, unique indices
+            with _guard(self.path, "'landmarks/mean_descriptor'"):
+                out[:] = self._ds("landmarks/mean_descriptor")[uniq][inv.ravel()]
         return out
 
     def tracks(self):
-        g = self._f["tracks"]
-        return g["landmark_index"][()], g["frame_index"][()], g["xy"][()]
+        """(landmark_index, frame_index, xy) of all observations, checked against the schema."""
+        arrays = {}
+        for p in ("tracks/landmark_index", "tracks/frame_index", "tracks/xy"):
+            with _guard(self.path, repr(p)):
+                arrays[p] = self._ds(p)[()]
+        self._check_values(arrays)
+        return arrays["tracks/landmark_index"], arrays["tracks/frame_index"], arrays["tracks/xy"]
 
     def load(self) -> MapData:
         """Everything in memory (for merge/prune/export of small maps)."""
         R = self.grid_resolution
-        try:
-            vd = self._f["voxels/descriptors"][()].astype(np.float32)
-            vs = self._f["voxels/density"][()].astype(np.float32)
-            md = self._f["landmarks/mean_descriptor"][()].astype(np.float32)
-        except OSError as e:
-            raise MapFormatError(f"{self.path}: voxel data is corrupted ({str(e).splitlines()[0]})") from None
+        with _guard(self.path, "voxel data"):
+            vd = self._ds("voxels/descriptors")[()].astype(np.float32)
+            vs = self._ds("voxels/density")[()].astype(np.float32)
+        with _guard(self.path, "'landmarks/mean_descriptor'"):
+            md = self._ds("landmarks/mean_descriptor")[()].astype(np.float32)
         tl, tf, txy = self.tracks()
         return MapData(
             extractor=self.extractor, channels=self.channels, grid_resolution=R, patch_size=self.patch_size,

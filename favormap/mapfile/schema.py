@@ -1,16 +1,41 @@
-"""The map layout contract: loads ``schemas/favormap-map.v<N>.json`` and checks files against it."""
+"""The map layout contract: loads ``schemas/favormap-map.v<N>.json`` and checks maps against it.
+
+Three levels of checks, all driven by the schema (the single source of truth):
+
+* :func:`check_header` - the magic ``format`` attribute and ``format_version`` (newer: refused);
+* :func:`check_structure` - attributes (types, constants, minima, JSON), datasets (presence,
+  dtype, shape, shared dimensions, chunking + Fletcher-32);
+* :func:`check_values` - the ``values`` constraints of each dataset (finite numbers, unique
+  non-zero ids, index ranges, unit vectors, rigid poses, ...), on arrays already in memory.
+
+Compatibility: a reader of version ``FORMAT_VERSION`` reads every version ``<=`` it. A file of
+version V is viewed through schema V (:class:`MapView`) and upgraded in memory by ``MIGRATIONS[V]``,
+``MIGRATIONS[V + 1]``, ... up to ``FORMAT_VERSION``; newer files are refused with a clear message.
+"""
 
 from __future__ import annotations
 
 import json
+from datetime import datetime
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
+from ..errors import MapFormatError
+
 FORMAT = "favormap-map"
 FORMAT_VERSION = 1
+
+# MIGRATIONS[V](view) upgrades a MapView of version V to version V + 1 in memory: rename or derive
+# datasets/attributes (view.datasets values may become numpy arrays), then set view.version = V + 1.
+# Keep every old schemas/favormap-map.v<V>.json and document the change in its "migrations" section.
+MIGRATIONS: dict[int, Callable[["MapView"], None]] = {}
+
+# the dimension symbols that root attributes fix (the others, K and O, come from the datasets)
+ATTR_DIMS = (("C", "channels"), ("R", "grid_resolution"), ("L", "num_landmarks"), ("M", "num_frames"))
 
 
 def _schema_dir() -> Path:
@@ -22,7 +47,11 @@ def _schema_dir() -> Path:
 
 @lru_cache(maxsize=None)
 def load_schema(version: int = FORMAT_VERSION) -> dict:
-    return json.loads((_schema_dir() / f"favormap-map.v{version}.json").read_text())
+    path = _schema_dir() / f"favormap-map.v{int(version)}.json"
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise MapFormatError(f"no schema for map format version {version} ({path} is missing; broken installation?)") from None
 
 
 def numpy_dtype(name: str):
@@ -31,60 +60,316 @@ def numpy_dtype(name: str):
     return h5py.string_dtype() if name == "str" else np.dtype(name)
 
 
-def check_file(f, version: int = FORMAT_VERSION) -> list[str]:
-    """All problems of an open h5py.File against the schema (empty list: valid)."""
-    import h5py
+def _first_line(e: BaseException) -> str:
+    s = str(e).strip()
+    return s.splitlines()[0] if s else type(e).__name__
 
-    schema = load_schema(version)
-    problems: list[str] = []
-    attrs = f.attrs
-    dims: dict[str, int] = {}
-    for name, spec in schema["attributes"].items():
+
+# -- header -----------------------------------------------------------------------------------------
+def _attr(attrs, name):
+    v = attrs.get(name) if hasattr(attrs, "get") else None
+    if isinstance(v, bytes):
+        try:
+            v = v.decode()
+        except UnicodeDecodeError:
+            pass
+    if isinstance(v, np.ndarray) and v.shape == ():
+        v = v[()]
+    return v
+
+
+def check_header(attrs, path="map") -> int:
+    """The format version of a file with root attributes ``attrs``; raises MapFormatError for a
+    foreign file (no magic), an invalid version, or a version newer than this favormap reads."""
+    fmt = _attr(attrs, "format")
+    if fmt != FORMAT:
+        if fmt is None:
+            raise MapFormatError(f"{path} is not a favormap map (HDF5 file without format={FORMAT!r}; foreign or incompletely written)")
+        raise MapFormatError(f"{path} is not a favormap map (format attribute is {fmt!r}, expected {FORMAT!r})")
+    ver = _attr(attrs, "format_version")
+    if isinstance(ver, (bool, np.bool_)) or not isinstance(ver, (int, np.integer)):
+        raise MapFormatError(f"{path}: missing or invalid format_version ({ver!r})")
+    ver = int(ver)
+    if ver > FORMAT_VERSION:
+        raise MapFormatError(f"{path} has map format version {ver}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap")
+    if ver < 1:
+        raise MapFormatError(f"{path}: invalid format_version {ver}")
+    return ver
+
+
+# -- a map's content, version independent ----------------------------------------------------------
+class MapView:
+    """The attributes and datasets of a map as one schema version sees them. ``datasets`` maps
+    schema paths to h5py datasets (read lazily) or, after a migration, numpy arrays; None when
+    missing, or a string describing why the path is not a usable dataset."""
+
+    def __init__(self, attrs: dict, datasets: dict, version: int):
+        self.attrs = attrs
+        self.datasets = datasets
+        self.version = version
+        self.extra: list[str] = []  # datasets in the file that the schema does not know
+
+    @classmethod
+    def from_file(cls, f, version: int) -> "MapView":
+        import h5py
+
+        attrs = {}
+        for k in f.attrs.keys():
+            attrs[k] = _attr(f.attrs, k)
+        datasets = {}
+        for p in load_schema(version)["datasets"]:
+            try:
+                obj = f.get(p)
+            except Exception as e:  # noqa: BLE001 - h5py raises many types on broken links/headers
+                datasets[p] = f"cannot be opened ({_first_line(e)})"
+                continue
+            if obj is not None and not isinstance(obj, h5py.Dataset):
+                obj = f"is a {type(obj).__name__.lower()}, not a dataset"
+            datasets[p] = obj
+        view = cls(attrs, datasets, version)
+        known = set(load_schema(version)["datasets"])
+        groups = {p.split("/")[0] for p in known}
+        for g in sorted(set(f.keys())):
+            obj = f.get(g)
+            if g not in groups:
+                view.extra.append(g)
+            elif isinstance(obj, h5py.Group):
+                view.extra += [f"{g}/{k}" for k in obj.keys() if f"{g}/{k}" not in known]
+        return view
+
+    def upgrade(self, to: int | None = None) -> "MapView":
+        """Apply the migrations from ``self.version`` up to ``to`` (default: FORMAT_VERSION)."""
+        to = FORMAT_VERSION if to is None else to
+        while self.version < to:
+            step = MIGRATIONS.get(self.version)
+            if step is None:
+                raise MapFormatError(f"no migration from map format version {self.version} to {self.version + 1} (broken installation?)")
+            v = self.version
+            step(self)
+            self.version = v + 1
+        return self
+
+    def dims(self) -> dict[str, int]:
+        return {sym: int(self.attrs[a]) for sym, a in ATTR_DIMS if _is_int(self.attrs.get(a))}
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def open_view(f, path="map", version: int | None = None) -> MapView:
+    """Header check, then the file viewed through its own schema and migrated to ``version``."""
+    ver = check_header(f.attrs, path)
+    return MapView.from_file(f, ver).upgrade(version)
+
+
+# -- structure --------------------------------------------------------------------------------------
+def check_attributes(attrs: dict, version: int = FORMAT_VERSION, values: bool = False) -> list[str]:
+    """Problems of the root attributes (types, constants, minima, provenance JSON). With ``values``
+    also the cosmetic format checks (ISO date of ``created``, non-empty strings)."""
+    problems = []
+    for name, spec in load_schema(version)["attributes"].items():
         if name not in attrs:
             problems.append(f"missing root attribute {name!r}")
             continue
         v = attrs[name]
-        if isinstance(v, bytes):
-            v = v.decode()
-        if spec["type"] == "str" and not isinstance(v, str):
-            problems.append(f"attribute {name!r} should be a string")
-        elif spec["type"] == "int":
-            if not isinstance(v, (int, np.integer)):
-                problems.append(f"attribute {name!r} should be an integer")
+        if spec["type"] == "str":
+            if not isinstance(v, str):
+                problems.append(f"attribute {name!r} should be a string, not {type(v).__name__}")
                 continue
-            if v < spec.get("min", -np.inf):
+            if spec.get("json") == "object":
+                try:
+                    obj = json.loads(v)
+                except ValueError as e:
+                    problems.append(f"attribute {name!r} is not valid JSON ({_first_line(e)})")
+                    continue
+                if not isinstance(obj, dict):
+                    problems.append(f"attribute {name!r} should be a JSON object, not {type(obj).__name__}")
+            if values and spec.get("nonempty") and not v.strip():
+                problems.append(f"attribute {name!r} is empty")
+            if values and spec.get("format") == "date-time":
+                try:
+                    datetime.fromisoformat(v)
+                except ValueError:
+                    problems.append(f"attribute {name!r} = {v!r} is not an ISO 8601 date-time")
+        elif spec["type"] == "int":
+            if not _is_int(v):
+                problems.append(f"attribute {name!r} should be an integer, not {type(v).__name__}")
+                continue
+            if "min" in spec and v < spec["min"]:
                 problems.append(f"attribute {name!r} = {v} is below {spec['min']}")
         if "const" in spec and v != spec["const"]:
             problems.append(f"attribute {name!r} is {v!r}, expected {spec['const']!r}")
-    for sym, attr in (("C", "channels"), ("R", "grid_resolution"), ("L", "num_landmarks"), ("M", "num_frames")):
-        if attr in attrs and isinstance(attrs[attr], (int, np.integer)):
-            dims[sym] = int(attrs[attr])
-    for path, spec in schema["datasets"].items():
-        obj = f.get(path)
+    return problems
+
+
+def check_datasets(view: MapView, version: int = FORMAT_VERSION, h5: bool = True, broken: set | None = None) -> list[str]:
+    """Problems of dataset presence, dtype, shape (dimensions shared between datasets and with the
+    attributes) and, for ``h5`` files, chunking with Fletcher-32. The paths whose content cannot be
+    interpreted (missing, wrong dtype or shape) are added to ``broken``."""
+    import h5py
+
+    problems = []
+    broken = set() if broken is None else broken
+    dims = view.dims()
+    for path, spec in load_schema(version)["datasets"].items():
+        n_before = len(problems)
+        obj = view.datasets.get(path)
         if obj is None:
             problems.append(f"missing dataset {path!r}")
+            broken.add(path)
             continue
-        if not isinstance(obj, h5py.Dataset):
-            problems.append(f"{path!r} is not a dataset")
+        if isinstance(obj, str):
+            problems.append(f"{path!r} {obj}")
+            broken.add(path)
             continue
         want = spec["dtype"]
-        if want == "str":
-            if h5py.check_string_dtype(obj.dtype) is None:
-                problems.append(f"{path!r} has dtype {obj.dtype}, expected strings")
-        elif obj.dtype != np.dtype(want):
-            problems.append(f"{path!r} has dtype {obj.dtype}, expected {want}")
-        shape = spec["shape"]
-        if len(obj.shape) != len(shape):
-            problems.append(f"{path!r} has shape {obj.shape}, expected {tuple(shape)}")
+        try:
+            dtype, shape = obj.dtype, tuple(obj.shape)
+        except Exception as e:  # noqa: BLE001
+            problems.append(f"{path!r} cannot be inspected ({_first_line(e)})")
+            broken.add(path)
             continue
-        for n, s in zip(obj.shape, shape):
-            if isinstance(s, int):
-                if n != s:
-                    problems.append(f"{path!r} has shape {obj.shape}, expected {tuple(shape)}")
+        if want == "str":
+            in_h5 = isinstance(obj, h5py.Dataset)
+            if not (dtype.kind == "S" or (dtype.kind == "O" and (not in_h5 or h5py.check_string_dtype(dtype) is not None))
+                    or (dtype.kind == "U" and not in_h5)):
+                problems.append(f"{path!r} has dtype {dtype}, expected strings")
+        elif dtype != np.dtype(want):
+            problems.append(f"{path!r} has dtype {dtype}, expected {want}")
+        want_shape = spec["shape"]
+        if len(shape) != len(want_shape):
+            problems.append(f"{path!r} has shape {shape}, expected {tuple(want_shape)}")
+        else:
+            for n, s in zip(shape, want_shape):
+                if isinstance(s, int):
+                    if n != s:
+                        problems.append(f"{path!r} has shape {shape}, expected {tuple(want_shape)}")
+                        break
+                elif dims.setdefault(s, n) != n:
+                    problems.append(f"{path!r} has {n} along {s!r} but the map has {dims[s]}")
                     break
-            elif dims.setdefault(s, n) != n:
-                problems.append(f"{path!r} has {n} along {s!r} but the map has {dims[s]}")
-                break
-        if obj.chunks is None or not obj.fletcher32:
-            problems.append(f"{path!r} has no Fletcher-32 checksum")
+        if len(problems) > n_before:
+            broken.add(path)
+        if h5 and isinstance(obj, h5py.Dataset):
+            try:
+                if obj.chunks is None or not obj.fletcher32:
+                    problems.append(f"{path!r} has no Fletcher-32 checksum")
+            except Exception as e:  # noqa: BLE001
+                problems.append(f"{path!r} has an unreadable filter pipeline ({_first_line(e)})")
+    return problems
+
+
+def check_structure(view: MapView, version: int = FORMAT_VERSION) -> list[str]:
+    return check_attributes(view.attrs, version) + check_datasets(view, version)
+
+
+def check_file(f, version: int = FORMAT_VERSION) -> list[str]:
+    """All structural problems of an open h5py.File against the schema (empty list: valid). Files
+    of older versions are checked after migration to ``version``."""
+    try:
+        view = open_view(f, getattr(f, "filename", "map"), version)
+    except MapFormatError as e:
+        return [str(e)]
+    return check_structure(view, version)
+
+
+# -- values -----------------------------------------------------------------------------------------
+def _bound(b, dims):
+    return dims.get(b) if isinstance(b, str) else b
+
+
+def _count(mask) -> str:
+    n = int(np.count_nonzero(mask))
+    return f"{n} value{'s' if n != 1 else ''}"
+
+
+def check_values(path: str, a: np.ndarray, dims: dict, arrays: dict | None = None, version: int = FORMAT_VERSION) -> tuple[list[str], list[str]]:
+    """(problems, warnings) of the ``values`` constraints of dataset ``path`` for its fully read
+    array ``a``. ``arrays`` gives the other datasets (for ``in`` and ``consistent_with``)."""
+    spec = load_schema(version)["datasets"][path].get("values", {})
+    problems, warnings = [], []
+    arrays = arrays or {}
+    if not spec or a.size == 0:
+        return problems, warnings
+    num = a.dtype.kind in "fiu"
+    if a.dtype.kind == "f":
+        af = a.astype(np.float64, copy=False)
+        if spec.get("finite"):
+            bad = ~np.isfinite(af)
+            if bad.any():
+                problems.append(f"{path!r}: {_count(bad)} not finite (NaN or inf)")
+        if spec.get("not_nan"):
+            bad = np.isnan(af)
+            if bad.any():
+                problems.append(f"{path!r}: {_count(bad)} NaN")
+        cmp = np.where(np.isnan(af), 0.0, af)  # NaN counted above, not again
+    else:
+        cmp = a
+    if num:
+        if "min" in spec and (cmp < spec["min"]).any():
+            problems.append(f"{path!r}: {_count(cmp < spec['min'])} below {spec['min']}")
+        if "max" in spec and (cmp > spec["max"]).any():
+            problems.append(f"{path!r}: {_count(cmp > spec['max'])} above {spec['max']}")
+        if "exclusive_min" in spec and (cmp <= spec["exclusive_min"]).any():
+            problems.append(f"{path!r}: {_count(cmp <= spec['exclusive_min'])} not above {spec['exclusive_min']}")
+        if spec.get("nonzero") and (a == 0).any():
+            problems.append(f"{path!r}: {_count(a == 0)} zero")
+        if "range" in spec:
+            lo, hi = (_bound(b, dims) for b in spec["range"])
+            if lo is not None and hi is not None:
+                bad = (a < lo) | (a >= hi)
+                if bad.any():
+                    problems.append(f"{path!r}: {_count(bad)} outside [{lo}, {hi}) (index out of range)")
+        if "unit_norm" in spec and a.ndim >= 1:
+            n = np.linalg.norm(af, axis=-1)
+            bad = np.isfinite(n) & (np.abs(n - 1) > spec["unit_norm"])
+            if bad.any():
+                problems.append(f"{path!r}: {_count(bad)} not unit length")
+        if spec.get("ordered") and a.ndim >= 1 and a.shape[-1] > 1:
+            bad = (np.diff(cmp, axis=-1) < 0).any(-1)
+            if bad.any():
+                problems.append(f"{path!r}: {_count(bad)} rows not in increasing order")
+        if "rigid" in spec and a.ndim == 3 and a.shape[1:] == (4, 4):
+            tol = spec["rigid"]
+            T = np.where(np.isfinite(af), af, 0.0)
+            Rm = T[:, :3, :3]
+            ortho = np.abs(np.einsum("nji,njk->nik", Rm, Rm) - np.eye(3)).max((1, 2)) > tol
+            det = np.linalg.det(Rm) < 0
+            last = np.abs(T[:, 3] - [0, 0, 0, 1]).max(1) > tol
+            bad = ortho | det | last
+            if bad.any():
+                problems.append(f"{path!r}: {_count(bad)} not a rigid transform (rotation + translation, last row 0 0 0 1)")
+    if spec.get("unique"):
+        u, c = np.unique(a, return_counts=True)
+        if (c > 1).any():
+            problems.append(f"{path!r}: {int((c > 1).sum())} duplicated value(s), e.g. {u[c > 1][0]!r}")
+    if "enum" in spec:
+        vals = [v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in a.ravel().tolist()]
+        bad = sorted({v for v in vals if v not in spec["enum"]})
+        if bad:
+            problems.append(f"{path!r}: unknown value(s) {', '.join(map(repr, bad[:3]))} (allowed: {', '.join(spec['enum'])})")
+    if "in" in spec and spec["in"] in arrays and arrays[spec["in"]] is not None:
+        bad = ~np.isin(a, arrays[spec["in"]])
+        if bad.any():
+            problems.append(f"{path!r}: {_count(bad)} not in {spec['in']!r}, e.g. {a[bad].ravel()[0]!r}")
+    if "consistent_with" in spec and arrays.get(spec["consistent_with"]) is not None:
+        idx = np.asarray(arrays[spec["consistent_with"]], np.int64)
+        idx = idx[(idx >= 0) & (idx < len(a))]
+        bad = np.bincount(idx, minlength=len(a)) != a
+        if bad.any():
+            warnings.append(f"{path!r}: {_count(bad)} differ from the number of observations in {spec['consistent_with']!r}")
+    return problems, warnings
+
+
+def check_arrays(arrays: dict[str, np.ndarray], attrs: dict, version: int = FORMAT_VERSION) -> list[str]:
+    """Structure and values of a map held in memory (``arrays`` keyed by schema path, ``attrs`` as
+    written): what the writer checks before it creates any file."""
+    view = MapView(dict(attrs), {p: np.asarray(a) for p, a in arrays.items()}, version)
+    problems = check_attributes(attrs, version) + check_datasets(view, version, h5=False)
+    if problems:
+        return problems
+    dims = view.dims()
+    for p, a in view.datasets.items():
+        problems += check_values(p, a, dims, view.datasets, version)[0]
     return problems

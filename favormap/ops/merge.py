@@ -1,0 +1,518 @@
+"""Merging maps, and the streaming map writer that merge and prune share.
+
+``merge_maps(paths, out)`` combines maps built with the same extractor / channels / grid / patch
+size into one file without loading their voxel grids into memory: landmark metadata is combined in
+memory, voxel grids are copied batch by batch (``Map.voxels`` on row batches) into the output
+datasets through :class:`MapWriter`.
+
+Merge rules
+-----------
+- Later maps may be moved into the first map's frame with a transform ``b_to_a`` (rigid, or a
+  similarity s*R|t). Positions, view directions, depth ranges and voxel sizes are mapped exactly;
+  frames' ``cam_from_world`` become ``cam_from_world_b @ b_to_a^-1`` (re-scaled to stay rigid).
+  Voxel grids are axis-aligned in the world, so a rotation cannot move them exactly: the grid of
+  every rotated landmark is *resampled* (same centre and size, nodes of the new axis-aligned grid
+  mapped back into the old grid and interpolated trilinearly, clamped to the old cube). This is
+  exact for translations, scales and rotations by multiples of 90 degrees about the axes (nodes
+  land on nodes), and approximate otherwise: a warning is returned.
+- Deduplication: a landmark of a later map closer than the dedup radius (default: the voxel size of
+  the existing landmark it is compared with) to an existing landmark, whose mean descriptor has a
+  cosine similarity > ``min_cosine`` with it, is a duplicate. The one with the higher quality (PSNR)
+  is kept, the other dropped with its observations. Ties keep the existing landmark, so merging a
+  map with itself gives the same landmarks.
+- Frames and cameras are concatenated (camera ids renumbered 0..K-1 in source order; frame names
+  that collide get a ``<source index>/`` prefix); track rows are remapped; landmark ids stay
+  unique (ids of later maps that collide are regenerated with ``new_landmark_ids``).
+- Provenance lists the sources (path, counts, their provenance) and the merge parameters.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .. import __version__, geometry
+from ..errors import FavormapError, IncompatibleMapsError, InputError
+from ..io import Camera, working_camera
+from ..mapfile import FORMAT, FORMAT_VERSION, Map, atomic_path, load_schema, new_landmark_ids
+from ..mapfile.schema import numpy_dtype
+
+# attributes that must be equal for maps to be merged
+COMPAT_FIELDS = ("extractor", "channels", "grid_resolution", "patch_size")
+
+_POSE_CONVENTION = ("cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
+                    "pixel centre of the top-left pixel at (0.5, 0.5)")
+
+
+# -------------------------------------------------------------------------------------------------
+# streaming writer
+# -------------------------------------------------------------------------------------------------
+class MapWriter:
+    """Write a map file dataset by dataset, large datasets row block by row block.
+
+    Same layout as ``mapfile.write_map`` (schema dtypes, per-landmark chunks for voxel grids,
+    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings) and the same atomicity: the file is
+    written beside ``path`` and renamed into place on success, with the ``format`` attribute last::
+
+        with MapWriter(path, header, num_landmarks=L, num_frames=M) as w:
+            w.put("landmarks/ids", ids)              # whole datasets
+            w.create("voxels/descriptors")            # streamed: shape from L/M/C/R
+            w.write_rows("voxels/descriptors", 0, block)
+            ...
+    Leaving the block without error checks that every schema dataset was written completely.
+    ``header`` holds extractor, channels, grid_resolution, patch_size, render_samples, max_side and
+    provenance (a dict)."""
+
+    HEADER_KEYS = ("extractor", "channels", "grid_resolution", "patch_size", "render_samples", "max_side")
+
+    def __init__(self, path, header: dict, num_landmarks: int, num_frames: int):
+        self.path = Path(path)
+        missing = [k for k in self.HEADER_KEYS if k not in header]
+        if missing:
+            raise ValueError(f"MapWriter header lacks {missing}")
+        self.header = dict(header)
+        self.L, self.M = int(num_landmarks), int(num_frames)
+        self.schema = load_schema(FORMAT_VERSION)
+        self.dims = {"L": self.L, "M": self.M, "C": int(header["channels"]), "R": int(header["grid_resolution"])}
+        self._stack = ExitStack()
+        self.f: h5py.File | None = None
+        self._filled: dict[str, int] = {}  # streamed dataset -> rows written
+        self._streamed: set[str] = set()
+
+    # -- context --------------------------------------------------------------------------------
+    def __enter__(self) -> "MapWriter":
+        tmp = self._stack.enter_context(atomic_path(self.path))
+        self.f = self._stack.enter_context(h5py.File(tmp, "w", libver="latest"))
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            try:
+                self._finish()
+            except BaseException:
+                if not self._stack.__exit__(*sys.exc_info()):  # removes the partial file
+                    raise
+                return False
+        return self._stack.__exit__(exc_type, exc, tb)
+
+    # -- datasets -------------------------------------------------------------------------------
+    def _spec(self, name: str) -> dict:
+        spec = self.schema["datasets"].get(name)
+        if spec is None:
+            raise KeyError(f"{name!r} is not a dataset of the map schema")
+        return spec
+
+    @staticmethod
+    def _chunks(spec: dict, shape: tuple) -> tuple:
+        n = shape[0]
+        if spec.get("chunk") == "landmark":
+            return (1,) + tuple(shape[1:])
+        row = max(1, int(np.prod(shape[1:])) if len(shape) > 1 else 1)
+        return (max(1, min(n, max(1, 65536 // row))),) + tuple(shape[1:])
+
+    def _kw(self, spec: dict, shape: tuple) -> dict:
+        if shape[0] == 0:
+            kw = dict(maxshape=(None,) + tuple(shape[1:]), chunks=(1,) + tuple(shape[1:]), fletcher32=True)
+        else:
+            kw = dict(chunks=self._chunks(spec, shape), fletcher32=True)
+        kw.update(compression="gzip", compression_opts=4, shuffle=True)
+        return kw
+
+    def put(self, name: str, data) -> None:
+        """Write a whole dataset (cast to the schema dtype)."""
+        spec = self._spec(name)
+        if spec["dtype"] == "str":  # fixed-length UTF-8 (variable-length strings cannot be checksummed)
+            enc = [str(x).encode("utf-8") for x in data]
+            width = max([len(e) for e in enc] + [1])
+            arr = np.array(enc, dtype=f"S{width}").reshape(len(enc))
+        else:
+            arr = np.asarray(data).astype(numpy_dtype(spec["dtype"]), copy=False)
+        self._check_shape(name, spec, arr.shape)
+        self.f.create_dataset(name, data=arr, dtype=arr.dtype, **self._kw(spec, arr.shape))
+
+    def _shape_of(self, name: str, spec: dict, rows: int | None) -> tuple:
+        out = []
+        for s in spec["shape"]:
+            if isinstance(s, int):
+                out.append(s)
+            elif s in self.dims:
+                out.append(self.dims[s])
+            elif rows is not None and not out:
+                out.append(int(rows))
+            else:
+                raise ValueError(f"{name}: give the number of rows along {s!r}")
+        if rows is not None and out[0] != rows:
+            raise ValueError(f"{name}: {rows} rows given but the map has {out[0]}")
+        return tuple(out)
+
+    def _check_shape(self, name: str, spec: dict, shape: tuple) -> None:
+        want = self._shape_of(name, spec, shape[0] if len(shape) else None)
+        if tuple(shape) != want:
+            raise ValueError(f"{name}: shape {tuple(shape)} does not match the map's {want}")
+
+    def create(self, name: str, rows: int | None = None) -> None:
+        """Create a dataset to be filled with :meth:`write_rows` (not for string datasets)."""
+        spec = self._spec(name)
+        if spec["dtype"] == "str":
+            raise ValueError("string datasets cannot be streamed")
+        shape = self._shape_of(name, spec, rows)
+        self.f.create_dataset(name, shape=shape, dtype=numpy_dtype(spec["dtype"]), **self._kw(spec, shape))
+        self._streamed.add(name)
+        self._filled[name] = 0
+
+    def write_rows(self, name: str, start: int, data) -> None:
+        """Write rows ``start .. start+len(data)`` of a created dataset (any trailing shape with the
+        right number of elements per row, e.g. (n, R^3, C) for (n, R, R, R, C))."""
+        ds = self.f[name]
+        data = np.asarray(data)
+        n = len(data)
+        if start < 0 or start + n > ds.shape[0]:
+            raise IndexError(f"{name}: rows {start}..{start + n} outside 0..{ds.shape[0]}")
+        if n:
+            ds[start:start + n] = data.reshape((n,) + ds.shape[1:]).astype(ds.dtype, copy=False)
+        self._filled[name] += n
+
+    # -- finish -----------------------------------------------------------------------------------
+    def _finish(self) -> None:
+        f = self.f
+        for name in self.schema["datasets"]:
+            if name not in f:
+                raise FavormapError(f"internal error: map dataset {name!r} was not written")
+        for name in self._streamed:
+            if self._filled[name] != f[name].shape[0]:
+                raise FavormapError(f"internal error: {name!r} got {self._filled[name]} of {f[name].shape[0]} rows")
+        h = self.header
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["favormap_version"] = __version__
+        f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        f.attrs["extractor"] = str(h["extractor"])
+        for k in ("channels", "grid_resolution", "patch_size", "render_samples", "max_side"):
+            f.attrs[k] = int(h[k])
+        f.attrs["pose_convention"] = _POSE_CONVENTION
+        f.attrs["num_landmarks"] = self.L
+        f.attrs["num_frames"] = self.M
+        f.attrs["provenance"] = json.dumps(h.get("provenance", {}), default=_json_default)
+        f.flush()
+        f.attrs["format"] = FORMAT  # last: a half-written file is not a map
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def camera_arrays(cameras: dict[int, Camera]) -> dict[str, np.ndarray]:
+    """The cameras/* datasets of a camera dict (ids sorted, params zero padded to 12)."""
+    K = sorted(cameras)
+    params = np.zeros((len(K), 12))
+    for i, k in enumerate(K):
+        p = cameras[k].params
+        params[i, : len(p)] = p
+    return {
+        "cameras/ids": np.array(K, np.int32),
+        "cameras/models": [cameras[k].model for k in K],
+        "cameras/sizes": np.array([[cameras[k].width, cameras[k].height] for k in K], np.int32).reshape(-1, 2),
+        "cameras/params": params,
+    }
+
+
+LANDMARK_META = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine", "view_dir",
+                 "view_angle", "depth_range")
+
+
+def copy_voxels(w: MapWriter, sources, chunk: int = 4096, resample: dict | None = None, progress=None) -> None:
+    """Stream voxel grids and mean descriptors into ``w``: ``sources`` is a list of (map, rows)
+    segments in output order; ``resample`` maps a segment index to an (R^3, R^3) node matrix."""
+    resample = resample or {}
+    w.create("voxels/descriptors")
+    w.create("voxels/density")
+    w.create("landmarks/mean_descriptor")
+    out = 0
+    total = sum(len(r) for _, r in sources)
+    for si, (m, rows) in enumerate(sources):
+        rows = np.asarray(rows, np.int64)
+        W = resample.get(si)
+        for a in range(0, len(rows), chunk):
+            r = rows[a:a + chunk]
+            d, s = m.voxels(r)
+            if W is not None:
+                d = np.einsum("nr,brc->bnc", W, d, optimize=True)
+                s = s @ W.T
+            w.write_rows("voxels/descriptors", out, d)
+            w.write_rows("voxels/density", out, s)
+            w.write_rows("landmarks/mean_descriptor", out, m.mean_descriptors(r))
+            out += len(r)
+            if progress:
+                progress("voxels", out, total)
+
+
+# -------------------------------------------------------------------------------------------------
+# merge
+# -------------------------------------------------------------------------------------------------
+@dataclass
+class MergeResult:
+    path: Path
+    num_landmarks: int
+    num_frames: int
+    num_cameras: int
+    sources: list = field(default_factory=list)  # per source: path, landmarks, kept, dropped_duplicates, replaced
+    ids_regenerated: int = 0
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"output": str(self.path), "num_landmarks": self.num_landmarks, "num_frames": self.num_frames,
+                "num_cameras": self.num_cameras, "sources": self.sources, "ids_regenerated": self.ids_regenerated,
+                "warnings": self.warnings}
+
+
+def check_compatible(maps: list) -> None:
+    a = maps[0]
+    for b in maps[1:]:
+        for k in COMPAT_FIELDS:
+            va, vb = getattr(a, k), getattr(b, k)
+            if va != vb:
+                raise IncompatibleMapsError(f"cannot merge {a.path} and {b.path}: different {k} ({va!r} vs {vb!r})")
+
+
+def resample_matrix(R_b_to_a: np.ndarray, res: int) -> np.ndarray | None:
+    """(R^3, R^3) matrix W with new_nodes = W @ old_nodes for a grid rotated by ``R_b_to_a``
+    (None when the rotation is the identity)."""
+    if np.allclose(R_b_to_a, np.eye(3), atol=1e-9):
+        return None
+    import torch
+
+    from ..voxels.render import trilinear_stencil
+
+    g = np.arange(res) / (res - 1)
+    u_new = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # (x, y, z) node order
+    u_old = (u_new - 0.5) @ R_b_to_a + 0.5  # R^T (u - 0.5) for row vectors
+    u_old = np.where(np.abs(u_old - np.round(u_old * (res - 1)) / (res - 1)) < 1e-9, np.round(u_old * (res - 1)) / (res - 1), u_old)
+    W = trilinear_stencil(torch.as_tensor(u_old, dtype=torch.float64), res).numpy()
+    return W.astype(np.float32)
+
+
+def _frame_scale(cameras_b: dict, frame_cam_b: np.ndarray, max_side_b: int, max_side_a: int) -> np.ndarray | None:
+    """Per-frame (sx, sy) that converts track pixels at max_side_b into pixels at max_side_a."""
+    if max_side_a == max_side_b:
+        return None
+    ids = sorted(cameras_b)
+    f = np.ones((len(ids), 2))
+    for i, k in enumerate(ids):
+        wb, wa = working_camera(cameras_b[k], max_side_b), working_camera(cameras_b[k], max_side_a)
+        f[i] = (wa.width / wb.width, wa.height / wb.height)
+    return f[np.searchsorted(ids, frame_cam_b)]
+
+
+def merge_maps(paths, out, dedup_radius: float | None = None, transform: np.ndarray | None = None,
+               min_cosine: float = 0.8, dedup: bool = True, chunk: int = 4096, progress=None) -> MergeResult:
+    """Merge the maps at ``paths`` into ``out`` (atomic). ``transform``: 4x4 b_to_a (rigid or
+    similarity) applied to the second and later maps. See the module docstring for the rules."""
+    paths = [Path(p) for p in paths]
+    if len(paths) < 2:
+        raise InputError("merge needs at least two maps")
+    if dedup_radius is not None and not (dedup_radius >= 0 and np.isfinite(dedup_radius)):
+        raise InputError(f"--dedup-radius must be a finite number >= 0, got {dedup_radius}")
+    with ExitStack() as stack:
+        maps = [stack.enter_context(Map.open(p)) for p in paths]
+        check_compatible(maps)
+        return _merge(maps, Path(out), dedup_radius, transform, min_cosine, dedup, chunk, progress)
+
+
+def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progress) -> MergeResult:
+    from .spatial import SpatialIndex
+
+    first = maps[0]
+    res = first.grid_resolution
+    warnings = []
+    scale, W = 1.0, None
+    if transform is not None:
+        T = np.asarray(transform, np.float64)
+        scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+        Rot = T[:3, :3] / scale
+        W = resample_matrix(Rot, res)
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(Rot) - 1) / 2, -1, 1))))
+        exact = W is None or np.allclose(W, np.round(W), atol=1e-6)
+        if not exact:
+            warnings.append(f"the transform rotates by {ang:.2f} deg: voxel grids of the transformed maps were "
+                            "resampled by trilinear interpolation (approximate)")
+    if len({m.render_samples for m in maps}) > 1:
+        warnings.append(f"maps differ in render_samples; using the first map's ({first.render_samples})")
+
+    # per-source landmark metadata (transformed into the first map's frame)
+    meta = []
+    for i, m in enumerate(maps):
+        d = {k: np.asarray(getattr(m, k)) for k in LANDMARK_META}
+        d["ids"] = np.asarray(m.ids, np.uint64)
+        if i > 0 and transform is not None:
+            d["positions"] = geometry.transform_points(T, d["positions"])
+            d["view_dir"] = (d["view_dir"].astype(np.float64) @ Rot.T).astype(np.float32)
+            d["voxel_size"] = (d["voxel_size"] * scale).astype(np.float32)
+            d["depth_range"] = (d["depth_range"] * scale).astype(np.float32)
+        meta.append(d)
+
+    # deduplication: entries of the output as (source, row); later maps against what is there
+    src = [np.zeros(len(maps[0]), np.int64)]
+    row = [np.arange(len(maps[0]), dtype=np.int64)]
+    stats = [dict(path=str(maps[0].path), landmarks=len(maps[0]), kept=len(maps[0]), dropped_duplicates=0, replaced=0)]
+    for k in range(1, len(maps)):
+        mk, dk = maps[k], meta[k]
+        s_all, r_all = np.concatenate(src), np.concatenate(row)
+        keep_new = np.ones(len(mk), bool)
+        replace_slot = np.zeros(0, np.int64)
+        replace_by = np.zeros(0, np.int64)
+        if dedup and len(s_all) and len(mk):
+            ex_pos = np.concatenate([meta[s]["positions"][r_all[s_all == s]] for s in range(k)])
+            order = np.concatenate([np.flatnonzero(s_all == s) for s in range(k)])  # ex_pos rows -> slots
+            idx = SpatialIndex(ex_pos)
+            nn, dist = idx.knn_batch(dk["positions"], 8)
+            valid = nn >= 0
+            slot = np.where(valid, order[np.maximum(nn, 0)], 0)
+            ex_src, ex_row = s_all[slot], r_all[slot]
+            ex_size = np.zeros(slot.shape, np.float64)
+            ex_q = np.zeros(slot.shape, np.float64)
+            for s in range(k):
+                sel = ex_src == s
+                ex_size[sel] = meta[s]["voxel_size"][ex_row[sel]]
+                ex_q[sel] = meta[s]["quality"][ex_row[sel]]
+            radius = ex_size if dedup_radius is None else np.full(slot.shape, dedup_radius)
+            close = valid & (dist <= radius)
+            cand_b, cand_j = np.nonzero(close)
+            cos = np.zeros(len(cand_b))
+            if len(cand_b):
+                db = _unit(mk.mean_descriptors(np.unique(cand_b)))
+                ub = np.unique(cand_b)
+                vb = db[np.searchsorted(ub, cand_b)]
+                va = np.zeros_like(vb)
+                cs, cr = ex_src[cand_b, cand_j], ex_row[cand_b, cand_j]
+                for s in range(k):
+                    sel = cs == s
+                    if sel.any():
+                        ur, inv = np.unique(cr[sel], return_inverse=True)
+                        va[sel] = _unit(maps[s].mean_descriptors(ur))[inv]
+                cos = np.sum(va * vb, 1)
+            similar = np.zeros(close.shape, bool)
+            similar[cand_b[cos > min_cosine], cand_j[cos > min_cosine]] = True
+            has = similar.any(1)
+            first_j = np.argmax(similar, 1)  # nearest similar existing landmark
+            b = np.flatnonzero(has)
+            a_slot = slot[b, first_j[b]]
+            qa, qb = ex_q[b, first_j[b]], dk["quality"][b].astype(np.float64)
+            keep_new[b] = False  # duplicates: worse (or equal) ones are dropped, better ones replace
+            better = qb > qa
+            bb, aa = b[better], a_slot[better]
+            if len(bb):
+                o = np.lexsort((-dk["quality"][bb], aa))  # per slot, best contender first
+                bb, aa = bb[o], aa[o]
+                firsts = np.r_[True, aa[1:] != aa[:-1]]
+                replace_slot, replace_by = aa[firsts], bb[firsts]
+        # apply replacements, append new landmarks
+        s_all = s_all.copy()
+        r_all = r_all.copy()
+        s_all[replace_slot] = k
+        r_all[replace_slot] = replace_by
+        new_rows = np.flatnonzero(keep_new)
+        src, row = [s_all, np.full(len(new_rows), k, np.int64)], [r_all, new_rows]
+        stats.append(dict(path=str(mk.path), landmarks=len(mk), kept=int(len(new_rows) + len(replace_slot)),
+                          dropped_duplicates=int(len(mk) - len(new_rows) - len(replace_slot)), replaced=int(len(replace_slot))))
+    s_all, r_all = np.concatenate(src), np.concatenate(row)
+    o = np.lexsort((r_all, s_all))  # output order: by source, then row (sequential voxel reads)
+    s_all, r_all = s_all[o], r_all[o]
+    for k, st in enumerate(stats):  # final counts (a replacing landmark may itself be replaced later)
+        st["in_output"] = int(np.sum(s_all == k))
+    L = len(s_all)
+
+    # landmark arrays
+    segs = [(k, r_all[s_all == k]) for k in range(len(maps))]
+    lm = {key: np.concatenate([meta[k][key][rr] for k, rr in segs]) for key in LANDMARK_META + ("ids",)}
+    ids = lm["ids"]
+    _, first_idx = np.unique(ids, return_index=True)
+    dup = np.ones(L, bool)
+    dup[first_idx] = False
+    n_regen = int(dup.sum())
+    if n_regen:
+        ids = ids.copy()
+        ids[dup] = new_landmark_ids(n_regen, avoid=ids[~dup])
+    lm["ids"] = ids
+
+    # cameras and frames
+    cameras, names, frame_cam, cfw, frame_off = {}, [], [], [], []
+    seen_names: set = set()
+    for k, m in enumerate(maps):
+        old_ids = sorted(m.cameras)
+        base = len(cameras)
+        for j, cid in enumerate(old_ids):
+            cameras[base + j] = m.cameras[cid]
+        fc = np.asarray(m.frame_camera_ids, np.int64)
+        frame_cam.append((base + np.searchsorted(old_ids, fc)).astype(np.int32))
+        T_k = np.asarray(m.cam_from_world, np.float64)
+        if k > 0 and transform is not None:
+            Tinv = np.linalg.inv(T)
+            T_k = T_k @ Tinv
+            T_k[:, :3, :] *= scale  # rotation block is R_b R^T / s: rescale the camera frame to stay rigid
+        cfw.append(T_k)
+        frame_off.append(sum(len(n) for n in names))
+        nm = [n if n not in seen_names else f"{k}/{n}" for n in m.frame_names]
+        seen_names.update(nm)
+        names.append(nm)
+    all_names = [n for nm in names for n in nm]
+    M = len(all_names)
+
+    # tracks
+    tl_out, tf_out, txy_out = [], [], []
+    for k, m in enumerate(maps):
+        remap = np.full(len(m), -1, np.int64)
+        out_rows = np.flatnonzero(s_all == k)
+        remap[r_all[out_rows]] = out_rows
+        tl, tf, txy = m.tracks()
+        keep = remap[tl] >= 0
+        tl_out.append(remap[tl[keep]].astype(np.int32))
+        tf_out.append((tf[keep].astype(np.int64) + frame_off[k]).astype(np.int32))
+        xy = txy[keep].astype(np.float32)
+        fs = _frame_scale(m.cameras, np.asarray(m.frame_camera_ids), m.max_side, first.max_side)
+        if fs is not None:
+            xy = (xy * fs[tf[keep]]).astype(np.float32)
+        txy_out.append(xy)
+
+    provenance = {
+        "operation": "merge",
+        "merge": {"sources": [dict(path=str(m.path), num_landmarks=len(m), num_frames=m.num_frames, created=m.created,
+                                   favormap_version=m.favormap_version, provenance=m.provenance) for m in maps],
+                  "dedup": bool(dedup), "dedup_radius": dedup_radius if dedup_radius is not None else "voxel_size",
+                  "min_cosine": float(min_cosine),
+                  "transform_b_to_a": None if transform is None else np.asarray(transform).tolist(),
+                  "counts": stats, "ids_regenerated": n_regen, "warnings": warnings},
+    }
+    header = {k: getattr(first, k) for k in MapWriter.HEADER_KEYS}
+    header["provenance"] = provenance
+    with MapWriter(out, header, L, M) as w:
+        w.put("landmarks/ids", lm["ids"])
+        for key in LANDMARK_META:
+            w.put(f"landmarks/{key}", lm[key])
+        for name, arr in camera_arrays(cameras).items():
+            w.put(name, arr)
+        w.put("frames/names", all_names)
+        w.put("frames/camera_ids", np.concatenate(frame_cam) if frame_cam else np.zeros(0, np.int32))
+        w.put("frames/cam_from_world", np.concatenate(cfw).reshape(-1, 4, 4))
+        w.put("tracks/landmark_index", np.concatenate(tl_out))
+        w.put("tracks/frame_index", np.concatenate(tf_out))
+        w.put("tracks/xy", np.concatenate(txy_out).reshape(-1, 2))
+        resample = {k: W for k in range(1, len(maps))} if W is not None else {}
+        copy_voxels(w, [(maps[k], rr) for k, rr in segs], chunk=chunk, resample=resample, progress=progress)
+    return MergeResult(out, L, M, len(cameras), stats, n_regen, warnings)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)

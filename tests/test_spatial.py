@@ -1,0 +1,186 @@
+"""Spatial index: radius / k-NN / frustum / visibility queries against numpy brute force, occlusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from favormap.geometry import camera_centers, look_at, perturb_pose
+from favormap.io import Camera
+from favormap.ops.spatial import SpatialIndex, ViewLimits, frustum_sphere, occluded, visible_mask, visible_rows
+
+
+def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
+    """Independent brute-force projection test (COLMAP pixel convention: image = [0, W] x [0, H])."""
+    Xc = P @ T[:3, :3].T + T[:3, 3]
+    z = Xc[:, 2]
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = fx * Xc[:, 0] / z + cx
+        v = fy * Xc[:, 1] / z + cy
+    return (z > max(min_depth, 1e-9)) & (z <= max_depth) & (u >= margin) & (u <= cam.width - margin) \
+        & (v >= margin) & (v <= cam.height - margin)
+
+
+def brute_visible(P, vd, va, dr, cam, T, lim: ViewLimits):
+    ok = brute_project(P, cam, T, margin=lim.image_margin_px)
+    c = camera_centers(T)
+    d = np.linalg.norm(c - P, axis=1)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", c - P, vd) / d, -1, 1)))
+    ok &= ang <= va + lim.angle_margin_deg
+    ok &= (d >= dr[:, 0] * lim.depth_scale[0]) & (d <= dr[:, 1] * lim.depth_scale[1])
+    return np.flatnonzero(ok)
+
+
+def random_pose(rng, scale=10.0):
+    eye = rng.uniform(-scale, scale, 3)
+    target = eye + rng.normal(size=3)
+    return look_at(eye, target, up=(0, 0, 1) if rng.random() < 0.5 else (0, 1, 0))
+
+
+def test_radius_and_knn_match_brute_force():
+    rng = np.random.default_rng(0)
+    P = rng.uniform(-5, 5, (5000, 3))
+    idx = SpatialIndex(P)
+    for _ in range(20):
+        c = rng.uniform(-6, 6, 3)
+        r = rng.uniform(0.1, 3)
+        d = np.linalg.norm(P - c, axis=1)
+        np.testing.assert_array_equal(idx.radius(c, r), np.flatnonzero(d <= r))
+        k = int(rng.integers(1, 30))
+        rows, dist = idx.knn(c, k)
+        np.testing.assert_allclose(dist, np.sort(d)[:k], rtol=1e-9)
+        np.testing.assert_allclose(d[rows], dist, rtol=1e-9)
+    # batched k-NN
+    Q = rng.uniform(-6, 6, (300, 3))
+    rows, dist = idx.knn_batch(Q, 4)
+    D = np.linalg.norm(Q[:, None] - P[None], axis=2)
+    np.testing.assert_allclose(dist, np.sort(D, 1)[:, :4], rtol=1e-6)
+    np.testing.assert_allclose(np.take_along_axis(D, rows, 1), dist, rtol=1e-6)
+    # more neighbours asked than points, and empty index
+    small = SpatialIndex(P[:3])
+    r, d = small.knn_batch(Q[:2], 5)
+    assert (r[:, 3:] == -1).all() and np.isinf(d[:, 3:]).all()
+    empty = SpatialIndex(np.zeros((0, 3)))
+    assert len(empty.radius([0, 0, 0], 1)) == 0 and len(empty.knn([0, 0, 0], 3)[0]) == 0
+    assert len(empty.frustum(Camera("PINHOLE", 10, 10, [5, 5, 5, 5]), np.eye(4), 10)) == 0
+
+
+def test_frustum_equals_brute_force_projection_on_random_points():
+    rng = np.random.default_rng(1)
+    P = rng.uniform(-10, 10, (40000, 3))
+    idx = SpatialIndex(P)
+    cams = [Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
+            Camera("PINHOLE", 320, 240, [150, 160, 40, 200]),  # wide, off-centre principal point
+            Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200])]  # narrow
+    n_nonempty = 0
+    for i in range(40):
+        cam = cams[i % len(cams)]
+        T = random_pose(rng)
+        max_depth = rng.uniform(0.5, 15)
+        min_depth = 0.0 if i % 2 else rng.uniform(0, max_depth / 2)
+        got = idx.frustum(cam, T, max_depth, min_depth)
+        want = np.flatnonzero(brute_project(P, cam, T, min_depth, max_depth))
+        np.testing.assert_array_equal(got, want)
+        n_nonempty += len(want) > 0
+    assert n_nonempty > 20
+    # infinite depth: everything in front and inside the image
+    T = random_pose(rng)
+    np.testing.assert_array_equal(idx.frustum(cams[0], T, np.inf), np.flatnonzero(brute_project(P, cams[0], T)))
+
+
+def test_frustum_sphere_encloses_the_frustum_and_is_tight():
+    rng = np.random.default_rng(2)
+    cam = Camera("PINHOLE", 640, 480, [500, 500, 320, 240])
+    T = random_pose(rng)
+    center, r = frustum_sphere(cam, T, 10.0)
+    # random points inside the frustum
+    u = rng.uniform(0, 640, 5000)
+    v = rng.uniform(0, 480, 5000)
+    z = rng.uniform(0, 10, 5000)
+    Xc = np.c_[(u - 320) / 500 * z, (v - 240) / 500 * z, z]
+    Xw = (Xc - T[:3, 3]) @ T[:3, :3]
+    assert np.linalg.norm(Xw - center, axis=1).max() <= r + 1e-9
+    far_corner = np.linalg.norm([320 / 500 * 10, 240 / 500 * 10, 10])
+    assert r < 0.9 * far_corner  # smaller than the sphere around the camera centre
+
+
+def test_visible_rows_equal_brute_force_on_the_small_map(small_map):
+    m, _ = small_map
+    idx = SpatialIndex(m.positions)
+    cam = m.cameras[0]
+    rng = np.random.default_rng(3)
+    limits = [ViewLimits(), ViewLimits(5.0, (0.8, 1.2), 10.0), ViewLimits(0.0, (1.0, 1.0), 0.0)]
+    checked = 0
+    for i, T0 in enumerate(m.cam_from_world):
+        for lim in limits:
+            T = perturb_pose(T0, 0.2, 10.0, rng) if i % 2 else T0
+            got = visible_rows(idx, cam, T, m.view_dir, m.view_angle, m.depth_range, lim)
+            want = brute_visible(m.positions, m.view_dir, m.view_angle, m.depth_range, cam, T, lim)
+            np.testing.assert_array_equal(got, want)
+            checked += len(want)
+    assert checked > 1000
+    # a training view sees most of what was triangulated from it
+    T = m.cam_from_world[0]
+    seen = np.unique(m.track_landmark[m.track_frame == 0])
+    vis = visible_rows(idx, cam, T, m.view_dir, m.view_angle, m.depth_range)
+    assert np.isin(seen, vis).mean() > 0.95
+
+
+def test_visible_rows_exact_with_landmarks_of_very_different_reach():
+    """Most landmarks seen from ~2-5 units, 0.5 % from up to 200: the far ones bypass the KD-tree
+    sphere (it would otherwise cover everything), and the result is still exact."""
+    rng = np.random.default_rng(4)
+    L = 20000
+    P = rng.uniform(-50, 50, (L, 3))
+    vd = rng.normal(size=(L, 3))
+    vd /= np.linalg.norm(vd, axis=1, keepdims=True)
+    va = rng.uniform(10, 60, L).astype(np.float32)
+    lo = rng.uniform(1, 3, L)
+    dr = np.c_[lo, lo + rng.uniform(0.5, 3, L)].astype(np.float32)
+    far = rng.random(L) < 0.005
+    dr[far, 1] = rng.uniform(50, 200, far.sum())
+    idx = SpatialIndex(P)
+    cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
+    total = 0
+    for _ in range(30):
+        T = random_pose(rng, 50)
+        got = visible_rows(idx, cam, T, vd, va, dr)
+        want = brute_visible(P, vd, va, dr, cam, T, ViewLimits())
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(got, np.flatnonzero(visible_mask(P, cam, T, vd, va, dr)))
+        total += len(want)
+    assert total > 0
+
+
+def test_occlusion_by_a_mesh():
+    import trimesh
+
+    cam_c = np.zeros(3)
+    wall = trimesh.creation.box(extents=[2, 2, 0.01])
+    wall.apply_translation([0, 0, 5])  # a thin wall at z = 5 covering |x|, |y| < 1
+    P = np.array([[0, 0, 10.0], [0.5, 0.5, 8], [3, 0, 10], [0, 0, 4.0], [0, 0, 4.995]])
+    hid = occluded(P, cam_c, wall)
+    assert hid.tolist() == [True, True, False, False, False]
+    # a landmark on the surface (within tolerance) is not hidden by that surface
+    assert not occluded(np.array([[0, 0, 5.01]]), cam_c, wall, tolerance=0.05)[0]
+    # Open3D meshes and scenes work too
+    import open3d as o3d
+
+    o3m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(wall.vertices), o3d.utility.Vector3iVector(wall.faces))
+    assert occluded(P, cam_c, o3m).tolist() == hid.tolist()
+    assert occluded(P, cam_c, trimesh.Scene([wall])).tolist() == hid.tolist()
+
+
+@pytest.mark.parametrize("n", [1, 999, 1001])
+def test_visible_rows_small_and_degenerate_maps(n):
+    rng = np.random.default_rng(n)
+    P = rng.uniform(-1, 1, (n, 3)) + [0, 0, 3]
+    vd = np.tile([0, 0, -1.0], (n, 1))
+    dr = np.tile([1.0, 4.0], (n, 1))
+    va = np.full(n, 30.0)
+    cam = Camera("PINHOLE", 64, 48, [40, 40, 32, 24])
+    idx = SpatialIndex(P)
+    got = visible_rows(idx, cam, np.eye(4), vd, va, dr)
+    np.testing.assert_array_equal(got, brute_visible(P, vd, va, dr, cam, np.eye(4), ViewLimits()))
