@@ -15,6 +15,8 @@ def register(sub):
     p.add_argument("sequence", help="sequence folder (nerf, 7scenes, colmap, cambridge, tum, llff or favormap layout)")
     p.add_argument("-o", "--output", required=True, help="map file to write (HDF5)")
     p.add_argument("--format", help="force the sequence format instead of auto-detecting it")
+    p.add_argument("--exclude-every", type=int, default=0, metavar="N",
+                   help="leave out frames 0, N, 2N, ... (held-out queries for 'favormap eval --every N')")
     p.add_argument("--resize", type=int, default=640, metavar="MAX_SIDE", help="downscale images to this longest side (0: keep; default 640)")
     p.add_argument("--extractor", default="xfeat", help="feature extractor (xfeat, sift; default xfeat)")
     p.add_argument("--max-keypoints", type=int, default=2048)
@@ -65,12 +67,17 @@ def print_summary(s: dict) -> None:
 
 def run(args) -> int:
     from ..build import build_map
+    from ..errors import InputError
     from ..io import read_sequence
     from ..mapfile import write_map
 
     out = Path(args.output)
     config = config_from_args(args)
     seq = read_sequence(args.sequence, args.format)
+    if args.exclude_every < 0 or args.exclude_every == 1:
+        raise InputError("--exclude-every must be 0 (off) or >= 2")
+    if args.exclude_every:
+        seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap build")
     try:
