@@ -1,0 +1,68 @@
+#!/usr/bin/env python3
+"""Per-stage build times on a sequence (default: ../shared/data/fox, else a synthetic room).
+
+    python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--repeat 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequence", nargs="?", default=None)
+    ap.add_argument("--max-landmarks", type=int, default=1500)
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--extractor", default="xfeat")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+
+    from favormap.build import BuildConfig, build_map
+    from favormap.io import read_sequence
+    from favormap.mapfile import write_map
+
+    tmp = tempfile.TemporaryDirectory()
+    seq_path = args.sequence
+    if seq_path is None:
+        fox = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fox"
+        if fox.is_dir():
+            seq_path = str(fox)
+        else:
+            from favormap.synthetic import write_sequence
+
+            seq_path = str(Path(tmp.name) / "room")
+            write_sequence(seq_path, n_frames=30)
+    seq = read_sequence(seq_path)
+    cfg = BuildConfig(extractor=args.extractor, max_landmarks=args.max_landmarks)
+    cfg.voxel.device = args.device
+    if args.iterations:
+        cfg.voxel.iterations = args.iterations
+    t = time.perf_counter()
+    m = build_map(seq, cfg)
+    out = Path(tmp.name) / "bench.h5"
+    tw = time.perf_counter()
+    write_map(m, out)
+    write_s = time.perf_counter() - tw
+    total = time.perf_counter() - t
+    timings = dict(m.provenance["timings"], write=round(write_s, 3))
+    st = m.provenance["stats"]
+    print(f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {args.extractor}, "
+          f"device {args.device}, torch threads {torch.get_num_threads()}, cores {os.cpu_count()}")
+    print(f"{'stage':<12} {'seconds':>9} {'share':>7}")
+    for k, v in timings.items():
+        print(f"{k:<12} {v:>9.2f} {100 * v / total:>6.1f}%")
+    print(f"{'total':<12} {total:>9.2f}")
+    print(f"median reproj {st['median_reproj_error_px']:.3f} px, median PSNR {st['median_psnr']:.2f} dB, "
+          f"file {out.stat().st_size / 1e6:.1f} MB")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
