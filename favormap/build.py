@@ -16,7 +16,7 @@ import numpy as np
 from . import features as feats_mod
 from .errors import FavormapError
 from .features import Extractor, Features, patch_offsets
-from .geometry import camera_centers, inverse
+from .geometry import camera_centers
 from .io import Camera, Sequence, load_image
 from .mapfile.model import MapData, new_landmark_ids
 from .tracking import Tracks, track_features

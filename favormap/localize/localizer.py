@@ -10,7 +10,7 @@ refinement. Repeat from the new estimate until it stops moving or ``iterations``
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ import torch
 from .. import features as feats_mod
 from ..errors import InputError, LocalizationFailed
 from ..geometry import camera_centers, from_rigid3d, pose_error
-from ..io import Camera, prepare_image, read_rgb, working_camera
+from ..io import Camera, prepare_image, read_rgb
 from ..mapfile import Map
 from ..ops.spatial import SpatialIndex, ViewLimits, visible_rows
 from ..voxels import render_from_camera
@@ -157,7 +157,6 @@ class Localizer:
             s = time.perf_counter()
             rows = visible_rows(self.index, cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range, cfg.view_limits)
             t["visibility"] += time.perf_counter() - s
-            s = time.perf_counter()
             rend = self._descriptors(rows, pose, t)
             s = time.perf_counter()
             m = match_descriptors(rend, qdesc, cfg.match_threshold, cfg.mutual)
@@ -183,12 +182,10 @@ class Localizer:
             pose = new_pose
             if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
                 break
-        best = max((it for it in iters if it.success), key=lambda it: 0, default=None)
         final = [it for it in iters if it.success]
         msg = "" if success else (
             f"too few matches ({iters[-1].num_matches} matches, {iters[-1].num_inliers} inliers, "
             f"{iters[-1].num_visible} visible landmarks; need {cfg.min_inliers} inliers)")
-        del best
         return LocalizationResult(
             success=success,
             cam_from_world=final[-1].cam_from_world if final else prior,
@@ -236,4 +233,3 @@ def require_success(result: LocalizationResult) -> LocalizationResult:
     return result
 
 
-__all__ = ["LocalizeConfig", "LocalizationResult", "IterationResult", "Localizer", "localize", "match_descriptors", "working_camera", "asdict"]

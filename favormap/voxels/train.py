@@ -111,7 +111,7 @@ def train_voxels(data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, 
     dev = torch.device(cfg.device)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     R, C = cfg.resolution, data.targets.shape[-1]
-    L, O, P = len(data.centers), len(data.obs_landmark), data.ray_dirs.shape[1]
+    L, P = len(data.centers), data.ray_dirs.shape[1]
     f32 = dict(dtype=torch.float32, device=dev)
     centers = torch.as_tensor(data.centers, **f32)
     sizes = torch.as_tensor(data.sizes, **f32)
