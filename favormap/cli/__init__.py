@@ -41,7 +41,7 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    os.environ.setdefault("RERUN_ANALYTICS", "false")  # never phone home (rerun-sdk honours this)
+    os.environ.setdefault("RERUN_ANALYTICS", "false")  # the viewer favormap spawns also gets CI=1 (favormap.viz)
     parser = make_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

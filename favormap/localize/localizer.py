@@ -62,6 +62,7 @@ class LocalizationResult:
     keypoints: np.ndarray | None = None
     matches: np.ndarray | None = None  # (K, 2) [landmark row, query keypoint]
     inlier_mask: np.ndarray | None = None
+    match_similarity: np.ndarray | None = None  # (K,) cosine of rendered vs query descriptor per match
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat
@@ -160,6 +161,7 @@ class Localizer:
             rend = self._descriptors(rows, pose, t)
             s = time.perf_counter()
             m = match_descriptors(rend, qdesc, cfg.match_threshold, cfg.mutual)
+            sims = (rend[m[:, 0]] * qdesc[m[:, 1]]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
             t["matching"] += time.perf_counter() - s
             s = time.perf_counter()
             ok = False
@@ -172,7 +174,8 @@ class Localizer:
                     ok = n_in >= cfg.min_inliers
                     if ok:
                         new_pose = from_rigid3d(ans["cam_from_world"])
-                        last = dict(matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool))
+                        last = dict(matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool),
+                                    similarity=sims)
             t["pnp"] += time.perf_counter() - s
             iters.append(IterationResult(new_pose if ok else pose, len(rows), len(m), n_in, ok))
             if not ok:
@@ -192,7 +195,8 @@ class Localizer:
             num_matches=final[-1].num_matches if final else iters[-1].num_matches,
             num_inliers=final[-1].num_inliers if final else iters[-1].num_inliers,
             iterations=iters, timings=t, message=msg,
-            keypoints=feats.keypoints, matches=last["matches"], inlier_mask=last["inliers"])
+            keypoints=feats.keypoints, matches=last["matches"], inlier_mask=last["inliers"],
+            match_similarity=last.get("similarity"))
 
     def _descriptors(self, rows: np.ndarray, pose: np.ndarray, t: dict) -> torch.Tensor:
         """Rendered (or, for the baseline, mean observed) descriptors of landmark rows."""

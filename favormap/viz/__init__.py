@@ -38,7 +38,14 @@ def recording_from_args(args, app_id: str, map_=None, spawn: bool = False):
     ``spawn=True`` spawns a viewer even without ``--rerun`` (used by ``favormap view``)."""
     if not (spawn or rerun_requested(args)):
         return None
-    from .recording import Recording
+    try:
+        from .recording import Recording
+    except ImportError as e:
+        if (e.name or "").split(".")[0] not in ("rerun", "rerun_bindings"):
+            raise
+        from ..errors import InputError
+
+        raise InputError("the rerun flags need rerun-sdk 0.41 (pip install 'rerun-sdk>=0.41,<0.42')") from None
 
     kind = getattr(args, "command", None) or app_id.split()[-1]
     methods = None

@@ -153,8 +153,12 @@ def frustum_depth(cam_from_world: np.ndarray, depths=None) -> float:
         if len(d):
             return float(0.2 * np.median(d))
     c = geometry.camera_centers(np.asarray(cam_from_world, np.float64).reshape(-1, 4, 4))
-    ext = float(np.linalg.norm(np.ptp(c, axis=0))) if len(c) > 1 else 0.0
-    return 0.05 * ext if ext > 0 else 0.1
+    if len(c) < 2:
+        return 0.1
+    ext = float(np.linalg.norm(np.ptp(c, axis=0)))
+    step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))
+    d = max(0.05 * ext, 2.0 * step)
+    return d if d > 0 else 0.1
 
 
 def markdown_table(rows: list[tuple], header: tuple) -> str:
@@ -298,6 +302,8 @@ class Recording:
         self._depth = None
         self._frame_cams = None
         self._frame_scale = None
+        self._frame_T = None
+        self._frame_pinholes = []
         self.spawned = bool(spawn)
         self.save_path = Path(save) if save else None
         if self.save_path is not None:
@@ -403,9 +409,11 @@ class Recording:
         doc_path = "map" if path == "world/map" else f"map/{path.split('/')[-1]}"
         self.rec.log(doc_path, rr.TextDocument(markdown_table(rows, ("", "")), media_type=rr.MediaType.MARKDOWN), static=True)
 
-    def _log_path(self, path: str, T: np.ndarray, Ks: np.ndarray, sizes: np.ndarray, depth: float) -> None:
-        c = geometry.camera_centers(T)
-        self.rec.log(f"{path}/trajectory", rr.LineStrips3D([c], colors=[GREY], radii=rr.Radius.ui_points(1.0)), static=True)
+    def _log_path(self, path: str, T: np.ndarray, Ks: np.ndarray, sizes: np.ndarray, depth: float, line: bool = True) -> None:
+        """Static camera path: a line through the centres and (at most MAX_FRUSTUMS) wireframe frustums."""
+        if line:
+            c = geometry.camera_centers(T)
+            self.rec.log(f"{path}/trajectory", rr.LineStrips3D([c], colors=[GREY], radii=rr.Radius.ui_points(1.0)), static=True)
         sel = np.unique(np.linspace(0, len(T) - 1, min(len(T), MAX_FRUSTUMS)).round().astype(int))
         seg = frustum_segments(T[sel], Ks[sel], sizes[sel], depth)
         self.rec.log(f"{path}/trajectory/frustums", rr.LineStrips3D(seg, colors=[GREY], radii=rr.Radius.ui_points(0.75)), static=True)
@@ -455,6 +463,8 @@ class Recording:
         if vc is not None:
             self.rec.log("world", vc, static=True)
         self._log_path("world/map", T, Ks, sizes, self._depth)
+        self._frame_T = T
+        self._frame_pinholes = []
         for i, cam in enumerate(cams):
             self._at("frame", i)
             s = self._frame_scale[i]
@@ -463,6 +473,7 @@ class Recording:
                 self._frame_scale[i] = s
             else:
                 enc, w, h = None, max(1, round(cam.width * s)), max(1, round(cam.height * s))
+            self._frame_pinholes.append((_scaled_K(cam.K, s), w, h))
             self.rec.log("world/camera", _transform(T[i]), _pinhole(_scaled_K(cam.K, s), w, h, self._depth))
             if enc is not None:
                 self.rec.log("world/camera/image", enc)
@@ -488,6 +499,15 @@ class Recording:
         self.rec.log("world/map/landmarks", rr.Points3D(lms.positions, colors=colormap(lengths, lo, hi),
                                                         radii=rr.Radius.ui_points(2.0)), static=True)
         if self._frame_scale is not None and len(lms):
+            # now that the scene depth is known, redraw the frustums at 1/5 of the median viewing distance
+            centers = geometry.camera_centers(self._frame_T)[lms.tracks.frame_idx]
+            dist = np.linalg.norm(lms.positions[lms.tracks.track_of_obs] - centers, axis=1)
+            self._depth = frustum_depth(self._frame_T, dist)
+            self._log_path("world/map", self._frame_T, np.stack([c.K for c in self._frame_cams]),
+                           np.array([[c.width, c.height] for c in self._frame_cams]), self._depth, line=False)
+            for i, (K, w, h) in enumerate(self._frame_pinholes):
+                self._at("frame", i)
+                self.rec.log("world/camera", _pinhole(K, w, h, self._depth))
             obs_colors = colormap(lengths[lms.tracks.track_of_obs], lo, hi)
             self._per_frame_points("world/camera/image/landmarks", lms.tracks.frame_idx, lms.tracks.xy, obs_colors, 3.5,
                                    len(ff.features))
