@@ -70,12 +70,13 @@ def run(args) -> int:
     from ..errors import InputError
     from ..io import read_sequence
     from ..mapfile import write_map
+    from ..mapfile.writer import check_output_path
 
-    out = Path(args.output)
-    config = config_from_args(args)
-    seq = read_sequence(args.sequence, args.format)
+    out = check_output_path(args.output)  # before any work
     if args.exclude_every < 0 or args.exclude_every == 1:
         raise InputError("--exclude-every must be 0 (off) or >= 2")
+    seq = read_sequence(args.sequence, args.format)
+    config = config_from_args(args)
     if args.exclude_every:
         seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
     bars = StageBars(args.quiet or args.json)

@@ -43,7 +43,8 @@ class StageBars:
     """One tqdm progress bar per pipeline stage (on stderr); silent when ``quiet``."""
 
     def __init__(self, quiet: bool = False):
-        self.quiet = quiet
+        # bars only on a terminal: piped/logged stderr gets nothing but a final error line
+        self.quiet = quiet or not sys.stderr.isatty()
         self.bars = {}
 
     def __call__(self, stage: str, done: int, total: int):

@@ -74,7 +74,7 @@ class Map:
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.cache_size = cache_size
         try:
-            with _guard(self.path, "the file header"):
+            with _guard(self.path, "the file structure (HDF5 metadata)"):
                 view = open_view(self._f, self.path)
             problems = check_structure(view)
             if problems:

@@ -39,10 +39,15 @@ ATTR_DIMS = (("C", "channels"), ("R", "grid_resolution"), ("L", "num_landmarks")
 
 
 def _schema_dir() -> Path:
-    # installed package data first, then the source checkout's top-level schemas/
-    here = Path(__file__).resolve().parents[2] / "schemas"
-    pkg = resources.files("favormap").joinpath("schemas")
-    return Path(str(pkg)) if pkg.is_dir() else here
+    """The source checkout's top-level schemas/ (editable installs), else the copy that a wheel
+    installs as data files under <prefix>/share/favormap/schemas."""
+    import sys
+
+    for cand in (Path(__file__).resolve().parents[2] / "schemas", Path(sys.prefix) / "share" / "favormap" / "schemas",
+                 Path(str(resources.files("favormap").joinpath("schemas")))):
+        if (cand / f"favormap-map.v{FORMAT_VERSION}.json").is_file():
+            return cand
+    return Path(__file__).resolve().parents[2] / "schemas"
 
 
 @lru_cache(maxsize=None)
@@ -123,7 +128,9 @@ class MapView:
             except Exception as e:  # noqa: BLE001 - h5py raises many types on broken links/headers
                 datasets[p] = f"cannot be opened ({_first_line(e)})"
                 continue
-            if obj is not None and not isinstance(obj, h5py.Dataset):
+            if obj is None and _link_exists(f, p):
+                obj = "cannot be opened (damaged object header)"
+            elif obj is not None and not isinstance(obj, h5py.Dataset):
                 obj = f"is a {type(obj).__name__.lower()}, not a dataset"
             datasets[p] = obj
         view = cls(attrs, datasets, version)
@@ -151,6 +158,16 @@ class MapView:
 
     def dims(self) -> dict[str, int]:
         return {sym: int(self.attrs[a]) for sym, a in ATTR_DIMS if _is_int(self.attrs.get(a))}
+
+
+def _link_exists(f, path: str) -> bool:
+    """Whether ``path`` is linked in the file although h5py cannot open it (damage)."""
+    try:
+        parent, _, name = path.rpartition("/")
+        g = f.get(parent) if parent else f
+        return g is not None and hasattr(g, "keys") and name in list(g.keys())
+    except Exception:  # noqa: BLE001
+        return False
 
 
 def _is_int(v) -> bool:

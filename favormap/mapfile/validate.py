@@ -23,8 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FavormapError
-from .schema import (FORMAT, FORMAT_VERSION, MapView, check_attributes, check_datasets, check_header,
-                     check_values, load_schema)
+from .schema import (
+    FORMAT,
+    FORMAT_VERSION,
+    MapView,
+    check_attributes,
+    check_datasets,
+    check_header,
+    check_values,
+    load_schema,
+)
 
 _BLOCK_BYTES = 8 << 20  # read big datasets in blocks of about this size
 
@@ -163,18 +171,12 @@ def validate(path) -> Report:
 def _validate_open(f, path: Path, report: Report) -> None:
     # -- header
     try:
-        attr_names = list(f.attrs.keys())
-    except Exception as e:  # noqa: BLE001
-        report.problems.append(f"root attributes cannot be read: {_describe(e)}")
-        attr_names = []
-    try:
         version = check_header(f.attrs, path)
     except FavormapError as e:
         msg = str(e)
-        if "newer" in msg or "reads up to" in msg:
-            report.problems.append(msg)
-            return  # an unknown future layout: nothing more can be checked
         report.problems.append(msg)
+        if "reads up to" in msg:
+            return  # an unknown future layout: nothing more can be checked
         groups = {p.split("/")[0] for p in load_schema(FORMAT_VERSION)["datasets"]}
         try:
             present = groups & set(f.keys())

@@ -15,7 +15,14 @@ import numpy as np
 from .. import __version__
 from ..errors import FavormapError, MapFormatError
 from .model import MapData
-from .schema import FORMAT, FORMAT_VERSION, check_arrays, check_file, load_schema, numpy_dtype
+from .schema import (
+    FORMAT,
+    FORMAT_VERSION,
+    check_arrays,
+    check_file,
+    load_schema,
+    numpy_dtype,
+)
 
 POSE_CONVENTION = ("cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
                    "pixel centre of the top-left pixel at (0.5, 0.5)")
