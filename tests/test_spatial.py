@@ -7,7 +7,7 @@ import pytest
 
 from favormap.geometry import camera_centers, look_at, perturb_pose
 from favormap.io import Camera
-from favormap.ops.spatial import SpatialIndex, ViewLimits, frustum_sphere, occluded, visible_mask, visible_rows
+from favormap.ops.spatial import SpatialIndex, ViewLimits, frustum_sphere, occluded, reach_sphere, visible_mask, visible_rows
 
 
 def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
@@ -106,6 +106,28 @@ def test_frustum_sphere_encloses_the_frustum_and_is_tight():
     assert r < 0.9 * far_corner  # smaller than the sphere around the camera centre
 
 
+@pytest.mark.parametrize("cam", [Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
+                                 Camera("PINHOLE", 320, 240, [100, 120, 10, 230]),  # very wide, off-centre
+                                 Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200])])
+def test_reach_sphere_encloses_the_view_pyramid_within_reach(cam):
+    rng = np.random.default_rng(6)
+    T = random_pose(rng)
+    reach = 7.0
+    center, r = reach_sphere(cam, T, reach)
+    # points of the pyramid within ``reach`` of the camera, many on the boundary (corner rays, cap)
+    n = 20000
+    u = np.where(rng.random(n) < 0.3, rng.choice([0, cam.width], n), rng.uniform(0, cam.width, n))
+    v = np.where(rng.random(n) < 0.3, rng.choice([0, cam.height], n), rng.uniform(0, cam.height, n))
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    d = np.c_[(u - cx) / fx, (v - cy) / fy, np.ones(n)]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rho = np.where(rng.random(n) < 0.5, reach, rng.uniform(0, reach, n))
+    Xw = (d * rho[:, None] - T[:3, 3]) @ T[:3, :3]
+    assert np.linalg.norm(Xw - center, axis=1).max() <= r * (1 + 1e-9)
+    assert r <= frustum_sphere(cam, T, reach)[1] + 1e-9  # never worse than the depth-cut frustum's
+
+
 def test_visible_rows_equal_brute_force_on_the_small_map(small_map):
     m, _ = small_map
     idx = SpatialIndex(m.positions)
@@ -152,6 +174,12 @@ def test_visible_rows_exact_with_landmarks_of_very_different_reach():
         np.testing.assert_array_equal(got, np.flatnonzero(visible_mask(P, cam, T, vd, va, dr)))
         total += len(want)
     assert total > 0
+    # the cached tiers follow new arrays (another depth range, other view directions)
+    T = random_pose(rng, 50)
+    for dr2, vd2 in ((dr * 0.5, vd), (dr, -vd)):
+        np.testing.assert_array_equal(visible_rows(idx, cam, T, vd2, va, dr2), brute_visible(P, vd2, va, dr2, cam, T, ViewLimits()))
+    lim = ViewLimits(depth_scale=(0.1, 5.0))
+    np.testing.assert_array_equal(visible_rows(idx, cam, T, vd, va, dr, lim), brute_visible(P, vd, va, dr, cam, T, lim))
 
 
 def test_occlusion_by_a_mesh():
@@ -173,7 +201,7 @@ def test_occlusion_by_a_mesh():
     assert occluded(P, cam_c, trimesh.Scene([wall])).tolist() == hid.tolist()
 
 
-@pytest.mark.parametrize("n", [1, 999, 1001])
+@pytest.mark.parametrize("n", [1, 999, 2500])
 def test_visible_rows_small_and_degenerate_maps(n):
     rng = np.random.default_rng(n)
     P = rng.uniform(-1, 1, (n, 3)) + [0, 0, 3]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from .common import StageBars, human_size, print_json
@@ -24,6 +25,7 @@ def register(sub):
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+    p._negative_number_matcher = re.compile(r"^-\.?\d")  # '--bbox -1,-2,...' is a value, not an option
 
 
 def run(args) -> int:

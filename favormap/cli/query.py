@@ -3,6 +3,7 @@ favormap query map.h5 --near X Y Z (--radius R | --knn K) [--json]"""
 
 from __future__ import annotations
 
+import re
 import sys
 
 from .common import print_json
@@ -30,6 +31,7 @@ def register(sub):
     p.add_argument("--limit", type=int, default=20, help="landmarks listed in the human output (default 20; 0: all)")
     p.add_argument("--json", action="store_true", help="one JSON object (visible_ids / ids, counts)")
     p.set_defaults(func=run)
+    p._negative_number_matcher = re.compile(r"^-\.?\d")  # '--near -1e-3 2 3' are values, not options
 
 
 def _load_mesh(path):

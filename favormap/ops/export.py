@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..mapfile import Map, atomic_path
+from ..mapfile.writer import check_output_path
 
 FORMATS = (".ply", ".obj", ".glb")
 COLOR_BY = ("quality", "track")
@@ -76,6 +77,7 @@ def export_landmarks(m, out, boxes: bool = False, color_by: str = "quality") -> 
         raise InputError(f"cannot export to {out.name}: the file name must end in {', '.join(FORMATS)}")
     if color_by not in COLOR_BY:
         raise InputError(f"unknown colouring {color_by!r} (use {' or '.join(COLOR_BY)})")
+    check_output_path(out)
     if isinstance(m, (str, Path)):
         with Map.open(m) as mm:
             return export_landmarks(mm, out, boxes, color_by)

@@ -39,17 +39,14 @@ import h5py
 import numpy as np
 
 from .. import __version__, geometry
-from ..errors import FavormapError, IncompatibleMapsError, InputError
+from ..errors import FavormapError, IncompatibleMapsError, InputError, MapFormatError
 from ..io import Camera, working_camera
-from ..mapfile import FORMAT, FORMAT_VERSION, Map, atomic_path, load_schema, new_landmark_ids
-from ..mapfile.schema import numpy_dtype
+from ..mapfile import FORMAT, FORMAT_VERSION, Map, atomic_path, check_file, load_schema, new_landmark_ids
+from ..mapfile.schema import check_attributes, check_values, numpy_dtype
+from ..mapfile.writer import POSE_CONVENTION, check_output_path
 
 # attributes that must be equal for maps to be merged
 COMPAT_FIELDS = ("extractor", "channels", "grid_resolution", "patch_size")
-
-_POSE_CONVENTION = ("cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
-                    "pixel centre of the top-left pixel at (0.5, 0.5)")
-
 
 # -------------------------------------------------------------------------------------------------
 # streaming writer
@@ -58,22 +55,24 @@ class MapWriter:
     """Write a map file dataset by dataset, large datasets row block by row block.
 
     Same layout as ``mapfile.write_map`` (schema dtypes, per-landmark chunks for voxel grids,
-    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings) and the same atomicity: the file is
-    written beside ``path`` and renamed into place on success, with the ``format`` attribute last::
+    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings), the same integrity checks (schema
+    ``values`` constraints of every array and streamed block, attributes, then the structure of the
+    written file) and the same atomicity: the file is written beside ``path`` and renamed into place
+    on success, with the ``format`` attribute last::
 
         with MapWriter(path, header, num_landmarks=L, num_frames=M) as w:
             w.put("landmarks/ids", ids)              # whole datasets
             w.create("voxels/descriptors")            # streamed: shape from L/M/C/R
             w.write_rows("voxels/descriptors", 0, block)
             ...
-    Leaving the block without error checks that every schema dataset was written completely.
-    ``header`` holds extractor, channels, grid_resolution, patch_size, render_samples, max_side and
-    provenance (a dict)."""
+    Leaving the block without error checks that every schema dataset was written completely; an
+    error (or an invalid value) leaves ``path`` untouched. ``header`` holds extractor, channels,
+    grid_resolution, patch_size, render_samples, max_side and provenance (a dict)."""
 
     HEADER_KEYS = ("extractor", "channels", "grid_resolution", "patch_size", "render_samples", "max_side")
 
     def __init__(self, path, header: dict, num_landmarks: int, num_frames: int):
-        self.path = Path(path)
+        self.path = check_output_path(path)
         missing = [k for k in self.HEADER_KEYS if k not in header]
         if missing:
             raise ValueError(f"MapWriter header lacks {missing}")
@@ -82,14 +81,16 @@ class MapWriter:
         self.schema = load_schema(FORMAT_VERSION)
         self.dims = {"L": self.L, "M": self.M, "C": int(header["channels"]), "R": int(header["grid_resolution"])}
         self._stack = ExitStack()
+        self._tmp: Path | None = None
         self.f: h5py.File | None = None
         self._filled: dict[str, int] = {}  # streamed dataset -> rows written
         self._streamed: set[str] = set()
+        self._arrays: dict[str, np.ndarray] = {}  # whole datasets, for the cross-dataset value checks
 
     # -- context --------------------------------------------------------------------------------
     def __enter__(self) -> "MapWriter":
-        tmp = self._stack.enter_context(atomic_path(self.path))
-        self.f = self._stack.enter_context(h5py.File(tmp, "w", libver="latest"))
+        self._tmp = self._stack.enter_context(atomic_path(self.path))
+        self.f = h5py.File(self._tmp, "w", libver="latest")
         return self
 
     def __exit__(self, exc_type, exc, tb):
@@ -97,10 +98,19 @@ class MapWriter:
             try:
                 self._finish()
             except BaseException:
+                self._close()
                 if not self._stack.__exit__(*sys.exc_info()):  # removes the partial file
                     raise
                 return False
+        self._close()
         return self._stack.__exit__(exc_type, exc, tb)
+
+    def _close(self):
+        if self.f is not None:
+            try:
+                self.f.close()
+            finally:
+                self.f = None
 
     # -- datasets -------------------------------------------------------------------------------
     def _spec(self, name: str) -> dict:
@@ -125,6 +135,11 @@ class MapWriter:
         kw.update(compression="gzip", compression_opts=4, shuffle=True)
         return kw
 
+    def _refuse(self, problems: list[str]):
+        if problems:
+            raise MapFormatError(f"refusing to write an invalid map to {self.path}: {problems[0]}"
+                                 + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+
     def put(self, name: str, data) -> None:
         """Write a whole dataset (cast to the schema dtype)."""
         spec = self._spec(name)
@@ -133,9 +148,11 @@ class MapWriter:
             width = max([len(e) for e in enc] + [1])
             arr = np.array(enc, dtype=f"S{width}").reshape(len(enc))
         else:
-            arr = np.asarray(data).astype(numpy_dtype(spec["dtype"]), copy=False)
+            with np.errstate(over="ignore", invalid="ignore"):
+                arr = np.asarray(data).astype(numpy_dtype(spec["dtype"]), copy=False)
         self._check_shape(name, spec, arr.shape)
         self.f.create_dataset(name, data=arr, dtype=arr.dtype, **self._kw(spec, arr.shape))
+        self._arrays[name] = arr
 
     def _shape_of(self, name: str, spec: dict, rows: int | None) -> tuple:
         out = []
@@ -169,14 +186,18 @@ class MapWriter:
 
     def write_rows(self, name: str, start: int, data) -> None:
         """Write rows ``start .. start+len(data)`` of a created dataset (any trailing shape with the
-        right number of elements per row, e.g. (n, R^3, C) for (n, R, R, R, C))."""
+        right number of elements per row, e.g. (n, R^3, C) for (n, R, R, R, C)). Each block is
+        checked against the schema's value constraints of its dataset."""
         ds = self.f[name]
         data = np.asarray(data)
         n = len(data)
         if start < 0 or start + n > ds.shape[0]:
             raise IndexError(f"{name}: rows {start}..{start + n} outside 0..{ds.shape[0]}")
         if n:
-            ds[start:start + n] = data.reshape((n,) + ds.shape[1:]).astype(ds.dtype, copy=False)
+            with np.errstate(over="ignore", invalid="ignore"):
+                block = data.reshape((n,) + ds.shape[1:]).astype(ds.dtype, copy=False)
+            self._refuse([f"{p} (rows {start}..{start + n})" for p in check_values(name, block, self.dims)[0]])
+            ds[start:start + n] = block
         self._filled[name] += n
 
     # -- finish -----------------------------------------------------------------------------------
@@ -188,19 +209,33 @@ class MapWriter:
         for name in self._streamed:
             if self._filled[name] != f[name].shape[0]:
                 raise FavormapError(f"internal error: {name!r} got {self._filled[name]} of {f[name].shape[0]} rows")
+        problems = []
+        for name, arr in self._arrays.items():
+            problems += check_values(name, arr, self.dims, self._arrays)[0]
         h = self.header
-        f.attrs["format_version"] = FORMAT_VERSION
-        f.attrs["favormap_version"] = __version__
-        f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        f.attrs["extractor"] = str(h["extractor"])
-        for k in ("channels", "grid_resolution", "patch_size", "render_samples", "max_side"):
-            f.attrs[k] = int(h[k])
-        f.attrs["pose_convention"] = _POSE_CONVENTION
-        f.attrs["num_landmarks"] = self.L
-        f.attrs["num_frames"] = self.M
-        f.attrs["provenance"] = json.dumps(h.get("provenance", {}), default=_json_default)
+        attrs = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "favormap_version": __version__,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "extractor": str(h["extractor"]),
+            **{k: int(h[k]) for k in ("channels", "grid_resolution", "patch_size", "render_samples", "max_side")},
+            "pose_convention": POSE_CONVENTION,
+            "num_landmarks": self.L,
+            "num_frames": self.M,
+            "provenance": json.dumps(h.get("provenance", {}), default=_json_default),
+        }
+        self._refuse(problems + check_attributes(attrs))
+        for k, v in attrs.items():
+            if k != "format":
+                f.attrs[k] = v
         f.flush()
         f.attrs["format"] = FORMAT  # last: a half-written file is not a map
+        self._close()
+        with h5py.File(self._tmp, "r", locking=False) as g:
+            problems = check_file(g)
+        if problems:  # a writer bug; never rename a bad file into place
+            raise MapFormatError(f"written map failed its schema check: {problems[0]}")
 
 
 def _json_default(o):
@@ -322,6 +357,7 @@ def merge_maps(paths, out, dedup_radius: float | None = None, transform: np.ndar
     paths = [Path(p) for p in paths]
     if len(paths) < 2:
         raise InputError("merge needs at least two maps")
+    check_output_path(out)  # fail before any work
     if dedup_radius is not None and not (dedup_radius >= 0 and np.isfinite(dedup_radius)):
         raise InputError(f"--dedup-radius must be a finite number >= 0, got {dedup_radius}")
     with ExitStack() as stack:

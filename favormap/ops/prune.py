@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..mapfile import Map
+from ..mapfile.writer import check_output_path
 from .merge import LANDMARK_META, MapWriter, camera_arrays, copy_voxels
 
 REASONS = ("min_track", "min_quality", "bbox", "budget")
@@ -152,6 +153,7 @@ def select_rows(m, max_landmarks: int | None = None, min_track: int | None = Non
 def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None,
               bbox=None, chunk: int = 4096, progress=None, allow_empty: bool = False) -> PruneResult:
     """Write the pruned map of ``path`` to ``out`` (atomic; voxel grids streamed)."""
+    check_output_path(out)  # fail before any work
     with Map.open(path) as m:
         res = select_rows(m, max_landmarks, min_track, min_quality, bbox)
         rows = res.rows
