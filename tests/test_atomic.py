@@ -95,8 +95,8 @@ def test_write_map_failure_leaves_old_map_intact(tmp_path, monkeypatch):
     before = target.read_bytes()
     from favormap.mapfile import writer
 
-    def broken(f, arrays, attrs):
-        f.create_dataset("landmarks/ids", data=np.arange(3))
+    def broken(w, arrays):
+        w.f.create_dataset("landmarks/ids", data=np.arange(3))
         raise OSError("disk full")
 
     monkeypatch.setattr(writer, "_write_contents", broken)
@@ -112,11 +112,11 @@ def test_partial_files_are_never_maps(tmp_path, monkeypatch):
     seen = {}
     real = writer._write_contents
 
-    def spy(f, arrays, attrs):
-        real(f, arrays, attrs)
-        f.flush()
-        seen["tmp"] = Path(f.filename)
-        shutil.copyfile(f.filename, tmp_path / "snapshot.h5")  # the file as a kill here would leave it
+    def spy(w, arrays):
+        real(w, arrays)
+        w.f.flush()
+        seen["tmp"] = Path(w.f.filename)
+        shutil.copyfile(w.f.filename, tmp_path / "snapshot.h5")  # the file as a kill here would leave it
         raise KeyboardInterrupt
 
     monkeypatch.setattr(writer, "_write_contents", spy)

@@ -70,7 +70,8 @@ def voxels_of(path, rows=None):
 
 # -- streaming writer ---------------------------------------------------------------------------------
 def write_streaming(m, path, chunk=37, nan_at=None):
-    from favormap.ops.merge import LANDMARK_META, MapWriter, camera_arrays
+    from favormap.mapfile.writer import MapWriter, camera_arrays
+    from favormap.ops.merge import LANDMARK_META
 
     header = {k: getattr(m, k) for k in MapWriter.HEADER_KEYS}
     header["provenance"] = m.provenance

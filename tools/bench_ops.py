@@ -115,7 +115,7 @@ def street_poses(n: int, rng: np.random.Generator) -> list[np.ndarray]:
 def write_synthetic(path: Path, L: int, C: int, R: int, n_frames: int, seed: int, chunk: int) -> dict:
     from favormap.io import Camera
     from favormap.mapfile import new_landmark_ids
-    from favormap.ops.merge import MapWriter, camera_arrays
+    from favormap.mapfile.writer import MapWriter, camera_arrays
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Merging maps, and the streaming map writer that merge and prune share.
+"""Merging maps.
 
 ``merge_maps(paths, out)`` combines maps built with the same extractor / channels / grid / patch
 size into one file without loading their voxel grids into memory: landmark metadata is combined in
@@ -28,240 +28,20 @@ Merge rules
 
 from __future__ import annotations
 
-import json
-import sys
 from contextlib import ExitStack
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from .. import __version__, geometry
-from ..errors import FavormapError, IncompatibleMapsError, InputError, MapFormatError
-from ..io import Camera, working_camera
-from ..mapfile import FORMAT, FORMAT_VERSION, Map, atomic_path, check_file, load_schema, new_landmark_ids
-from ..mapfile.schema import check_attributes, check_values, numpy_dtype
-from ..mapfile.writer import POSE_CONVENTION, check_output_path
+from .. import geometry
+from ..errors import IncompatibleMapsError, InputError
+from ..io import working_camera
+from ..mapfile import Map, new_landmark_ids
+from ..mapfile.writer import MapWriter, camera_arrays, check_output_path
 
 # attributes that must be equal for maps to be merged
 COMPAT_FIELDS = ("extractor", "channels", "grid_resolution", "patch_size")
-
-# -------------------------------------------------------------------------------------------------
-# streaming writer
-# -------------------------------------------------------------------------------------------------
-class MapWriter:
-    """Write a map file dataset by dataset, large datasets row block by row block.
-
-    Same layout as ``mapfile.write_map`` (schema dtypes, per-landmark chunks for voxel grids,
-    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings), the same integrity checks (schema
-    ``values`` constraints of every array and streamed block, attributes, then the structure of the
-    written file) and the same atomicity: the file is written beside ``path`` and renamed into place
-    on success, with the ``format`` attribute last::
-
-        with MapWriter(path, header, num_landmarks=L, num_frames=M) as w:
-            w.put("landmarks/ids", ids)              # whole datasets
-            w.create("voxels/descriptors")            # streamed: shape from L/M/C/R
-            w.write_rows("voxels/descriptors", 0, block)
-            ...
-    Leaving the block without error checks that every schema dataset was written completely; an
-    error (or an invalid value) leaves ``path`` untouched. ``header`` holds extractor, channels,
-    grid_resolution, patch_size, render_samples, max_side and provenance (a dict)."""
-
-    HEADER_KEYS = ("extractor", "channels", "grid_resolution", "patch_size", "render_samples", "max_side")
-
-    def __init__(self, path, header: dict, num_landmarks: int, num_frames: int):
-        self.path = check_output_path(path)
-        missing = [k for k in self.HEADER_KEYS if k not in header]
-        if missing:
-            raise ValueError(f"MapWriter header lacks {missing}")
-        self.header = dict(header)
-        self.L, self.M = int(num_landmarks), int(num_frames)
-        self.schema = load_schema(FORMAT_VERSION)
-        self.dims = {"L": self.L, "M": self.M, "C": int(header["channels"]), "R": int(header["grid_resolution"])}
-        self._stack = ExitStack()
-        self._tmp: Path | None = None
-        self.f: h5py.File | None = None
-        self._filled: dict[str, int] = {}  # streamed dataset -> rows written
-        self._streamed: set[str] = set()
-        self._arrays: dict[str, np.ndarray] = {}  # whole datasets, for the cross-dataset value checks
-
-    # -- context --------------------------------------------------------------------------------
-    def __enter__(self) -> "MapWriter":
-        self._tmp = self._stack.enter_context(atomic_path(self.path))
-        self.f = h5py.File(self._tmp, "w", libver="latest")
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            try:
-                self._finish()
-            except BaseException:
-                self._close()
-                if not self._stack.__exit__(*sys.exc_info()):  # removes the partial file
-                    raise
-                return False
-        self._close()
-        return self._stack.__exit__(exc_type, exc, tb)
-
-    def _close(self):
-        if self.f is not None:
-            try:
-                self.f.close()
-            finally:
-                self.f = None
-
-    # -- datasets -------------------------------------------------------------------------------
-    def _spec(self, name: str) -> dict:
-        spec = self.schema["datasets"].get(name)
-        if spec is None:
-            raise KeyError(f"{name!r} is not a dataset of the map schema")
-        return spec
-
-    @staticmethod
-    def _chunks(spec: dict, shape: tuple) -> tuple:
-        n = shape[0]
-        if spec.get("chunk") == "landmark":
-            return (1,) + tuple(shape[1:])
-        row = max(1, int(np.prod(shape[1:])) if len(shape) > 1 else 1)
-        return (max(1, min(n, max(1, 65536 // row))),) + tuple(shape[1:])
-
-    def _kw(self, spec: dict, shape: tuple) -> dict:
-        if shape[0] == 0:
-            kw = dict(maxshape=(None,) + tuple(shape[1:]), chunks=(1,) + tuple(shape[1:]), fletcher32=True)
-        else:
-            kw = dict(chunks=self._chunks(spec, shape), fletcher32=True)
-        kw.update(compression="gzip", compression_opts=4, shuffle=True)
-        return kw
-
-    def _refuse(self, problems: list[str]):
-        if problems:
-            raise MapFormatError(f"refusing to write an invalid map to {self.path}: {problems[0]}"
-                                 + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
-
-    def put(self, name: str, data) -> None:
-        """Write a whole dataset (cast to the schema dtype)."""
-        spec = self._spec(name)
-        if spec["dtype"] == "str":  # fixed-length UTF-8 (variable-length strings cannot be checksummed)
-            enc = [str(x).encode("utf-8") for x in data]
-            width = max([len(e) for e in enc] + [1])
-            arr = np.array(enc, dtype=f"S{width}").reshape(len(enc))
-        else:
-            with np.errstate(over="ignore", invalid="ignore"):
-                arr = np.asarray(data).astype(numpy_dtype(spec["dtype"]), copy=False)
-        self._check_shape(name, spec, arr.shape)
-        self.f.create_dataset(name, data=arr, dtype=arr.dtype, **self._kw(spec, arr.shape))
-        self._arrays[name] = arr
-
-    def _shape_of(self, name: str, spec: dict, rows: int | None) -> tuple:
-        out = []
-        for s in spec["shape"]:
-            if isinstance(s, int):
-                out.append(s)
-            elif s in self.dims:
-                out.append(self.dims[s])
-            elif rows is not None and not out:
-                out.append(int(rows))
-            else:
-                raise ValueError(f"{name}: give the number of rows along {s!r}")
-        if rows is not None and out[0] != rows:
-            raise ValueError(f"{name}: {rows} rows given but the map has {out[0]}")
-        return tuple(out)
-
-    def _check_shape(self, name: str, spec: dict, shape: tuple) -> None:
-        want = self._shape_of(name, spec, shape[0] if len(shape) else None)
-        if tuple(shape) != want:
-            raise ValueError(f"{name}: shape {tuple(shape)} does not match the map's {want}")
-
-    def create(self, name: str, rows: int | None = None) -> None:
-        """Create a dataset to be filled with :meth:`write_rows` (not for string datasets)."""
-        spec = self._spec(name)
-        if spec["dtype"] == "str":
-            raise ValueError("string datasets cannot be streamed")
-        shape = self._shape_of(name, spec, rows)
-        self.f.create_dataset(name, shape=shape, dtype=numpy_dtype(spec["dtype"]), **self._kw(spec, shape))
-        self._streamed.add(name)
-        self._filled[name] = 0
-
-    def write_rows(self, name: str, start: int, data) -> None:
-        """Write rows ``start .. start+len(data)`` of a created dataset (any trailing shape with the
-        right number of elements per row, e.g. (n, R^3, C) for (n, R, R, R, C)). Each block is
-        checked against the schema's value constraints of its dataset."""
-        ds = self.f[name]
-        data = np.asarray(data)
-        n = len(data)
-        if start < 0 or start + n > ds.shape[0]:
-            raise IndexError(f"{name}: rows {start}..{start + n} outside 0..{ds.shape[0]}")
-        if n:
-            with np.errstate(over="ignore", invalid="ignore"):
-                block = data.reshape((n,) + ds.shape[1:]).astype(ds.dtype, copy=False)
-            self._refuse([f"{p} (rows {start}..{start + n})" for p in check_values(name, block, self.dims)[0]])
-            ds[start:start + n] = block
-        self._filled[name] += n
-
-    # -- finish -----------------------------------------------------------------------------------
-    def _finish(self) -> None:
-        f = self.f
-        for name in self.schema["datasets"]:
-            if name not in f:
-                raise FavormapError(f"internal error: map dataset {name!r} was not written")
-        for name in self._streamed:
-            if self._filled[name] != f[name].shape[0]:
-                raise FavormapError(f"internal error: {name!r} got {self._filled[name]} of {f[name].shape[0]} rows")
-        problems = []
-        for name, arr in self._arrays.items():
-            problems += check_values(name, arr, self.dims, self._arrays)[0]
-        h = self.header
-        attrs = {
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "favormap_version": __version__,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "extractor": str(h["extractor"]),
-            **{k: int(h[k]) for k in ("channels", "grid_resolution", "patch_size", "render_samples", "max_side")},
-            "pose_convention": POSE_CONVENTION,
-            "num_landmarks": self.L,
-            "num_frames": self.M,
-            "provenance": json.dumps(h.get("provenance", {}), default=_json_default),
-        }
-        self._refuse(problems + check_attributes(attrs))
-        for k, v in attrs.items():
-            if k != "format":
-                f.attrs[k] = v
-        f.flush()
-        f.attrs["format"] = FORMAT  # last: a half-written file is not a map
-        self._close()
-        with h5py.File(self._tmp, "r", locking=False) as g:
-            problems = check_file(g)
-        if problems:  # a writer bug; never rename a bad file into place
-            raise MapFormatError(f"written map failed its schema check: {problems[0]}")
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def camera_arrays(cameras: dict[int, Camera]) -> dict[str, np.ndarray]:
-    """The cameras/* datasets of a camera dict (ids sorted, params zero padded to 12)."""
-    K = sorted(cameras)
-    params = np.zeros((len(K), 12))
-    for i, k in enumerate(K):
-        p = cameras[k].params
-        params[i, : len(p)] = p
-    return {
-        "cameras/ids": np.array(K, np.int32),
-        "cameras/models": [cameras[k].model for k in K],
-        "cameras/sizes": np.array([[cameras[k].width, cameras[k].height] for k in K], np.int32).reshape(-1, 2),
-        "cameras/params": params,
-    }
-
 
 LANDMARK_META = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine", "view_dir",
                  "view_angle", "depth_range")

@@ -18,7 +18,8 @@ import numpy as np
 from ..errors import InputError
 from ..mapfile import Map
 from ..mapfile.writer import check_output_path
-from .merge import LANDMARK_META, MapWriter, camera_arrays, copy_voxels
+from ..mapfile.writer import MapWriter, camera_arrays
+from .merge import LANDMARK_META, copy_voxels
 
 REASONS = ("min_track", "min_quality", "bbox", "budget")
 
