@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, human_size, print_json
 
 
@@ -22,6 +23,7 @@ def register(sub):
     p.add_argument("--transform", metavar="FILE", help="4x4 b_to_a matrix (rigid or similarity) applied to the second and later maps")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_rerun_args(p)
     p.set_defaults(func=run)
 
 
@@ -33,12 +35,16 @@ def run(args) -> int:
     if len(args.maps) < 2:
         raise InputError("merge needs at least two maps")
     T = read_transform(args.transform)[0] if args.transform else None
+    rec = recording_from_args(args, "favormap merge")
     bars = StageBars(args.quiet or args.json)
     try:
         res = merge_maps(args.maps, args.output, dedup_radius=args.dedup_radius, transform=T,
                          min_cosine=args.min_cosine, dedup=not args.no_dedup, progress=bars)
     finally:
         bars.close()
+    if rec is not None:
+        rec.log_merge(args.maps, args.output)
+        rec.close()
     for w in res.warnings:
         print(f"favormap merge: warning: {w}", file=sys.stderr)
     d = res.to_dict()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, human_size, print_json
 
 _LABELS = {"min_track": "track shorter than --min-track", "min_quality": "PSNR below --min-quality",
@@ -24,6 +25,7 @@ def register(sub):
     p.add_argument("--bbox", metavar="x0,y0,z0,x1,y1,z1", help="keep landmarks inside this axis-aligned box")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_rerun_args(p)
     p.set_defaults(func=run)
     p._negative_number_matcher = re.compile(r"^-\.?\d")  # '--bbox -1,-2,...' is a value, not an option
 
@@ -37,11 +39,15 @@ def run(args) -> int:
     if args.min_track is not None and args.min_track < 1:
         raise InputError(f"--min-track must be >= 1, got {args.min_track}")
     bbox = parse_bbox(args.bbox) if args.bbox is not None else None
+    rec = recording_from_args(args, "favormap prune")
     bars = StageBars(args.quiet or args.json)
     try:
         res = prune_map(args.map, args.output, args.max_landmarks, args.min_track, args.min_quality, bbox, progress=bars)
     finally:
         bars.close()
+    if rec is not None:
+        rec.log_prune(args.map, args.output)
+        rec.close()
     d = res.to_dict()
     d["file_size"] = Path(args.output).stat().st_size
     if args.json:
