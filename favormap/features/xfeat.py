@@ -28,14 +28,32 @@ def _load_model(device: str):
     return model
 
 
+def _subpixel_offsets(heat: torch.Tensor, kpts: torch.Tensor) -> torch.Tensor:
+    """Sub-pixel refinement of heatmap maxima: a 1D parabola through the peak and its two
+    neighbours along x and along y (offsets clamped to half a pixel)."""
+    H, W = heat.shape
+    x = kpts[:, 0].long().clamp(1, W - 2)
+    y = kpts[:, 1].long().clamp(1, H - 2)
+    c = heat[y, x]
+    off = []
+    for lo, hi in ((heat[y, x - 1], heat[y, x + 1]), (heat[y - 1, x], heat[y + 1, x])):
+        den = 2 * c - lo - hi
+        d = torch.where(den > 1e-12, 0.5 * (hi - lo) / den.clamp_min(1e-12), torch.zeros_like(c))
+        off.append(d.clamp(-0.5, 0.5))
+    inside = ((kpts[:, 0] >= 1) & (kpts[:, 0] <= W - 2) & (kpts[:, 1] >= 1) & (kpts[:, 1] <= H - 2)).float()
+    return torch.stack(off, 1) * inside[:, None]
+
+
 @register("xfeat")
 class XFeatExtractor(Extractor):
     channels = 64
     _models: dict = {}
 
-    def __init__(self, max_keypoints: int = 2048, device: str | None = None, detection_threshold: float = 0.05):
+    def __init__(self, max_keypoints: int = 2048, device: str | None = None, detection_threshold: float = 0.05,
+                 subpixel: bool = True):
         super().__init__(max_keypoints, device)
         self.detection_threshold = detection_threshold
+        self.subpixel = subpixel
         if self.device not in XFeatExtractor._models:
             XFeatExtractor._models[self.device] = _load_model(self.device)
         self.model = XFeatExtractor._models[self.device]
@@ -59,7 +77,8 @@ class XFeatExtractor(Extractor):
         kpts = torch.gather(kpts, 1, order[..., None].expand(-1, -1, 2))[0]
         scores = torch.gather(scores, 1, order)[0]
         keep = scores > 0
-        kpts, scores = kpts[keep].float(), scores[keep]
+        kpts, scores = kpts[keep], scores[keep]
+        kpts = kpts.float() + _subpixel_offsets(heat[0, 0], kpts) if self.subpixel else kpts.float()
         dense = (M1, H1, W1, rh, rw)
         # keypoints in the original image's pixels, COLMAP convention
         xy = kpts * torch.tensor([rw, rh], device=kpts.device) + 0.5
