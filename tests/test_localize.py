@@ -114,3 +114,28 @@ def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
     for s in out["methods"].values():
         assert s["success_rate"] == 1.0
         assert len(s["per_iteration"]) == 3
+
+
+def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tmp_path, capsys):
+    import shutil
+
+    from favormap.cli import main
+
+    _, path = small_map
+    rng = np.random.default_rng(2)
+    folder = tmp_path / "queries"
+    folder.mkdir()
+    lines, truth = [], {}
+    for fr in small_sequence.frames[2:12:4]:
+        shutil.copy(fr.image_path, folder / fr.image_path.name)
+        wfc = inverse(perturb_pose(fr.cam_from_world, 0.1, 5.0, rng))
+        lines.append(fr.image_path.name + " " + " ".join(map(str, wfc.ravel())))
+        truth[fr.image_path.name] = fr.cam_from_world
+    (tmp_path / "priors.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "est.txt"
+    assert main(["localize", str(path), str(folder), "--priors", str(tmp_path / "priors.txt"), "--output", str(out)]) == 0
+    assert capsys.readouterr().out.count("localized") == len(truth)
+    for line in out.read_text().splitlines():  # same format as the priors file
+        name, *nums = line.split()
+        est = inverse(np.array(nums, float).reshape(4, 4))
+        assert pose_error(est, truth[name])[0] < 0.01
