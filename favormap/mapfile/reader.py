@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from collections import OrderedDict
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -71,8 +70,8 @@ class Map:
         self._f = None
         self._f = _open_h5(self.path)
         self.bytes_read = 0  # voxel bytes read from disk (tests and benchmarks look at it)
-        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self.cache_size = cache_size
+        self.cache_size = max(1, int(cache_size))
+        self._slot = None  # row -> cache slot (created on the first voxel read)
         try:
             with _guard(self.path, "the file structure (HDF5 metadata)"):
                 view = open_view(self._f, self.path)
@@ -191,27 +190,39 @@ class Map:
 
     # -- lazy voxel access -------------------------------------------------------------------------
     def voxels(self, rows) -> tuple[np.ndarray, np.ndarray]:
-        """Descriptor grids (n, R^3, C) float32 and raw densities (n, R^3) of landmark rows."""
+        """Descriptor grids (n, R^3, C) float32 and raw densities (n, R^3) of landmark rows.
+
+        Rows not in the cache are read in sorted contiguous runs; the cache is a fixed-size ring of
+        ``cache_size`` grids (oldest inserted evicted first), indexed by a row -> slot array, so a
+        call costs a few numpy operations whatever the number of rows."""
         rows = np.asarray(rows, np.int64).ravel()
+        R3 = self.grid_resolution ** 3
         if len(rows) and (rows.min() < 0 or rows.max() >= len(self)):
             raise IndexError("landmark row out of range")
-        cache = self._cache
-        missing = np.unique([r for r in rows.tolist() if r not in cache]).astype(np.int64)
-        fresh = {}
+        if self._slot is None:
+            self._slot = np.full(len(self), -1, np.int64)
+            self._slot_row = np.full(self.cache_size, -1, np.int64)
+            self._cache_d = np.empty((self.cache_size, R3, self.channels), np.float32)
+            self._cache_s = np.empty((self.cache_size, R3), np.float32)
+            self._next = 0
+        desc = np.empty((len(rows), R3, self.channels), np.float32)
+        dens = np.empty((len(rows), R3), np.float32)
+        slots = self._slot[rows]
+        hit = slots >= 0
+        desc[hit], dens[hit] = self._cache_d[slots[hit]], self._cache_s[slots[hit]]
+        missing, inverse = np.unique(rows[~hit], return_inverse=True)
         if len(missing):
             d, s = self._read_rows(missing)
-            fresh = {int(r): (d[i], s[i]) for i, r in enumerate(missing)}
-        out = [fresh.get(r) or cache[r] for r in rows.tolist()]
-        for r in rows.tolist():  # refresh LRU order, then insert the new rows
-            if r in cache:
-                cache.move_to_end(r)
-        cache.update(fresh)
-        while len(cache) > self.cache_size:
-            cache.popitem(last=False)
-        R3 = self.grid_resolution ** 3
-        if not out:
-            return np.zeros((0, R3, self.channels), np.float32), np.zeros((0, R3), np.float32)
-        return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+            desc[~hit], dens[~hit] = d[inverse], s[inverse]
+            keep = missing[-self.cache_size:], d[-self.cache_size:], s[-self.cache_size:]
+            new = (self._next + np.arange(len(keep[0]))) % self.cache_size
+            old = self._slot_row[new]
+            self._slot[old[old >= 0]] = -1
+            self._slot_row[new] = keep[0]
+            self._slot[keep[0]] = new
+            self._cache_d[new], self._cache_s[new] = keep[1], keep[2]
+            self._next = int((self._next + len(new)) % self.cache_size)
+        return desc, dens
 
     def _read_rows(self, rows: np.ndarray):
         """Read sorted landmark rows: contiguous runs are read with one slice each."""
