@@ -21,14 +21,19 @@ def working_camera(camera: Camera, max_side: int | None) -> Camera:
     return cam
 
 
-def read_rgb(path: Path) -> np.ndarray:
+def imread(path: Path, flags: int = cv2.IMREAD_COLOR, error: type[InputError] = InputError) -> np.ndarray:
+    """cv2.imread with one clear ``error`` for a missing or unreadable file."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"image not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        raise error(f"image not found: {path}")
+    img = cv2.imread(str(path), flags)
     if img is None:
-        raise InputError(f"cannot read image: {path}")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        raise error(f"cannot read image: {path}")
+    return img
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    return cv2.cvtColor(imread(path), cv2.COLOR_BGR2RGB)
 
 
 def load_image(path: Path, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:

@@ -51,12 +51,9 @@ def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file; SequenceError when it is missing or unreadable."""
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise SequenceError(f"image not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise SequenceError(f"cannot read image: {path}")
+    from ..images import imread
+
+    img = imread(path, cv2.IMREAD_UNCHANGED, SequenceError)
     return int(img.shape[1]), int(img.shape[0])
 
 
