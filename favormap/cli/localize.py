@@ -57,30 +57,22 @@ def config_from_args(args):
 def read_priors(path: Path) -> dict[str, np.ndarray]:
     """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world."""
     from ..errors import InputError
-    from ..geometry import inverse, pose_from_quat_t
+    from ..geometry import inverse
+    from ..io.posefile import parse_pose
 
     path = Path(path)
     if not path.is_file():
         raise InputError(f"priors file not found: {path}")
     out = {}
     for ln, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
         parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
         try:
             nums = np.array([float(x) for x in parts[1:]])
         except ValueError:
             raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers") from None
-        if not np.all(np.isfinite(nums)):
-            raise InputError(f"{path}:{ln}: non-finite numbers")
-        if len(nums) == 7:
-            wfc = pose_from_quat_t(nums[3:7], nums[:3])
-        elif len(nums) == 16:
-            wfc = nums.reshape(4, 4)
-        else:
-            raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers, got {len(nums)} numbers")
-        out[parts[0]] = inverse(wfc)
+        out[parts[0]] = inverse(parse_pose(nums, 1, f"{path}:{ln}"))
     if not out:
         raise InputError(f"priors file {path} holds no poses")
     return out
