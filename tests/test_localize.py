@@ -60,13 +60,103 @@ def test_localizing_reads_only_visible_voxels(small_map, queries):
     assert loc.map.bytes_read == visible * per_landmark  # exactly the visible landmarks' grids
 
 
-def test_prior_facing_away_fails_cleanly(small_map, queries):
-    _, path = small_map
-    img, T = queries[0]
+def _facing_away(T):
     wfc = inverse(T)
     wfc[:3, :3] = wfc[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turn around the y axis
-    res = Localizer(path).localize(img, inverse(wfc))
+    return inverse(wfc)
+
+
+def test_prior_facing_away_fails_cleanly_without_global_fallback(small_map, queries):
+    _, path = small_map
+    img, T = queries[0]
+    res = Localizer(path, LocalizeConfig(global_fallback=False)).localize(img, _facing_away(T))
     assert not res.success and "inliers" in res.message
+    assert "OpenCV axes" in res.message  # names the convention expected
+    np.testing.assert_allclose(res.cam_from_world, _facing_away(T))  # the prior comes back
+
+
+def test_prior_facing_away_recovers_through_global_matching(small_map, queries):
+    _, path = small_map
+    img, T = queries[0]
+    res = Localizer(path).localize(img, _facing_away(T))
+    assert res.success, res.message
+    assert res.iterations[0].kind == "render" and any(it.kind == "global" for it in res.iterations)
+    assert pose_error(res.cam_from_world, T)[0] < 0.01
+
+
+def test_localizes_without_a_prior(small_map, queries):
+    _, path = small_map
+    loc = Localizer(path)
+    errs = []
+    for img, T in queries:
+        res = loc.localize(img)
+        assert res.success, res.message
+        assert res.iterations[0].kind == "global"
+        errs.append(pose_error(res.cam_from_world, T))
+    errs = np.array(errs)
+    assert np.median(errs[:, 0]) <= 0.005 and np.median(errs[:, 1]) <= 0.2, errs
+
+
+@pytest.mark.parametrize("checks, reason", [
+    ({"min_inliers": 100000}, "too few inliers"),
+    ({"min_inlier_ratio": 1.01}, "low inlier ratio"),
+    ({"max_iteration_change": (1e-9, 1e-9)}, "iterations disagree"),
+    ({"min_visible_inliers": 1.01}, "inlier landmarks are visible"),
+])
+def test_each_success_check_refuses_a_pose(small_map, queries, checks, reason):
+    from favormap.localize import SuccessChecks
+
+    _, path = small_map
+    img, T = queries[1]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(3))
+    # two iterations: the first estimate (from the far prior) and the second differ a little
+    cfg = LocalizeConfig(iterations=2, checks=SuccessChecks(**checks), global_fallback=False)
+    res = Localizer(path, cfg).localize(img, prior)
+    assert not res.success and reason in res.message, res.message
+    assert res.estimate is not None or "too few" in reason  # PnP did find a pose; the check refused it
+    np.testing.assert_allclose(res.cam_from_world, prior)
+    # and the same query passes with the default checks
+    assert Localizer(path, LocalizeConfig(iterations=2, global_fallback=False)).localize(img, prior).success
+
+
+def test_an_image_of_another_scene_is_never_a_success(small_map, small_sequence):
+    """Wrong poses are refused: a room with other textures, seen from the map's own poses."""
+    from favormap.synthetic import make_room, render
+
+    _, path = small_map
+    other = make_room(5)
+    loc = Localizer(path)
+    cam = small_sequence.cameras[0]
+    for fr in small_sequence.frames[::4]:
+        img, _ = render(other, cam, fr.cam_from_world)
+        for prior in (fr.cam_from_world, None):
+            res = loc.localize(img, prior)
+            assert not res.success, (res.num_inliers, res.checks)
+
+
+def test_truncated_query_image_is_an_error_naming_the_file(small_map, small_sequence, tmp_path, capsys):
+    import cv2
+
+    from favormap.cli import main
+    from favormap.errors import InputError
+
+    _, path = small_map
+    fr = small_sequence.frames[3]
+    img = cv2.imread(str(fr.image_path))
+    for ext in (".jpg", ".png"):
+        good = tmp_path / f"q{ext}"
+        cv2.imwrite(str(good), img)
+        bad = tmp_path / f"truncated{ext}"
+        data = good.read_bytes()
+        bad.write_bytes(data[: len(data) * 2 // 3])
+        with pytest.raises(InputError, match="truncated"):
+            Localizer(path).localize(bad, fr.cam_from_world)
+        pose = tmp_path / "prior.txt"
+        np.savetxt(pose, inverse(fr.cam_from_world))
+        assert main(["localize", str(path), str(bad), "--prior", str(pose)]) == 1
+        err = capsys.readouterr().err
+        assert str(bad) in err and "truncated" in err and "Traceback" not in err
+        assert "Premature end" not in err  # no decoder warning leaks
 
 
 def test_matching_keeps_best_above_threshold():
@@ -99,7 +189,7 @@ def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_
 
     R = wfc[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
     pose.write_text(" ".join(map(str, [*wfc[:3, 3], *rotmat_to_quat(R)])))
-    assert main(["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json"]) == 2
+    assert main(["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json", "--no-global"]) == 2
     assert json.loads(capsys.readouterr().out)["success"] is False
 
 
@@ -112,8 +202,11 @@ def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
     out = json.loads(capsys.readouterr().out)
     assert set(out["methods"]) == {"rendered", "mean"}
     for s in out["methods"].values():
-        assert s["success_rate"] == 1.0
+        assert s["success_rate"] == 1.0 and s["false_successes"] == 0
         assert len(s["per_iteration"]) == 3
+    assert main(["eval", str(path), root, "--every", "5", "--json", "--prior-mode", "none", "--no-baseline"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["methods"]["rendered"]["success_rate"] == 1.0
 
 
 def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tmp_path, capsys):
@@ -134,7 +227,9 @@ def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tm
     (tmp_path / "priors.txt").write_text("\n".join(lines) + "\n")
     out = tmp_path / "est.txt"
     assert main(["localize", str(path), str(folder), "--priors", str(tmp_path / "priors.txt"), "--output", str(out)]) == 0
-    assert capsys.readouterr().out.count("localized") == len(truth)
+    out_lines = capsys.readouterr().out.splitlines()
+    assert sum(line.endswith(": localized") for line in out_lines) == len(truth), out_lines
+    assert not any("NOT localized" in line for line in out_lines)
     for line in out.read_text().splitlines():  # same format as the priors file
         name, *nums = line.split()
         est = inverse(np.array(nums, float).reshape(4, 4))

@@ -17,8 +17,13 @@ def add_localize_options(p):
     p.add_argument("--iters", type=int, default=3, help="render-match-PnP iterations (default 3)")
     p.add_argument("--threshold", type=float, default=0.7, help="descriptor similarity threshold (default 0.7)")
     p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
-    p.add_argument("--ransac-px", type=float, default=8.0, help="RANSAC inlier threshold in pixels (default 8)")
-    p.add_argument("--min-inliers", type=int, default=12, help="inliers needed for success (default 12)")
+    p.add_argument("--ransac-px", type=float, default=4.0,
+                   help="RANSAC inlier threshold in pixels of the map's working resolution (default 4)")
+    p.add_argument("--min-inliers", type=int, default=20, help="inliers needed for success (default 20)")
+    p.add_argument("--no-mutual", action="store_true", help="do not require mutual nearest-neighbour matches")
+    p.add_argument("--ratio", type=float, default=1.0, help="Lowe ratio test on descriptor distances (default 1: off)")
+    p.add_argument("--no-global", action="store_true",
+                   help="never fall back to matching against all landmarks when the prior fails (or is missing)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
 
 
@@ -29,9 +34,10 @@ def register(sub):
                                    "matrix (OpenCV axes) or one line 'tx ty tz qx qy qz qw' (TUM).")
     p.add_argument("map")
     p.add_argument("query", help="query image, or a folder of images (with --priors)")
-    p.add_argument("--prior", help="pose file of the prior (world_from_cam)")
+    p.add_argument("--prior", help="pose file of the prior (world_from_cam); without it a coarse pose is found by "
+                                   "matching against all landmarks")
     p.add_argument("--priors", help="for a folder: text file with lines 'IMAGE_NAME tx ty tz qx qy qz qw' or "
-                                    "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major)")
+                                    "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major); without it, no priors")
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
     add_localize_options(p)
     p.add_argument("--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)")
@@ -43,14 +49,21 @@ def register(sub):
 
 def config_from_args(args):
     from ..errors import InputError
-    from ..localize import LocalizeConfig
+    from ..localize import LocalizeConfig, SuccessChecks
 
     if args.iters < 1:
         raise InputError("--iters must be >= 1")
     if not 0 < args.threshold <= 1:
         raise InputError("--threshold must be in (0, 1]")
+    if not 0 < args.ratio <= 1:
+        raise InputError("--ratio must be in (0, 1]")
+    if args.ransac_px <= 0:
+        raise InputError("--ransac-px must be > 0")
+    if args.min_inliers < 4:
+        raise InputError("--min-inliers must be >= 4")
     return LocalizeConfig(iterations=args.iters, match_threshold=args.threshold, max_keypoints=args.max_keypoints,
-                          ransac_max_error_px=args.ransac_px, min_inliers=args.min_inliers,
+                          ransac_max_error_px=args.ransac_px, checks=SuccessChecks(min_inliers=args.min_inliers),
+                          mutual=not args.no_mutual, ratio=args.ratio, global_fallback=not args.no_global,
                           descriptors=getattr(args, "descriptors", "rendered"), device=auto_device(args.device))
 
 
@@ -89,22 +102,21 @@ def run(args) -> int:
     if not query.exists():
         raise InputError(f"query not found: {query}")
     if query.is_dir():
-        if not args.priors:
-            raise InputError("a folder of queries needs --priors")
-        priors = read_priors(Path(args.priors))
+        priors = read_priors(Path(args.priors)) if args.priors else None
         images = sorted(p for p in query.iterdir() if p.suffix.lower() in IMAGE_EXT)
         if not images:
             raise InputError(f"no images in {query}")
         jobs = []
         for p in images:
+            if priors is None:
+                jobs.append((p, None))
+                continue
             key = p.name if p.name in priors else (p.stem if p.stem in priors else None)
             if key is None:
                 raise InputError(f"no prior for {p.name} in {args.priors}")
             jobs.append((p, priors[key]))
     else:
-        if not args.prior:
-            raise InputError("--prior pose file is required for a single query image")
-        jobs = [(query, read_pose(args.prior))]
+        jobs = [(query, read_pose(args.prior) if args.prior else None)]
     config = config_from_args(args)
     m = Map.open(args.map)
     camera = read_camera(args.camera) if args.camera else None

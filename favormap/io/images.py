@@ -21,14 +21,34 @@ def working_camera(camera: Camera, max_side: int | None) -> Camera:
     return cam
 
 
+def truncation(data: bytes) -> str | None:
+    """Why an encoded JPEG or PNG is incomplete (None when it is complete or another format).
+    Decoders fill a truncated image with grey and only warn, so this is checked before decoding."""
+    if data[:2] == b"\xff\xd8":  # JPEG: must end with the EOI marker (trailing padding allowed)
+        if b"\xff\xd9" not in data[-4096:].rstrip(b"\x00\xff\n\r "):
+            return "truncated JPEG (no end-of-image marker)"
+    elif data[:8] == b"\x89PNG\r\n\x1a\n":
+        if b"IEND" not in data[-64:]:
+            return "truncated PNG (no IEND chunk)"
+    return None
+
+
 def imread(path: Path, flags: int = cv2.IMREAD_COLOR, error: type[InputError] = InputError) -> np.ndarray:
-    """cv2.imread with one clear ``error`` for a missing or unreadable file."""
+    """Decode an image file, with one clear ``error`` naming the file when it is missing,
+    unreadable, truncated or not an image (no decoder warning reaches the terminal)."""
     path = Path(path)
     if not path.is_file():
         raise error(f"image not found: {path}")
-    img = cv2.imread(str(path), flags)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise error(f"cannot read image {path}: {e.strerror or e}") from None
+    why = truncation(data)
+    if why:
+        raise error(f"cannot read image {path}: {why}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
     if img is None:
-        raise error(f"cannot read image: {path}")
+        raise error(f"cannot read image {path}: not a readable image file")
     return img
 
 

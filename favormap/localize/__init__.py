@@ -1,5 +1,7 @@
 """localize: iterative render -> match -> PnP-RANSAC against a map, and its evaluation."""
 
-from .localizer import IterationResult, LocalizationResult, LocalizeConfig, Localizer, localize, match_descriptors
+from .descriptors import DescriptorSource, MeanDescriptors, NearestViewDescriptors, RenderedDescriptors, make_source
+from .localizer import IterationResult, LocalizationResult, LocalizeConfig, Localizer, SuccessChecks, localize, match_descriptors
 
-__all__ = ["IterationResult", "LocalizationResult", "LocalizeConfig", "Localizer", "localize", "match_descriptors"]
+__all__ = ["DescriptorSource", "IterationResult", "LocalizationResult", "LocalizeConfig", "Localizer", "MeanDescriptors",
+           "NearestViewDescriptors", "RenderedDescriptors", "SuccessChecks", "localize", "make_source", "match_descriptors"]

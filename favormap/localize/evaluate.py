@@ -1,35 +1,54 @@
-"""Evaluation of the localizer on a posed query sequence, with the mean-descriptor baseline."""
+"""Evaluation of localizers on posed query frames: priors, error statistics, false successes and
+match diagnostics at the ground-truth pose. ``favormap eval`` and ``tools/bench_accuracy.py`` use it.
+
+A *false success* is a query reported as localized whose error exceeds ``false_success`` (by
+default 5 % of the scene extent or 5 degrees): the one kind of answer a robot cannot recover from.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
+import torch
 
 from ..errors import InputError
 from ..geometry import camera_centers, perturb_pose, pose_error
 from ..io import Sequence
-from .localizer import LocalizationResult, Localizer
+from ..ops.spatial import project_inside, visible_rows
+from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
+PRIOR_MODES = ("noise", "nearest", "constant", "none")
+
+
+class Result(Protocol):
+    """What every evaluated localizer returns (LocalizationResult, BaselineResult)."""
+
+    success: bool
+    cam_from_world: np.ndarray
+    num_inliers: int
 
 
 @dataclass
 class EvalConfig:
-    prior_mode: str = "noise"  # noise | nearest | constant
+    prior_mode: str = "noise"  # noise | nearest | constant | none
     noise: tuple[float, float] = (0.3, 10.0)  # translation (map units), rotation (deg)
     seed: int = 0
     thresholds: tuple = DEFAULT_THRESHOLDS
-    baseline: bool = True
+    methods: tuple[str, ...] = ("rendered", "mean")  # descriptor sources evaluated on the same map
+    false_success: tuple[float, float] = (0.05, 5.0)  # (fraction of the scene extent, degrees)
 
 
 @dataclass
 class QueryOutcome:
     name: str
     gt: np.ndarray
-    prior: np.ndarray
-    result: LocalizationResult
+    prior: np.ndarray | None
+    result: Result
+    seconds: float = 0.0
+    diagnostics: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -41,11 +60,15 @@ class EvalReport:
     summary: dict = field(default_factory=dict)
 
 
-def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConfig) -> list[np.ndarray]:
+def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConfig) -> list[np.ndarray | None]:
+    """One prior per query frame: the ground truth moved by ``cfg.noise`` ('noise'), the nearest
+    mapping frame ('nearest'), the first mapping frame ('constant') or no prior ('none')."""
     rng = np.random.default_rng(cfg.seed)
     gts = [f.cam_from_world for f in queries.frames]
     if cfg.prior_mode == "noise":
         return [perturb_pose(T, cfg.noise[0], cfg.noise[1], rng) for T in gts]
+    if cfg.prior_mode == "none":
+        return [None for _ in gts]
     if len(map_cam_from_world) == 0:
         raise InputError("the map has no frames to take priors from")
     if cfg.prior_mode == "nearest":
@@ -53,68 +76,148 @@ def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConf
         return [map_cam_from_world[np.argmin(np.linalg.norm(cm - camera_centers(T), axis=1))] for T in gts]
     if cfg.prior_mode == "constant":
         return [map_cam_from_world[0] for _ in gts]
-    raise InputError(f"unknown prior mode {cfg.prior_mode!r} (noise, nearest, constant)")
+    raise InputError(f"unknown prior mode {cfg.prior_mode!r} ({', '.join(PRIOR_MODES)})")
 
 
-def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds) -> dict:
+def scene_extent(points: np.ndarray) -> float:
+    """Diagonal of the 5-95 % bounding box of the map's landmarks (scene units)."""
+    if len(points) < 2:
+        return 1.0
+    lo, hi = np.percentile(points, [5, 95], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds, extent: float = 1.0,
+              false_success: tuple[float, float] = (0.05, 5.0)) -> dict:
+    """Error statistics of one method; failed queries count with their (prior) pose in the medians."""
     n = len(outcomes)
+    if n == 0:
+        return {"queries": 0}
     per_iter = []
     for k in range(iterations):
         errs, inl = [], []
         for o in outcomes:
-            its = o.result.iterations
+            its = [it for it in (getattr(o.result, "iterations", None) or []) if getattr(it, "kind", "render") == "render"]
             ok = [it for it in its[: k + 1] if it.success]
-            pose = ok[-1].cam_from_world if ok else o.prior
+            pose = ok[-1].cam_from_world if ok else o.result.cam_from_world
             errs.append(pose_error(pose, o.gt))
-            inl.append(its[min(k, len(its) - 1)].num_inliers if its else 0)
+            inl.append(its[min(k, len(its) - 1)].num_inliers if its else o.result.num_inliers)
         errs = np.array(errs)
         per_iter.append({"iteration": k + 1, "median_translation": float(np.median(errs[:, 0])),
                          "median_rotation_deg": float(np.median(errs[:, 1])), "mean_inliers": float(np.mean(inl))})
     final = np.array([pose_error(o.result.cam_from_world, o.gt) for o in outcomes]).reshape(-1, 2)
-    success = np.array([o.result.success for o in outcomes])
+    success = np.array([bool(o.result.success) for o in outcomes])
+    wrong = (final[:, 0] > false_success[0] * extent) | (final[:, 1] > false_success[1])
     recall = {f"{t:g}/{r:g}deg": float(np.mean(success & (final[:, 0] <= t) & (final[:, 1] <= r))) for t, r in thresholds}
-    return {"queries": n, "success_rate": float(success.mean()) if n else 0.0, "per_iteration": per_iter, "recall": recall,
-            "median_translation": float(np.median(final[:, 0])) if n else None,
-            "median_rotation_deg": float(np.median(final[:, 1])) if n else None,
-            "mean_time_s": float(np.mean([sum(o.result.timings.values()) for o in outcomes])) if n else None}
+    loc = final[success]
+    diag = [o.diagnostics for o in outcomes if o.diagnostics]
+
+    def dmean(key):
+        v = [d[key] for d in diag if d.get(key) is not None]
+        return float(np.mean(v)) if v else None
+
+    return {
+        "queries": n, "localized": int(success.sum()), "success_rate": float(success.mean()),
+        "false_successes": int((success & wrong).sum()),
+        "median_translation": float(np.median(loc[:, 0])) if len(loc) else None,
+        "p90_translation": float(np.percentile(loc[:, 0], 90)) if len(loc) else None,
+        "median_translation_pct_extent": float(100 * np.median(loc[:, 0]) / extent) if len(loc) else None,
+        "median_rotation_deg": float(np.median(loc[:, 1])) if len(loc) else None,
+        "mean_inliers": float(np.mean([o.result.num_inliers for o in outcomes])),
+        "per_iteration": per_iter, "recall": recall, "scene_extent": extent,
+        "mean_time_s": float(np.mean([o.seconds for o in outcomes])),
+        "match_precision": dmean("match_precision"), "keypoint_repeatability": dmean("keypoint_repeatability"),
+    }
 
 
-def evaluate(localizer: Localizer, queries: Sequence, cfg: EvalConfig = EvalConfig(), progress: Callable | None = None,
-             on_query: Callable | None = None) -> list[EvalReport]:
-    """Localize every query frame from its prior with rendered descriptors (and, when
-    ``cfg.baseline``, with the mean observed descriptors on the same map)."""
-    priors = make_priors(queries, localizer.map.cam_from_world, cfg)
-    methods = ["rendered"] + (["mean"] if cfg.baseline else [])
+def project(camera, cam_from_world: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixel positions (N, 2) of world points in a pinhole camera (COLMAP pixel convention)."""
+    Xc = np.asarray(points, np.float64) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = np.where(np.abs(Xc[:, 2]) < 1e-12, 1e-12, Xc[:, 2])
+    K = camera.K
+    return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
+
+
+def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+    if len(uv) == 0 or len(keypoints) == 0:
+        return np.full(len(uv), np.inf)
+    return torch.cdist(torch.as_tensor(uv, dtype=torch.float64), torch.as_tensor(keypoints, dtype=torch.float64)).min(1).values.numpy()
+
+
+def diagnostics_from_matches(camera, gt: np.ndarray, points: np.ndarray, keypoints: np.ndarray,
+                             matched_points: np.ndarray, matched_keypoints: np.ndarray, radius_px: float = 2.0) -> dict:
+    """Match precision (share of matches whose keypoint lies within ``radius_px`` of the matched
+    point's projection at the ground-truth pose) and keypoint repeatability (share of the
+    candidate ``points`` projecting inside the image that have a query keypoint within ``radius_px``)."""
+    inside = project_inside(points, camera, gt) if len(points) else np.zeros(0, bool)
+    uv = project(camera, gt, points[inside]) if inside.any() else np.zeros((0, 2))
+    rep = _nearest_keypoint_distance(uv, keypoints)
+    err = np.linalg.norm(project(camera, gt, matched_points) - matched_keypoints, axis=1) if len(matched_points) else np.zeros(0)
+    return {"match_precision": float(np.mean(err <= radius_px)) if len(err) else None,
+            "median_match_error_px": float(np.median(err)) if len(err) else None,
+            "keypoint_repeatability": float(np.mean(rep <= radius_px)) if len(rep) else None,
+            "diag_matches": int(len(err)), "diag_points": int(len(uv))}
+
+
+def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radius_px: float = 2.0) -> dict:
+    """Diagnostics of the localizer's matching at the ground-truth pose: the landmarks visible from
+    ``gt`` get their descriptors from the localizer's source at ``gt`` and are matched as in
+    localization."""
+    cfg = localizer.config
+    img, cam = localizer.prepare(image, camera)
+    feats = localizer.extractor.extract(img)
+    rows = visible_rows(localizer.index, cam, gt, localizer.map.view_dir, localizer.map.view_angle,
+                        localizer.map.depth_range, cfg.view_limits)
+    desc = localizer.source(rows, gt, {})
+    m = match_descriptors(desc, torch.as_tensor(feats.descriptors, device=cfg.device), cfg.match_threshold, cfg.mutual, cfg.ratio)
+    pos = localizer.map.positions
+    return diagnostics_from_matches(cam, gt, pos[rows], feats.keypoints, pos[rows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px)
+
+
+def evaluate(localizers: dict[str, Localizer], queries: Sequence, cfg: EvalConfig = EvalConfig(),
+             progress: Callable | None = None, on_query: Callable | None = None, diagnostics: bool = False) -> list[EvalReport]:
+    """Localize every query frame from its prior with each named localizer (e.g. one per
+    descriptor source on the same map)."""
+    import time
+
+    first = next(iter(localizers.values()))
+    priors = make_priors(queries, first.map.cam_from_world, cfg)
+    extent = scene_extent(first.map.positions)
     reports = []
-    base_mode = localizer.config.descriptors
-    try:
-        for mi, method in enumerate(methods):
-            localizer.config.descriptors = method
-            outs = []
-            for i, (fr, prior) in enumerate(zip(queries.frames, priors)):
-                cam = queries.cameras[fr.camera_id]
-                res = localizer.localize(fr.image_path, prior, cam)
-                outs.append(QueryOutcome(fr.name, fr.cam_from_world, prior, res))
-                if on_query:
-                    on_query(method, i, outs[-1])
-                if progress:
-                    progress(f"eval {method}", i + 1, len(queries.frames))
-            reports.append(EvalReport(method, outs, localizer.config.iterations, cfg.thresholds,
-                                      summarize(outs, localizer.config.iterations, cfg.thresholds)))
-    finally:
-        localizer.config.descriptors = base_mode
+    for method, loc in localizers.items():
+        outs = []
+        for i, (fr, prior) in enumerate(zip(queries.frames, priors)):
+            cam = queries.cameras[fr.camera_id]
+            s = time.perf_counter()
+            res = loc.localize(fr.image_path, prior, cam)
+            o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - s)
+            if diagnostics:
+                o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+            outs.append(o)
+            if on_query:
+                on_query(method, i, o)
+            if progress:
+                progress(f"eval {method}", i + 1, len(queries.frames))
+        iters = loc.config.iterations
+        reports.append(EvalReport(method, outs, iters, cfg.thresholds,
+                                  summarize(outs, iters, cfg.thresholds, extent, cfg.false_success)))
     return reports
 
 
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
 def format_table(reports: list[EvalReport]) -> str:
-    """A table like the paper's supplementary tables, one block per method."""
+    """One block per method: summary line with units, then the error per iteration."""
     lines = []
     for rep in reports:
         s = rep.summary
-        lines.append(f"{rep.method} descriptors: {s['queries']} queries, success {100 * s['success_rate']:.1f} %, "
-                     f"mean time {s['mean_time_s']:.3f} s")
-        lines.append(f"  {'iter':>4}  {'median t':>10}  {'median R (deg)':>14}  {'mean inliers':>12}")
+        lines.append(f"{rep.method}: {s['localized']}/{s['queries']} localized, {s['false_successes']} false successes, "
+                     f"median {_fmt(s['median_translation'], '.4f')} units / {_fmt(s['median_rotation_deg'], '.3f')} deg "
+                     f"(p90 {_fmt(s['p90_translation'], '.4f')} units), {s['mean_time_s'] * 1000:.0f} ms/query")
+        lines.append(f"  {'iter':>4}  {'median t (units)':>16}  {'median R (deg)':>14}  {'mean inliers':>12}")
         for it in s["per_iteration"]:
-            lines.append(f"  {it['iteration']:>4}  {it['median_translation']:>10.4f}  {it['median_rotation_deg']:>14.3f}  {it['mean_inliers']:>12.1f}")
-        lines.append("  recall: " + ", ".join(f"({k}) {100 * v:.1f} %" for k, v in s["recall"].items()))
+            lines.append(f"  {it['iteration']:>4}  {it['median_translation']:>16.4f}  {it['median_rotation_deg']:>14.3f}  {it['mean_inliers']:>12.1f}")
+        lines.append("  recall (units/deg): " + ", ".join(f"({k}) {100 * v:.1f} %" for k, v in s["recall"].items()))
     return "\n".join(lines)

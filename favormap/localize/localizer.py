@@ -1,43 +1,69 @@
 """Iterative render -> match -> PnP-RANSAC localization (paper secs. 3.3-3.4).
 
 From the current pose estimate (initially the prior): select the landmarks visible from it through
-the spatial index, read their voxel grids lazily, render their descriptors along the rays from the
-camera centre (one batched call), match them to the query's features (similarity matrix,
-threshold, best query feature per rendered descriptor) and solve PnP with pycolmap's LO-RANSAC +
-refinement. Repeat from the new estimate until it stops moving or ``iterations`` is reached.
+the spatial index, get their descriptors from a :mod:`descriptor source <.descriptors>` (rendered
+from the voxel grids along the rays from the camera centre, by default), match them to the query's
+features (mutual nearest neighbours above a cosine threshold) and solve PnP with pycolmap's
+LO-RANSAC + refinement. Repeat from the new estimate until it stops moving or ``iterations`` is
+reached.
+
+Without a prior (or when the prior's iterations fail) a coarse pose comes from matching the query
+against the mean descriptors of all landmarks; the rendering iterations then refine it.
+
+A pose is reported as a success only when it passes every check of :class:`SuccessChecks`:
+enough inliers, a large enough inlier ratio, agreement of the last two iterations, and inlier
+landmarks that are actually visible (in front, inside the image, within their training view range)
+from the final pose. Otherwise ``success`` is false and ``message`` names the check that failed.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
 from .. import features as feats_mod
-from ..errors import InputError, LocalizationFailed
-from ..geometry import camera_centers, from_rigid3d, pose_error
+from ..errors import InputError
+from ..geometry import from_rigid3d, pose_error
 from ..io import Camera, prepare_image, read_rgb
 from ..mapfile import Map
-from ..ops.spatial import SpatialIndex, ViewLimits, visible_rows
-from ..voxels import render_from_camera
+from ..ops.spatial import SpatialIndex, ViewLimits, visible_mask, visible_rows
+from .descriptors import DescriptorSource, make_source
+
+
+@dataclass
+class SuccessChecks:
+    """What a pose must satisfy to be reported as a success (chosen on tools/bench_accuracy.py)."""
+
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.2  # inliers / matches of the final iteration
+    max_iteration_change: tuple[float, float] = (0.05, 2.0)  # last two estimates: (x median landmark depth, deg)
+    min_visible_inliers: float = 0.8  # share of inlier landmarks visible from the final pose
 
 
 @dataclass
 class LocalizeConfig:
     iterations: int = 3
     match_threshold: float = 0.7  # cosine similarity (paper's reference config)
-    mutual: bool = False  # also require the rendered descriptor to be the query feature's best
+    mutual: bool = True  # also require the landmark to be the query feature's best
+    ratio: float = 1.0  # Lowe ratio on descriptor distances (1: off)
     max_keypoints: int = 4096
-    ransac_max_error_px: float = 8.0
-    min_inliers: int = 12
+    ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
+    checks: SuccessChecks = field(default_factory=SuccessChecks)
+    global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
+    global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     stop_translation: float = 1e-4  # relative to the median landmark distance
     stop_rotation_deg: float = 0.01
-    descriptors: str = "rendered"  # "rendered" (FaVoR) or "mean" (baseline: mean observed descriptor)
+    descriptors: str = "rendered"  # "rendered" (FaVoR), "mean" or "nearest" (baselines; see .descriptors)
     view_limits: ViewLimits = field(default_factory=ViewLimits)
     device: str = "cpu"
     seed: int = 0
+
+    @property
+    def min_inliers(self) -> int:
+        return self.checks.min_inliers
 
 
 @dataclass
@@ -46,7 +72,8 @@ class IterationResult:
     num_visible: int
     num_matches: int
     num_inliers: int
-    success: bool
+    success: bool  # PnP found a pose with enough inliers (not yet the final checks)
+    kind: str = "render"  # "render" (from the previous estimate) or "global" (no prior)
 
 
 @dataclass
@@ -58,11 +85,13 @@ class LocalizationResult:
     iterations: list[IterationResult]
     timings: dict[str, float]
     message: str = ""
-    # for visualisation / analysis (last iteration)
+    checks: dict = field(default_factory=dict)  # measured values of the success checks
+    # for visualisation / analysis (last successful iteration)
     keypoints: np.ndarray | None = None
     matches: np.ndarray | None = None  # (K, 2) [landmark row, query keypoint]
     inlier_mask: np.ndarray | None = None
-    match_similarity: np.ndarray | None = None  # (K,) cosine of rendered vs query descriptor per match
+    match_similarity: np.ndarray | None = None  # (K,) cosine of landmark vs query descriptor per match
+    estimate: np.ndarray | None = None  # last PnP estimate even when the checks refused it
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat
@@ -75,23 +104,33 @@ class LocalizationResult:
             "cam_from_world": {"quaternion_xyzw": rotmat_to_quat(T[:3, :3]).tolist(), "translation": T[:3, 3].tolist()},
             "num_matches": int(self.num_matches),
             "num_inliers": int(self.num_inliers),
+            "checks": {k: (round(v, 5) if isinstance(v, float) else v) for k, v in self.checks.items()},
             "iterations": [
-                {"cam_from_world": it.cam_from_world.tolist(), "num_visible": it.num_visible, "num_matches": it.num_matches,
-                 "num_inliers": it.num_inliers, "success": it.success}
+                {"kind": it.kind, "cam_from_world": it.cam_from_world.tolist(), "num_visible": it.num_visible,
+                 "num_matches": it.num_matches, "num_inliers": it.num_inliers, "success": it.success}
                 for it in self.iterations
             ],
             "timings": {k: round(v, 5) for k, v in self.timings.items()},
         }
 
 
-def match_descriptors(rendered: torch.Tensor, query: torch.Tensor, threshold: float, mutual: bool = False) -> np.ndarray:
+def match_descriptors(rendered: torch.Tensor, query: torch.Tensor, threshold: float, mutual: bool = False,
+                      ratio: float = 1.0) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
-    query descriptor, kept when the cosine similarity reaches ``threshold``."""
+    query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
+    rendered descriptor is also that query descriptor's most similar one, and when the best
+    distance is below ``ratio`` times the second best (Lowe's test on unit vectors)."""
     if len(rendered) == 0 or len(query) == 0:
         return np.zeros((0, 2), np.int64)
     sim = rendered @ query.T
-    best_sim, best = sim.max(1)
-    ok = best_sim >= threshold
+    if ratio < 1.0 and sim.shape[1] >= 2:
+        top, arg = sim.topk(2, dim=1)
+        best_sim, best = top[:, 0], arg[:, 0]
+        ok = (2 - 2 * top[:, 0]).clamp_min(0) < ratio ** 2 * (2 - 2 * top[:, 1]).clamp_min(0)
+    else:
+        best_sim, best = sim.max(1)
+        ok = torch.ones_like(best_sim, dtype=torch.bool)
+    ok &= best_sim >= threshold
     if mutual:
         ok &= sim.argmax(0)[best] == torch.arange(len(rendered), device=sim.device)
     idx = torch.nonzero(ok).squeeze(1)
@@ -99,16 +138,22 @@ def match_descriptors(rendered: torch.Tensor, query: torch.Tensor, threshold: fl
 
 
 class Localizer:
-    """Localizes query images against one map; keep it alive to localize many queries."""
+    """Localizes query images against one map; keep it alive to localize many queries.
 
-    def __init__(self, map_: Map | str, config: LocalizeConfig = LocalizeConfig()):
+    ``descriptor_source`` overrides ``config.descriptors`` (e.g. nearest-view descriptors, which
+    need data the map does not hold)."""
+
+    def __init__(self, map_: Map | str, config: LocalizeConfig | None = None,
+                 descriptor_source: DescriptorSource | None = None):
         self.map = map_ if isinstance(map_, Map) else Map.open(map_)
-        self.config = config
-        self.extractor = feats_mod.create(self.map.extractor, max_keypoints=config.max_keypoints,
-                                          device=None if config.device == "cpu" else config.device)
+        self.config = config or LocalizeConfig()
+        self.extractor = feats_mod.create(self.map.extractor, max_keypoints=self.config.max_keypoints,
+                                          device=None if self.config.device == "cpu" else self.config.device)
         self.index = SpatialIndex(self.map.positions)
         self.default_camera = self.map.cameras[int(self.map.frame_camera_ids[0])] if self.map.num_frames else next(iter(self.map.cameras.values()))
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
+        self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
+        self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
 
     def close(self):
         self.map.close()
@@ -127,101 +172,175 @@ class Localizer:
             camera = camera.scaled(w, h)  # same camera at another resolution
         return prepare_image(img, camera, self.map.max_side)
 
-    # -- main loop -----------------------------------------------------------------------------------
-    def localize(self, image, prior_cam_from_world: np.ndarray, camera: Camera | None = None) -> LocalizationResult:
-        import pycolmap
-
-        cfg = self.config
-        prior = np.asarray(prior_cam_from_world, np.float64)
+    @staticmethod
+    def _check_prior(prior) -> np.ndarray:
+        prior = np.asarray(prior, np.float64)
         if prior.shape != (4, 4) or not np.all(np.isfinite(prior)):
             raise InputError("the prior pose must be a finite 4x4 matrix")
         R = prior[:3, :3]
         if abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
             raise InputError("the prior pose is not a rigid transform (rotation not orthonormal)")
+        return prior
+
+    # -- main loop -----------------------------------------------------------------------------------
+    def localize(self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None) -> LocalizationResult:
+        """Localize one query image. Without a prior, a coarse pose is found first by matching
+        against all landmarks (see ``LocalizeConfig.global_fallback``)."""
+        cfg = self.config
+        prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
         feats = self.extractor.extract(img)
         qdesc = torch.as_tensor(feats.descriptors, device=cfg.device)
         t["extraction"] = time.perf_counter() - t0
-        pc_cam = cam.to_pycolmap()
-        est = pycolmap.AbsolutePoseEstimationOptions()
-        est.ransac.max_error = cfg.ransac_max_error_px
-        est.ransac.random_seed = cfg.seed
-        ref = pycolmap.AbsolutePoseRefinementOptions()
+        q = _Query(feats, qdesc, cam)
 
-        pose = prior.copy()
-        iters: list[IterationResult] = []
-        last = dict(matches=np.zeros((0, 2), np.int64), inliers=None)
-        success = False
+        if prior is not None:
+            res = self._refine(q, prior, [], t)
+            if res.success or not cfg.global_fallback:
+                return res
+            first = res
+        else:
+            if not cfg.global_fallback:
+                raise InputError("localization without a prior needs global_fallback=True")
+            first = None
+        coarse, it = self._global_pose(q, t)
+        if coarse is None:
+            return first or self._result(q, None, [it], t, np.eye(4), "without a prior, matching against all landmarks "
+                                         f"found no pose ({it.num_matches} matches, {it.num_inliers} inliers)")
+        res = self._refine(q, coarse, (first.iterations if first is not None else []) + [it], t)
+        if not res.success and first is not None:
+            res.message = f"{first.message}; from a coarse pose found without the prior: {res.message}"
+            res.cam_from_world = prior
+        return res
+
+    def _pnp(self, q: "_Query", points: np.ndarray, kp_idx: np.ndarray, t: dict):
+        import pycolmap
+
+        s = time.perf_counter()
+        est = pycolmap.AbsolutePoseEstimationOptions()
+        est.ransac.max_error = self.config.ransac_max_error_px
+        est.ransac.random_seed = self.config.seed
+        ans = None
+        if len(kp_idx) >= 4:
+            ans = pycolmap.estimate_and_refine_absolute_pose(
+                q.feats.keypoints[kp_idx].astype(np.float64), points.astype(np.float64), q.cam.to_pycolmap(), est,
+                pycolmap.AbsolutePoseRefinementOptions())
+        t["pnp"] += time.perf_counter() - s
+        return ans
+
+    def _global_pose(self, q: "_Query", t: dict):
+        """Coarse pose without a prior: mutual matches against every landmark's mean descriptor."""
+        cfg = self.config
+        s = time.perf_counter()
+        if self._global is None:
+            rows = np.arange(len(self.map))
+            if len(rows) > cfg.global_max_landmarks:
+                rows = np.sort(np.argsort(-self.map.track_length, kind="stable")[: cfg.global_max_landmarks])
+            d = torch.nn.functional.normalize(torch.as_tensor(self.map.mean_descriptors(rows), device=cfg.device), dim=-1)
+            self._global = (rows, d)
+        rows, d = self._global
+        t["loading"] += time.perf_counter() - s
+        s = time.perf_counter()
+        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.ratio)
+        t["matching"] += time.perf_counter() - s
+        ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
+        n_in = int(ans["num_inliers"]) if ans is not None else 0
+        ok = ans is not None and n_in >= cfg.checks.min_inliers
+        pose = from_rigid3d(ans["cam_from_world"]) if ok else np.eye(4)
+        return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
+
+    def _refine(self, q: "_Query", start: np.ndarray, iters: list[IterationResult], t: dict) -> LocalizationResult:
+        cfg = self.config
+        pose = start
+        last = None
         for _ in range(cfg.iterations):
             s = time.perf_counter()
-            rows = visible_rows(self.index, cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range, cfg.view_limits)
+            rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
+                                cfg.view_limits)
             t["visibility"] += time.perf_counter() - s
-            rend = self._descriptors(rows, pose, t)
+            rend = self.source(rows, pose, t)
             s = time.perf_counter()
-            m = match_descriptors(rend, qdesc, cfg.match_threshold, cfg.mutual)
-            sims = (rend[m[:, 0]] * qdesc[m[:, 1]]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
+            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+            sims = (rend[m[:, 0]] * q.desc[m[:, 1]]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
             t["matching"] += time.perf_counter() - s
-            s = time.perf_counter()
-            ok = False
-            n_in = 0
-            if len(m) >= 4:
-                ans = pycolmap.estimate_and_refine_absolute_pose(
-                    feats.keypoints[m[:, 1]].astype(np.float64), self.map.positions[rows[m[:, 0]]], pc_cam, est, ref)
-                if ans is not None:
-                    n_in = int(ans["num_inliers"])
-                    ok = n_in >= cfg.min_inliers
-                    if ok:
-                        new_pose = from_rigid3d(ans["cam_from_world"])
-                        last = dict(matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool),
-                                    similarity=sims)
-            t["pnp"] += time.perf_counter() - s
-            iters.append(IterationResult(new_pose if ok else pose, len(rows), len(m), n_in, ok))
+            ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
+            n_in = int(ans["num_inliers"]) if ans is not None else 0
+            ok = ans is not None and n_in >= cfg.checks.min_inliers
+            new_pose = from_rigid3d(ans["cam_from_world"]) if ok else pose
+            iters.append(IterationResult(new_pose, len(rows), len(m), n_in, ok))
             if not ok:
                 break
-            success = True
+            last = dict(matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims)
             dt, dr = pose_error(new_pose, pose)
             pose = new_pose
             if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
                 break
-        final = [it for it in iters if it.success]
-        msg = "" if success else (
-            f"too few matches ({iters[-1].num_matches} matches, {iters[-1].num_inliers} inliers, "
-            f"{iters[-1].num_visible} visible landmarks; need {cfg.min_inliers} inliers)")
+        return self._result(q, last, iters, t, start)
+
+    def _result(self, q: "_Query", last: dict | None, iters: list[IterationResult], t: dict, start: np.ndarray,
+                message: str = "") -> LocalizationResult:
+        """Apply the success checks to the last iteration and assemble the result."""
+        ok_iters = [it for it in iters if it.success]
+        final = iters[-1]
+        checks: dict = {}
+        reason = message
+        if not message:
+            if not final.success:
+                reason = (f"too few inliers ({final.num_matches} matches, {final.num_inliers} inliers, {final.num_visible} "
+                          f"visible landmarks; need {self.config.checks.min_inliers} inliers)")
+                if final.num_visible < self.config.checks.min_inliers:
+                    reason += ("; the prior sees almost none of the map's landmarks: is it world_from_cam in OpenCV "
+                               "axes (x right, y down, z forward), in the map's frame?")
+            else:
+                checks, reason = self._checks(q, last, iters)
+        success = not reason
+        est = ok_iters[-1].cam_from_world if ok_iters else None
         return LocalizationResult(
-            success=success,
-            cam_from_world=final[-1].cam_from_world if final else prior,
-            num_matches=final[-1].num_matches if final else iters[-1].num_matches,
-            num_inliers=final[-1].num_inliers if final else iters[-1].num_inliers,
-            iterations=iters, timings=t, message=msg,
-            keypoints=feats.keypoints, matches=last["matches"], inlier_mask=last["inliers"],
-            match_similarity=last.get("similarity"))
+            success=success, cam_from_world=est if success else start,
+            num_matches=final.num_matches, num_inliers=final.num_inliers, iterations=iters, timings=t,
+            message=reason, checks=checks, keypoints=q.feats.keypoints,
+            matches=None if last is None else last["matches"], inlier_mask=None if last is None else last["inliers"],
+            match_similarity=None if last is None else last["similarity"], estimate=est)
 
-    def _descriptors(self, rows: np.ndarray, pose: np.ndarray, t: dict) -> torch.Tensor:
-        """Rendered (or, for the baseline, mean observed) descriptors of landmark rows."""
-        dev = self.config.device
-        if self.config.descriptors == "mean":
-            s = time.perf_counter()
-            d = torch.as_tensor(self.map.mean_descriptors(rows), device=dev)
-            t["loading"] += time.perf_counter() - s
-            return torch.nn.functional.normalize(d, dim=-1)
-        s = time.perf_counter()
-        desc, dens = self.map.voxels(rows)
-        t["loading"] += time.perf_counter() - s
-        s = time.perf_counter()
-        with torch.no_grad():
-            out = render_from_camera(
-                torch.as_tensor(desc, device=dev), torch.as_tensor(dens, device=dev),
-                torch.as_tensor(self.map.positions[rows], dtype=torch.float32, device=dev),
-                torch.as_tensor(self.map.voxel_size[rows], device=dev),
-                torch.as_tensor(camera_centers(pose), dtype=torch.float32, device=dev),
-                self.map.render_samples)
-        t["rendering"] += time.perf_counter() - s
-        return out
+    def _checks(self, q: "_Query", last: dict, iters: list[IterationResult]) -> tuple[dict, str]:
+        """Measured values of the success checks and the first one that fails ('' when all pass)."""
+        c = self.config.checks
+        final = iters[-1]
+        pose = final.cam_from_world
+        vals: dict = {"inliers": final.num_inliers, "inlier_ratio": final.num_inliers / max(final.num_matches, 1)}
+        g = max([i for i, it in enumerate(iters) if it.kind == "global"], default=-1)
+        render_iters = [it for it in iters[g + 1:] if it.kind == "render"]  # the refinement that gave this pose
+        if len(render_iters) >= 2:
+            dt, dr = pose_error(render_iters[-1].cam_from_world, render_iters[-2].cam_from_world)
+            vals["iteration_change"] = dt / self.scale
+            vals["iteration_change_deg"] = dr
+        rows = last["matches"][last["inliers"], 0]
+        vis = visible_mask(self.map.positions[rows], q.cam, pose, self.map.view_dir[rows], self.map.view_angle[rows],
+                           self.map.depth_range[rows], self.config.view_limits) if len(rows) else np.zeros(0, bool)
+        vals["visible_inliers"] = float(vis.mean()) if len(vis) else 0.0
+        if vals["inlier_ratio"] < c.min_inlier_ratio:
+            return vals, f"low inlier ratio ({final.num_inliers} of {final.num_matches} matches; need {c.min_inlier_ratio:.0%})"
+        if len(render_iters) >= 2 and (vals["iteration_change"] > c.max_iteration_change[0]
+                                       or vals["iteration_change_deg"] > c.max_iteration_change[1]):
+            return vals, (f"iterations disagree (last two estimates {vals['iteration_change']:.3f} x landmark depth, "
+                          f"{vals['iteration_change_deg']:.2f} deg apart)")
+        if vals["visible_inliers"] < c.min_visible_inliers:
+            return vals, (f"only {vals['visible_inliers']:.0%} of the inlier landmarks are visible from the estimated pose "
+                          f"(need {c.min_visible_inliers:.0%})")
+        return vals, ""
 
 
-def localize(map_, image, prior_cam_from_world, camera: Camera | None = None, config: LocalizeConfig = LocalizeConfig()) -> LocalizationResult:
+@dataclass
+class _Query:
+    feats: object
+    desc: torch.Tensor
+    cam: Camera
+
+
+def localize(map_, image, prior_cam_from_world=None, camera: Camera | None = None,
+             config: LocalizeConfig | None = None) -> LocalizationResult:
     """One-shot convenience wrapper around :class:`Localizer`."""
     loc = Localizer(map_, config)
     try:
@@ -229,11 +348,3 @@ def localize(map_, image, prior_cam_from_world, camera: Camera | None = None, co
     finally:
         if not isinstance(map_, Map):
             loc.close()
-
-
-def require_success(result: LocalizationResult) -> LocalizationResult:
-    if not result.success:
-        raise LocalizationFailed(result.message)
-    return result
-
-

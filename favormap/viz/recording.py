@@ -578,14 +578,16 @@ class Recording:
         img, cam = self._working_query(image, camera)
         enc, s, w, h = _jpeg(img, QUERY_IMAGE_SIDE)
         K = _scaled_K(cam.K, s)
-        prior = np.asarray(prior, np.float64)
-        self.rec.log("world/query/prior", _transform(prior), _pinhole(K, w, h, depth, PRIOR))
+        if prior is not None:  # localization without a prior starts from a global coarse pose
+            prior = np.asarray(prior, np.float64)
+            self.rec.log("world/query/prior", _transform(prior), _pinhole(K, w, h, depth, PRIOR))
         if gt is not None:
             self.rec.log("world/query/gt", _transform(np.asarray(gt, np.float64)), _pinhole(K, w, h, depth, GT))
         # iterations: clear the previous query's, then the path prior -> it1 -> it2 ... and a frustum each
         self.rec.log(f"{base}/iterations", rr.Clear(recursive=True))
         its = list(result.iterations)
-        centers = geometry.camera_centers(np.stack([prior] + [np.asarray(it.cam_from_world) for it in its]))
+        path = ([prior] if prior is not None else []) + [np.asarray(it.cam_from_world) for it in its]
+        centers = geometry.camera_centers(np.stack(path)) if path else np.zeros((0, 3))
         self.rec.log(f"{base}/iterations", rr.LineStrips3D([centers], colors=[SERIES.get(method, (70, 130, 255))],
                                                            radii=rr.Radius.ui_points(1.5)))
         for k, it in enumerate(its, 1):
@@ -637,13 +639,14 @@ class Recording:
             f"NOT localized: {result.message}"
         if gt is not None:
             dt, dr = geometry.pose_error(final, np.asarray(gt, np.float64))
-            pt, pr = geometry.pose_error(prior, np.asarray(gt, np.float64))
+            pt, pr = geometry.pose_error(prior, np.asarray(gt, np.float64)) if prior is not None else (None, None)
             for metric, val, prior_val in (("translation_error", dt, pt), ("rotation_error_deg", dr, pr)):
                 self._series(f"metrics/{metric}/{method}", method, color)
                 self.rec.log(f"metrics/{metric}/{method}", rr.Scalars(val))
-                self._series(f"metrics/{metric}/prior", "prior", SERIES["prior"])
-                self.rec.log(f"metrics/{metric}/prior", rr.Scalars(prior_val))
-            status += f"; error {dt:.4f} / {dr:.2f} deg (prior {pt:.4f} / {pr:.2f} deg)"
+                if prior_val is not None:
+                    self._series(f"metrics/{metric}/prior", "prior", SERIES["prior"])
+                    self.rec.log(f"metrics/{metric}/prior", rr.Scalars(prior_val))
+            status += f"; error {dt:.4f} / {dr:.2f} deg" + (f" (prior {pt:.4f} / {pr:.2f} deg)" if pt is not None else " (no prior)")
         self.rec.log(f"log/{method}", rr.TextLog(f"{name}: {status}", level="INFO" if result.success else "WARN"))
 
     def log_eval_query(self, method: str, index: int, outcome, frame=None, camera=None) -> None:

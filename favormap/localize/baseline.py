@@ -1,0 +1,266 @@
+"""The pycolmap-SIFT structure baseline every favormap accuracy number is compared with.
+
+A plain structure-based localizer built with pycolmap from the same undistorted, resized images
+and pinhole cameras favormap uses (``favormap.io.load_image``):
+
+* build: COLMAP SIFT on every working image into a COLMAP database, exhaustive (small sequences)
+  or sequential matching with geometric verification, then ``pycolmap.triangulate_points`` from
+  the known cameras and poses (poses stay fixed). Every 3D point gets one descriptor: the mean of
+  its track's L2-normalised (RootSIFT, as COLMAP stores them) descriptors, normalised again.
+* localize: COLMAP SIFT on the working query image, nearest neighbour over all 3D points with
+  Lowe's ratio test, then ``pycolmap.estimate_and_refine_absolute_pose`` (COLMAP's LO-RANSAC with
+  its default options and non-linear refinement). No prior pose is used.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..errors import FavormapError, InputError
+from ..geometry import from_rigid3d, to_rigid3d
+from ..io import Camera, Sequence, load_image, prepare_image, read_rgb
+
+MATCHING_MODES = ("auto", "exhaustive", "sequential")
+
+
+@dataclass
+class StructureBaselineConfig:
+    max_side: int | None = 640  # working image size, as favormap's build/localize
+    max_num_features: int = 8192  # COLMAP's default
+    ratio: float = 0.8  # Lowe's ratio test (query feature -> 3D points)
+    min_inliers: int = 12  # success threshold on the PnP inliers
+    matching: str = "auto"  # auto: exhaustive up to exhaustive_max_frames frames, else sequential
+    exhaustive_max_frames: int = 60
+    sequential_overlap: int = 10
+    ransac_max_error_px: float | None = None  # None: pycolmap's default (12 px in pycolmap 4.2)
+    num_threads: int = -1  # COLMAP extraction / matching threads (-1: all cores)
+    seed: int = 0  # RANSAC seed (reproducible results)
+
+
+@dataclass
+class BaselineResult:
+    success: bool
+    cam_from_world: np.ndarray  # 4x4 RANSAC estimate (also below min_inliers); identity if none
+    num_matches: int
+    num_inliers: int
+    seconds: float
+    keypoints: np.ndarray  # (M, 2) query keypoints in the working image (COLMAP pixel convention)
+    matches: np.ndarray  # (K, 2) [point index, keypoint index]
+    inlier_mask: np.ndarray  # (K,) bool
+    message: str = ""
+
+
+@contextlib.contextmanager
+def _quiet_colmap():
+    """Silence COLMAP's glog INFO/WARNING output for the duration of the block."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _normalize(desc: np.ndarray) -> np.ndarray:
+    d = np.asarray(desc, np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _extractor(cfg: StructureBaselineConfig):
+    import pycolmap
+
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.sift.max_num_features = cfg.max_num_features
+    opts.num_threads = cfg.num_threads
+    return pycolmap.FeatureExtractor.create(opts, device=pycolmap.Device.cpu)
+
+
+def _extract(extractor, rgb: np.ndarray):
+    """COLMAP SIFT on an RGB uint8 image -> ((M, 6) float32 affine keypoints, FeatureDescriptors)."""
+    import pycolmap
+
+    kps, desc = extractor.extract(pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb)).clone_as_grey())
+    kp = np.array([[k.x, k.y, k.a11, k.a12, k.a21, k.a22] for k in kps], np.float32).reshape(-1, 6)
+    return kp, desc
+
+
+def ratio_match(points_desc: torch.Tensor, query_desc: torch.Tensor, ratio: float, chunk: int = 2048) -> np.ndarray:
+    """(K, 2) [point index, query index]: each query descriptor's nearest point descriptor (unit
+    vectors, Euclidean distance), kept when it is closer than ``ratio`` times the second nearest."""
+    if len(points_desc) < 2 or len(query_desc) == 0:
+        return np.zeros((0, 2), np.int64)
+    out = []
+    for s in range(0, len(query_desc), chunk):
+        sim, idx = torch.topk(query_desc[s:s + chunk] @ points_desc.T, 2, dim=1)
+        dist = torch.sqrt(torch.clamp(2 - 2 * sim, min=0))
+        keep = torch.nonzero(dist[:, 0] < ratio * dist[:, 1]).squeeze(1)
+        out.append(torch.stack([idx[keep, 0], keep + s], 1))
+    return torch.cat(out).cpu().numpy().astype(np.int64)
+
+
+class StructureBaseline:
+    """SIFT 3D points with mean descriptors, triangulated by pycolmap from known poses."""
+
+    def __init__(self, points3d: np.ndarray, descriptors: np.ndarray, track_lengths: np.ndarray,
+                 config: StructureBaselineConfig, reconstruction=None):
+        import pycolmap
+
+        self.points3d = np.asarray(points3d, np.float64).reshape(-1, 3)
+        self.descriptors = _normalize(np.asarray(descriptors).reshape(-1, 128))
+        self.track_lengths = np.asarray(track_lengths, np.int64).reshape(-1)
+        self.config = config
+        self.reconstruction = reconstruction  # pycolmap.Reconstruction (None for subsets)
+        default = pycolmap.AbsolutePoseEstimationOptions().ransac.max_error
+        self.ransac_max_error_px = float(default if config.ransac_max_error_px is None else config.ransac_max_error_px)
+        self._desc = torch.from_numpy(self.descriptors)
+        self._extractor = None
+
+    def __len__(self) -> int:
+        return len(self.points3d)
+
+    # -- build ---------------------------------------------------------------------------------
+    @classmethod
+    def build(cls, seq: Sequence, config: StructureBaselineConfig | None = None, workdir=None) -> "StructureBaseline":
+        """Extract, match and triangulate ``seq`` (known cameras and poses) in ``workdir``
+        (a temporary directory, removed afterwards, by default)."""
+        cfg = config or StructureBaselineConfig()
+        if cfg.matching not in MATCHING_MODES:
+            raise InputError(f"unknown matching mode {cfg.matching!r} ({', '.join(MATCHING_MODES)})")
+        if len(seq) < 2:
+            raise FavormapError(f"the structure baseline needs at least 2 posed frames, got {len(seq)}")
+        with contextlib.ExitStack() as stack:
+            if workdir is None:
+                workdir = stack.enter_context(tempfile.TemporaryDirectory(prefix="favormap_baseline_"))
+            stack.enter_context(_quiet_colmap())
+            return cls._build(seq, cfg, Path(workdir))
+
+    @classmethod
+    def _build(cls, seq: Sequence, cfg: StructureBaselineConfig, wd: Path) -> "StructureBaseline":
+        import pycolmap
+
+        images_dir, db_path, out_dir = wd / "images", wd / "database.db", wd / "sparse"
+        images_dir.mkdir(parents=True, exist_ok=True)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        db_path.unlink(missing_ok=True)
+        extractor = _extractor(cfg)
+        rec = pycolmap.Reconstruction()
+        cam_ids: dict[int, int] = {}
+        descs: dict[int, np.ndarray] = {}
+        with pycolmap.Database.open(db_path) as db:
+            for i, frame in enumerate(seq.frames):
+                rgb, cam = load_image(frame.image_path, seq.cameras[frame.camera_id], cfg.max_side)
+                if frame.camera_id not in cam_ids:
+                    pc = cam.to_pycolmap()
+                    pc.camera_id = len(cam_ids) + 1
+                    pc.has_prior_focal_length = True  # known intrinsics: verify with E, not F
+                    db.write_camera(pc, use_camera_id=True)
+                    rig = pycolmap.Rig(rig_id=pc.camera_id)
+                    rig.add_ref_sensor(pc.sensor_id)
+                    db.write_rig(rig, use_rig_id=True)
+                    rec.add_camera_with_trivial_rig(pc)
+                    cam_ids[frame.camera_id] = pc.camera_id
+                name, image_id, cid = f"{i:06d}.png", i + 1, cam_ids[frame.camera_id]
+                cv2.imwrite(str(images_dir / name), rgb[..., ::-1])
+                kp, desc = _extract(extractor, rgb)
+                image = pycolmap.Image(name=name, camera_id=cid, image_id=image_id)
+                image.frame_id = image_id
+                db_frame = pycolmap.Frame(frame_id=image_id, rig_id=cid)
+                db_frame.add_data_id(image.data_id)
+                db.write_frame(db_frame, use_frame_id=True)  # a frame first: write_image checks it
+                db.write_image(image, use_image_id=True)
+                db.write_keypoints(image_id, kp)
+                db.write_descriptors(image_id, desc)
+                descs[image_id] = np.asarray(desc.data)
+                rec.add_image_with_trivial_frame(
+                    pycolmap.Image(name=name, keypoints=kp[:, :2].astype(np.float64), camera_id=cid, image_id=image_id),
+                    to_rigid3d(frame.cam_from_world))
+        if sum(len(d) for d in descs.values()) == 0:
+            raise FavormapError("the structure baseline found no SIFT features in the images")
+        mopts = pycolmap.FeatureMatchingOptions()
+        mopts.num_threads = cfg.num_threads
+        exhaustive = cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(seq) <= cfg.exhaustive_max_frames)
+        if exhaustive:
+            pycolmap.match_exhaustive(db_path, matching_options=mopts, device=pycolmap.Device.cpu)
+        else:
+            pairing = pycolmap.SequentialPairingOptions(overlap=cfg.sequential_overlap)
+            pycolmap.match_sequential(db_path, matching_options=mopts, pairing_options=pairing, device=pycolmap.Device.cpu)
+        rec = pycolmap.triangulate_points(rec, db_path, images_dir, out_dir)
+        return cls._from_reconstruction(rec, descs, cfg)
+
+    @classmethod
+    def _from_reconstruction(cls, rec, descs: dict[int, np.ndarray], cfg: StructureBaselineConfig) -> "StructureBaseline":
+        if rec.num_points3D() == 0:
+            raise FavormapError("pycolmap triangulated no 3D points (too few verified matches between the frames?)")
+        offsets, start = {}, 0
+        for image_id in sorted(descs):
+            offsets[image_id], start = start, start + len(descs[image_id])
+        all_desc = torch.from_numpy(_normalize(np.concatenate([descs[k] for k in sorted(descs)])))
+        xyz, rows, lengths = [], [], []
+        for p in rec.points3D.values():
+            els = p.track.elements
+            xyz.append(p.xyz)
+            lengths.append(len(els))
+            rows.extend(offsets[e.image_id] + e.point2D_idx for e in els)
+        lengths_np = np.asarray(lengths, np.int64)
+        owner = torch.from_numpy(np.repeat(np.arange(len(lengths_np)), lengths_np))
+        mean = torch.zeros(len(lengths_np), 128).index_add_(0, owner, all_desc[torch.as_tensor(rows)])
+        return cls(np.asarray(xyz), mean.numpy(), lengths_np, cfg, rec)
+
+    def subset(self, max_points: int) -> "StructureBaseline":
+        """The same baseline restricted to its ``max_points`` longest-track points."""
+        keep = np.sort(np.argsort(-self.track_lengths, kind="stable")[: max(0, int(max_points))])
+        return StructureBaseline(self.points3d[keep], self.descriptors[keep], self.track_lengths[keep], replace(self.config))
+
+    # -- localize ------------------------------------------------------------------------------
+    def prepare(self, image, camera: Camera) -> tuple[np.ndarray, Camera]:
+        """Query image (path or RGB array at the camera's resolution) -> (working image, pinhole
+        camera), exactly as ``Localizer.prepare``."""
+        img = read_rgb(image) if not isinstance(image, np.ndarray) else image
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise InputError(f"the query image must be an RGB uint8 array, got {img.dtype} {img.shape}")
+        h, w = img.shape[:2]
+        if (w, h) != (camera.width, camera.height):
+            if (w, h) == (camera.height, camera.width):
+                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height} (rotated?)")
+            if abs(w / h - camera.width / camera.height) > 0.01:
+                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height}; give --camera")
+            camera = camera.scaled(w, h)
+        return prepare_image(img, camera, self.config.max_side)
+
+    def localize(self, image, camera: Camera) -> BaselineResult:
+        """Localize one query image (no prior): SIFT, ratio-test matching to all 3D points, PnP."""
+        import pycolmap
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        img, cam = self.prepare(image, camera)
+        with _quiet_colmap():
+            if self._extractor is None:
+                self._extractor = _extractor(cfg)
+            kp, desc = _extract(self._extractor, img)
+            qdesc = torch.from_numpy(_normalize(np.asarray(desc.data).reshape(-1, 128)))
+            m = ratio_match(self._desc, qdesc, cfg.ratio)
+            pose, n_in, mask, msg = np.eye(4), 0, np.zeros(len(m), bool), ""
+            if len(m) >= 4:
+                est = pycolmap.AbsolutePoseEstimationOptions()
+                est.ransac.max_error = self.ransac_max_error_px
+                est.ransac.random_seed = cfg.seed
+                ans = pycolmap.estimate_and_refine_absolute_pose(
+                    kp[m[:, 1], :2].astype(np.float64), self.points3d[m[:, 0]], cam.to_pycolmap(), est)
+                if ans is not None:
+                    pose, n_in = from_rigid3d(ans["cam_from_world"]), int(ans["num_inliers"])
+                    mask = np.asarray(ans["inlier_mask"], bool)
+        success = n_in >= cfg.min_inliers
+        if not success:
+            msg = f"too few inliers ({len(m)} matches, {n_in} inliers; need {cfg.min_inliers})"
+        return BaselineResult(success, pose, len(m), n_in, time.perf_counter() - t0, kp[:, :2].copy(), m, mask, msg)

@@ -1,0 +1,137 @@
+"""Where the localizer's landmark descriptors come from (one small plugin interface).
+
+A descriptor source turns landmark rows and the current pose estimate into unit descriptors:
+
+- ``rendered``: FaVoR, rendered from each landmark's voxel grids along the ray from the camera
+  centre (paper sec. 3.3);
+- ``mean``: the landmark's mean observed descriptor (baseline: what a structure-based map stores);
+- ``nearest``: the descriptor observed in the mapping frame whose camera centre is nearest the
+  current estimate (baseline: the best a map of stored descriptors could do without rendering). It
+  needs the per-observation descriptors, which the map does not store; :func:`observation_descriptors`
+  computes them from the mapping images.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..geometry import camera_centers
+from ..mapfile import Map
+from ..voxels import render_from_camera
+
+
+class DescriptorSource(Protocol):
+    name: str
+
+    def __call__(self, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict) -> torch.Tensor:
+        """Unit descriptors (len(rows), C) of landmark ``rows`` seen from ``cam_from_world``."""
+
+
+def _tick(timings: dict, key: str, since: float) -> float:
+    now = time.perf_counter()
+    timings[key] = timings.get(key, 0.0) + now - since
+    return now
+
+
+class RenderedDescriptors:
+    name = "rendered"
+
+    def __init__(self, map_: Map, device: str = "cpu"):
+        self.map, self.device = map_, device
+
+    def __call__(self, rows, cam_from_world, timings):
+        s = time.perf_counter()
+        desc, dens = self.map.voxels(rows)
+        s = _tick(timings, "loading", s)
+        dev = self.device
+        with torch.no_grad():
+            out = render_from_camera(
+                torch.as_tensor(desc, device=dev), torch.as_tensor(dens, device=dev),
+                torch.as_tensor(self.map.positions[rows], dtype=torch.float32, device=dev),
+                torch.as_tensor(self.map.voxel_size[rows], device=dev),
+                torch.as_tensor(camera_centers(cam_from_world), dtype=torch.float32, device=dev),
+                self.map.render_samples)
+        _tick(timings, "rendering", s)
+        return out
+
+
+class MeanDescriptors:
+    name = "mean"
+
+    def __init__(self, map_: Map, device: str = "cpu"):
+        self.map, self.device = map_, device
+
+    def __call__(self, rows, cam_from_world, timings):
+        s = time.perf_counter()
+        d = torch.as_tensor(self.map.mean_descriptors(rows), device=self.device)
+        _tick(timings, "loading", s)
+        return F.normalize(d, dim=-1)
+
+
+class NearestViewDescriptors:
+    """The observed descriptor from the mapping frame nearest to the current estimate."""
+
+    name = "nearest"
+
+    def __init__(self, map_: Map, obs_descriptors: np.ndarray, device: str = "cpu"):
+        lm, fr, _ = map_.tracks()
+        if len(obs_descriptors) != len(lm):
+            raise ValueError(f"{len(obs_descriptors)} observation descriptors for {len(lm)} observations")
+        order = np.lexsort((fr, lm))
+        self.obs_lm, self.obs_fr = lm[order], fr[order]
+        self.obs_desc = np.ascontiguousarray(obs_descriptors[order], np.float32)
+        self.first = np.searchsorted(self.obs_lm, np.arange(len(map_) + 1))
+        self.centers = camera_centers(map_.cam_from_world)
+        self.device = device
+
+    def __call__(self, rows, cam_from_world, timings):
+        s = time.perf_counter()
+        rows = np.asarray(rows, np.int64)
+        n = self.first[rows + 1] - self.first[rows]
+        obs = np.repeat(self.first[rows] - np.cumsum(n) + n, n) + np.arange(n.sum())  # observations of rows, grouped
+        group = np.repeat(np.arange(len(rows)), n)
+        dist = np.linalg.norm(self.centers[self.obs_fr[obs]] - camera_centers(cam_from_world), axis=1)
+        best = np.lexsort((dist, group))
+        keep = best[np.r_[True, group[best][1:] != group[best][:-1]]] if len(best) else best
+        out = np.zeros((len(rows), self.obs_desc.shape[1]), np.float32)
+        out[group[keep]] = self.obs_desc[obs[keep]]
+        _tick(timings, "loading", s)
+        return F.normalize(torch.as_tensor(out, device=self.device), dim=-1)
+
+
+def observation_descriptors(map_: Map, sequence, extractor=None) -> np.ndarray:
+    """(O, C) descriptors of every track observation of ``map_``, sampled at the observed keypoint
+    in the mapping images of ``sequence`` (the sequence the map was built from)."""
+    from .. import features as feats_mod
+    from ..io import load_image
+
+    names = {f.name: i for i, f in enumerate(sequence.frames)}
+    missing = [n for n in map_.frame_names if n not in names]
+    if missing:
+        raise ValueError(f"{len(missing)} map frames are not in the sequence (e.g. {missing[0]})")
+    ex = extractor or feats_mod.create(map_.extractor)
+    lm, fr, xy = map_.tracks()
+    out = np.zeros((len(lm), map_.channels), np.float32)
+    for f in np.unique(fr):
+        frame = sequence.frames[names[map_.frame_names[f]]]
+        img, _ = load_image(frame.image_path, sequence.cameras[frame.camera_id], map_.max_side)
+        sel = np.flatnonzero(fr == f)
+        out[sel] = ex.sample(ex.extract(img), xy[sel])
+    return out
+
+
+def make_source(name: str, map_: Map, device: str = "cpu", obs_descriptors: np.ndarray | None = None) -> DescriptorSource:
+    if name == "rendered":
+        return RenderedDescriptors(map_, device)
+    if name == "mean":
+        return MeanDescriptors(map_, device)
+    if name == "nearest":
+        if obs_descriptors is None:
+            raise ValueError("nearest-view descriptors need the observation descriptors (observation_descriptors())")
+        return NearestViewDescriptors(map_, obs_descriptors, device)
+    raise ValueError(f"unknown descriptor source {name!r} (rendered, mean, nearest)")

@@ -1,0 +1,349 @@
+#!/usr/bin/env python3
+"""Accuracy of favormap against the structure baseline: one process, the same queries, one table.
+
+For every split a favormap map is built from the mapping frames and localized against with
+  - rendered descriptors (FaVoR), the default localizer;
+  - the same map with each landmark's mean observed descriptor;
+  - the same map with the descriptor observed in the nearest mapping frame;
+  - (``--variants``) other localizer settings, e.g. the pre-benchmark defaults;
+and the pycolmap structure baseline (SIFT, triangulation from the known poses, one mean descriptor
+per point, LO-RANSAC PnP; favormap.localize.baseline) is built from the same frames and localized
+without a prior. Prior modes: noise (ground truth moved by 0.3 units / 10 deg), nearest mapping
+frame, constant (first mapping frame), none.
+
+Splits:
+  fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
+  fox-extrap   the same sequence, map from the first half of the path, every 4th frame of the second half
+  orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
+               and off it, binned by the angle to the nearest mapping view
+  custom       --map SEQ --queries SEQ (any readable sequences)
+
+Columns: median / 90th-percentile translation (scene units, and % of the scene extent: the 5-95 %
+bounding-box diagonal of the landmarks), median rotation, localized %, false successes (reported
+success with error > 5 % of the extent or > 5 deg), mean inliers, median translation after each
+iteration, seconds per query, and at the ground-truth pose the match precision (share of matches
+within 2 px of the landmark's projection) and the keypoint repeatability (share of visible
+landmarks with a query keypoint within 2 px).
+
+    python tools/bench_accuracy.py                       # fox-holdout, fox-extrap, orbit
+    python tools/bench_accuracy.py --splits orbit --json out.json
+    python tools/bench_accuracy.py --map SEQ --queries SEQ
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+FOX = ROOT.parent / "shared" / "data" / "fox"
+ANGLE_BINS = ((0, 10), (10, 20), (20, 40), (40, 180))
+
+# localizer variants on the same map: name -> (descriptor source, LocalizeConfig overrides)
+VARIANTS = {
+    "rendered": ("rendered", {}),
+    "mean": ("mean", {}),
+    "nearest-view": ("nearest", {}),
+    "rendered 8px no-mutual (old default)": ("rendered", {"ransac_max_error_px": 8.0, "mutual": False}),
+    "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
+    "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
+    "rendered no-checks": ("rendered", {"checks": "none"}),
+}
+DEFAULT_VARIANTS = ("rendered", "mean", "nearest-view", "rendered 8px no-mutual (old default)", "rendered no-checks")
+
+
+@dataclasses.dataclass
+class Split:
+    name: str
+    mapping: object  # Sequence
+    queries: object  # Sequence
+    angle: np.ndarray | None = None  # per query: rotation to the nearest mapping view (deg)
+
+
+def fox_splits(which: list[str]) -> list[Split]:
+    from favormap.io import read_sequence
+
+    if not FOX.exists():
+        print(f"(skipping fox splits: {FOX} not found)", file=sys.stderr)
+        return []
+    seq = read_sequence(FOX)
+    n = len(seq)
+    out = []
+    if "fox-holdout" in which:
+        out.append(Split("fox-holdout", seq.subset([i for i in range(n) if i % 5]), seq.subset(list(range(0, n, 5)))))
+    if "fox-extrap" in which:
+        half = n // 2
+        out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, 4)))))
+    for s in out:
+        s.angle = nearest_view_angle(s.queries, s.mapping)
+    return out
+
+
+def nearest_view_angle(queries, mapping) -> np.ndarray:
+    from favormap.geometry import pose_error
+
+    return np.array([min(pose_error(q.cam_from_world, m.cam_from_world)[1] for m in mapping.frames) for q in queries.frames])
+
+
+def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
+    """Mapping frames along part of the room orbit; queries (a) between mapping views, (b) orbiting
+    on beyond the last mapping view, (c) raised above the path; binned by angle to the nearest view."""
+    from favormap.geometry import inverse, rotation_about
+    from favormap.synthetic import camera_path, make_room, random_views_near, write_sequence
+
+    scene = make_room(0)
+    poses = camera_path(n_map)
+    c = np.array([0.0, 0.55, 0.8])  # centre of the orbit (favormap.synthetic.scene._loop)
+
+    def about(T, axis, deg):
+        M = np.eye(4)
+        M[:3, :3] = rotation_about(np.asarray(axis, float), np.radians(deg))
+        M[:3, 3] = c - M[:3, :3] @ c
+        return inverse(M @ inverse(T))
+
+    q = list(random_views_near(poses, 4, seed=5, max_trans=0.03, max_rot_deg=3.0, scene=scene))
+    last, first = poses[-1], poses[0]
+    sign = 1.0 if np.cross(inverse(poses[-2])[:3, 3] - c, inverse(last)[:3, 3] - c)[2] > 0 else -1.0
+    for deg in (6, 12, 18, 25, 32, 45):
+        q.append(about(last, [0, 0, 1], sign * deg))
+    mid = poses[len(poses) // 2]
+    for deg in (8, 15, 25, 35):
+        right = inverse(mid)[:3, 0]  # camera x axis in world: tilting about it raises the camera over the scene
+        q.append(about(mid, right, -deg))
+    q.append(about(first, [0, 0, 1], -sign * 10))
+    q = [T for T in q if scene.camera_is_valid(inverse(T)[:3, 3])]
+    mapping = write_sequence(workdir / "orbit_map", n_frames=n_map, width=width, height=height, scene=scene)
+    queries = write_sequence(workdir / "orbit_queries", poses=q, width=width, height=height, scene=scene)
+    return Split("orbit", mapping, queries, nearest_view_angle(queries, mapping))
+
+
+def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool):
+    from favormap.build import build_map
+    from favormap.mapfile import write_map
+
+    path = workdir / f"{split.name}.h5"
+    key = json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in split.mapping.frames])
+    stamp = path.with_suffix(".config")
+    t = time.perf_counter()
+    if not (reuse and path.exists() and stamp.exists() and stamp.read_text() == key):
+        write_map(build_map(split.mapping, build_cfg), path)
+        stamp.write_text(key)
+    return path, time.perf_counter() - t
+
+
+def localizer_config(overrides: dict):
+    from favormap.localize import LocalizeConfig, SuccessChecks
+
+    over = dict(overrides)
+    if over.get("checks") == "none":
+        over["checks"] = SuccessChecks(min_inliers=12, min_inlier_ratio=0.0, max_iteration_change=(np.inf, np.inf),
+                                       min_visible_inliers=0.0)
+    return LocalizeConfig(**over)
+
+
+def run_split(split: Split, args, build_cfg) -> list[dict]:
+    import dataclasses as dc
+
+    from favormap.localize import Localizer, make_source
+    from favormap.localize.descriptors import observation_descriptors
+    from favormap.localize.evaluate import (
+        EvalConfig,
+        QueryOutcome,
+        diagnostics_from_matches,
+        make_priors,
+        match_diagnostics,
+        scene_extent,
+        summarize,
+    )
+    from favormap.mapfile import Map
+
+    workdir = Path(args.workdir)
+    rows = []
+    path, build_s = build_or_load(split, workdir, build_cfg, args.reuse)
+    m = Map.open(path)
+    extent = scene_extent(m.positions)
+    print(f"[{split.name}] map {len(m)} landmarks from {len(split.mapping)} frames ({build_s:.0f} s), "
+          f"{len(split.queries)} queries, scene extent {extent:.3f} units", file=sys.stderr)
+    obs_desc = None
+    if any(VARIANTS[v][0] == "nearest" for v in args.variants):
+        obs_desc = observation_descriptors(m, split.mapping)
+
+    def record(method, prior_mode, outcomes, iterations):
+        s = summarize(outcomes, iterations, ((0.01, 1.0),), extent)
+        s.update(split=split.name, method=method, prior=prior_mode, landmarks=len(m) if method != "pycolmap-SIFT" else None)
+        if split.angle is not None:
+            err = np.array([_terr(o) for o in outcomes])
+            succ = np.array([o.result.success for o in outcomes])
+            s["bins"] = {}
+            for lo, hi in ANGLE_BINS:
+                sel = (split.angle >= lo) & (split.angle < hi)
+                if sel.any():
+                    ok = sel & succ
+                    s["bins"][f"{lo}-{hi}"] = {"queries": int(sel.sum()), "localized": int(ok.sum()),
+                                               "median_translation": float(np.median(err[ok])) if ok.any() else None,
+                                               "precision": _mean([o.diagnostics.get("match_precision") for o, k in zip(outcomes, sel) if k])}
+        rows.append(s)
+        print(f"[{split.name}] {prior_mode:>8} | {method:<42} {fmt_row(s)}", file=sys.stderr)
+
+    for prior_mode in args.priors:
+        priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
+        variants = args.variants if prior_mode == "noise" else [v for v in args.variants if v == "rendered"]
+        for name in variants:
+            source_name, over = VARIANTS[name]
+            cfg = dc.replace(localizer_config(over), descriptors=source_name)
+            loc = Localizer(m, cfg, descriptor_source=make_source(source_name, m, cfg.device, obs_desc))
+            outs = []
+            for fr, prior in zip(split.queries.frames, priors):
+                cam = split.queries.cameras[fr.camera_id]
+                t = time.perf_counter()
+                res = loc.localize(fr.image_path, prior, cam)
+                o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
+                o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                outs.append(o)
+            record(name, prior_mode, outs, cfg.iterations)
+    m.close()
+
+    if args.baseline:
+        from favormap.io import load_image
+        from favormap.localize.baseline import StructureBaseline
+
+        t = time.perf_counter()
+        base = StructureBaseline.build(split.mapping, workdir=workdir / f"{split.name}_baseline")
+        print(f"[{split.name}] baseline: {len(base.points3d)} points ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
+        budgets = [("pycolmap-SIFT", base)]
+        if args.baseline_budget:
+            budgets.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", base.subset(args.baseline_budget)))
+        for name, b in budgets:
+            outs = []
+            for fr in split.queries.frames:
+                cam = split.queries.cameras[fr.camera_id]
+                res = b.localize(fr.image_path, cam)
+                o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
+                _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
+                mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
+                o.diagnostics = diagnostics_from_matches(wcam, fr.cam_from_world, b.points3d, res.keypoints,
+                                                         b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]])
+                outs.append(o)
+            record(name, "none", outs, 1)
+            rows[-1]["landmarks"] = len(b.points3d)
+    return rows
+
+
+def _terr(o) -> float:
+    from favormap.geometry import pose_error
+
+    return pose_error(o.result.cam_from_world, o.gt)[0]
+
+
+def _mean(v):
+    v = [x for x in v if x is not None]
+    return float(np.mean(v)) if v else None
+
+
+def _f(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+def fmt_row(s: dict) -> str:
+    iters = "/".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
+    return (f"med {_f(s['median_translation'], '.4f')} ({_f(s['median_translation_pct_extent'], '.2f')} %) "
+            f"p90 {_f(s['p90_translation'], '.4f')}  R {_f(s['median_rotation_deg'], '.3f')}  "
+            f"loc {100 * s['success_rate']:.0f} %  FS {s['false_successes']}  inl {s['mean_inliers']:.0f}  "
+            f"iters {iters}  {s['mean_time_s'] * 1000:.0f} ms  prec {_f(s['match_precision'], '.2f')}  "
+            f"rep {_f(s['keypoint_repeatability'], '.2f')}")
+
+
+def markdown(rows: list[dict]) -> str:
+    out = ["| split | prior | method | landmarks | median t (units) | % extent | p90 t | median R (deg) | localized | "
+           "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for s in rows:
+        iters = " / ".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
+        out.append(f"| {s['split']} | {s['prior']} | {s['method']} | {s.get('landmarks') or '-'} | "
+                   f"{_f(s['median_translation'], '.4f')} | {_f(s['median_translation_pct_extent'], '.2f')} | "
+                   f"{_f(s['p90_translation'], '.4f')} | {_f(s['median_rotation_deg'], '.3f')} | "
+                   f"{s['localized']}/{s['queries']} | {s['false_successes']} | {s['mean_inliers']:.0f} | {iters} | "
+                   f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} |")
+    bins = [s for s in rows if s.get("bins")]
+    if bins:
+        out += ["", "Per angle to the nearest mapping view (deg): localized / queries, median translation (units), match precision @GT", "",
+                "| split | prior | method | " + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS) + " |",
+                "|---|---|---|" + "---|" * len(ANGLE_BINS)]
+        for s in bins:
+            cells = []
+            for lo, hi in ANGLE_BINS:
+                b = s["bins"].get(f"{lo}-{hi}")
+                cells.append("-" if b is None else f"{b['localized']}/{b['queries']}, {_f(b['median_translation'], '.4f')}, "
+                                                   f"{_f(b['precision'], '.2f')}")
+            out.append(f"| {s['split']} | {s['prior']} | {s['method']} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--splits", default="fox-holdout,fox-extrap,orbit")
+    ap.add_argument("--map", help="custom split: mapping sequence")
+    ap.add_argument("--queries", help="custom split: query sequence")
+    ap.add_argument("--priors", default="noise,nearest,constant,none")
+    ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS))
+    ap.add_argument("--extractor", default=None, help="build with this extractor (default: the build default)")
+    ap.add_argument("--min-track", type=int, default=None)
+    ap.add_argument("--max-landmarks", type=int, default=None)
+    ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
+    ap.add_argument("--orbit-frames", type=int, default=24)
+    ap.add_argument("--no-baseline", dest="baseline", action="store_false")
+    ap.add_argument("--baseline-budget", type=int, default=0, help="also run the baseline restricted to N longest tracks")
+    ap.add_argument("--workdir", default="/tmp/favormap-bench-accuracy")
+    ap.add_argument("--reuse", action="store_true", help="reuse maps in --workdir built with the same settings")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", help="write all rows to this JSON file")
+    args = ap.parse_args()
+    args.priors = [p for p in args.priors.split(",") if p]
+    args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in args.variants if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variant(s) {unknown}; known: {list(VARIANTS)}")
+
+    from favormap.build import BuildConfig
+
+    build_cfg = BuildConfig()
+    for k in ("extractor", "min_track", "max_landmarks"):
+        if getattr(args, k) is not None:
+            setattr(build_cfg, k, getattr(args, k))
+    if args.iterations:
+        build_cfg.voxel.iterations = args.iterations
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    splits: list[Split] = []
+    if args.map or args.queries:
+        from favormap.io import read_sequence
+
+        if not (args.map and args.queries):
+            ap.error("--map and --queries go together")
+        mapping, queries = read_sequence(args.map), read_sequence(args.queries)
+        splits.append(Split("custom", mapping, queries, nearest_view_angle(queries, mapping)))
+    else:
+        which = args.splits.split(",")
+        splits += fox_splits(which)
+        if "orbit" in which:
+            splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
+    rows = []
+    for sp in splits:
+        rows += run_split(sp, args, build_cfg)
+    print(markdown(rows))
+    print(f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {build_cfg.extractor}, "
+          f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
+          f"{build_cfg.voxel.iterations} training iterations")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
