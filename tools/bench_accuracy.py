@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -42,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-FOX = ROOT.parent / "shared" / "data" / "fox"
+FOX = Path(os.environ.get("FAVORMAP_FOX", ROOT.parent / "shared" / "data" / "fox"))
 ANGLE_BINS = ((0, 10), (10, 20), (20, 40), (40, 180))
 
 # localizer variants on the same map: name -> (descriptor source, LocalizeConfig overrides)
@@ -50,9 +51,11 @@ VARIANTS = {
     "rendered": ("rendered", {}),
     "mean": ("mean", {}),
     "nearest-view": ("nearest", {}),
-    "rendered 8px no-mutual (old default)": ("rendered", {"ransac_max_error_px": 8.0, "mutual": False}),
+    "rendered 8px no-mutual (old default)": ("rendered", {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0}),
     "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
+    "rendered no-ratio": ("rendered", {"ratio": 1.0}),
+    "rendered guided-3px": ("rendered", {"guided_radius_px": 3.0, "guided_ransac_px": 3.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
 }
 DEFAULT_VARIANTS = ("rendered", "mean", "nearest-view", "rendered 8px no-mutual (old default)", "rendered no-checks")

@@ -33,6 +33,7 @@ class Features:
 class Extractor(ABC):
     name: str = ""
     channels: int = 0
+    match_ratio: float = 1.0  # default Lowe ratio for matching these descriptors (1: no ratio test)
 
     def __init__(self, max_keypoints: int = 2048, device: str | None = None):
         self.max_keypoints = int(max_keypoints)

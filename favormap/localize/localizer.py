@@ -18,8 +18,9 @@ from the final pose. Otherwise ``success`` is false and ``message`` names the ch
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -48,10 +49,12 @@ class LocalizeConfig:
     iterations: int = 3
     match_threshold: float = 0.7  # cosine similarity (paper's reference config)
     mutual: bool = True  # also require the landmark to be the query feature's best
-    ratio: float = 1.0  # Lowe ratio on descriptor distances (1: off)
+    ratio: float | None = None  # Lowe ratio on descriptor distances (1: off; None: the extractor's default)
     max_keypoints: int = 4096
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
+    guided_radius_px: float = 0.0  # > 0: a final step matches each landmark to query keypoints this close to its projection
+    guided_ransac_px: float = 2.0  # RANSAC threshold of that step
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     stop_translation: float = 1e-4  # relative to the median landmark distance
@@ -153,6 +156,8 @@ class Localizer:
         self.default_camera = self.map.cameras[int(self.map.frame_camera_ids[0])] if self.map.num_frames else next(iter(self.map.cameras.values()))
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
+        if self.config.ratio is None:
+            self.config = dataclasses.replace(self.config, ratio=self.extractor.match_ratio)
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
 
     def close(self):
@@ -277,7 +282,47 @@ class Localizer:
             pose = new_pose
             if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
                 break
+        if last is not None and cfg.guided_radius_px > 0:
+            last = self._guided(q, pose, iters, t) or last
         return self._result(q, last, iters, t, start)
+
+    def _guided(self, q: "_Query", pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
+        """Search by projection: each landmark visible from ``pose`` is matched to the most similar
+        query keypoint within ``guided_radius_px`` of its projection (mutually, above the
+        threshold), then PnP runs again with a tight threshold."""
+        cfg = self.config
+        s = time.perf_counter()
+        rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
+                            cfg.view_limits)
+        t["visibility"] += time.perf_counter() - s
+        rend = self.source(rows, pose, t)
+        s = time.perf_counter()
+        Xc = self.map.positions[rows] @ pose[:3, :3].T + pose[:3, 3]
+        K = q.cam.K
+        uv = np.stack([K[0, 0] * Xc[:, 0] / Xc[:, 2] + K[0, 2], K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]], 1)
+        kp = torch.as_tensor(q.feats.keypoints, dtype=torch.float32, device=rend.device)
+        near = torch.cdist(torch.as_tensor(uv, dtype=torch.float32, device=rend.device), kp) <= cfg.guided_radius_px
+        sim = torch.where(near, rend @ q.desc.T, torch.full((), -2.0, device=rend.device))
+        best_sim, best = sim.max(1)
+        ok = (best_sim >= cfg.match_threshold) & (sim.argmax(0)[best] == torch.arange(len(rows), device=rend.device))
+        idx = torch.nonzero(ok).squeeze(1).cpu().numpy()
+        kidx = best.cpu().numpy()[idx]
+        t["matching"] += time.perf_counter() - s
+        saved = cfg.ransac_max_error_px
+        try:
+            cfg.ransac_max_error_px = cfg.guided_ransac_px
+            ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t)
+        finally:
+            cfg.ransac_max_error_px = saved
+        n_in = int(ans["num_inliers"]) if ans is not None else 0
+        ok = ans is not None and n_in >= cfg.checks.min_inliers
+        iters.append(IterationResult(from_rigid3d(ans["cam_from_world"]) if ok else pose, len(rows), len(idx), n_in, ok,
+                                     kind="guided"))
+        if not ok:
+            iters.pop()  # keep the rendering iterations' estimate
+            return None
+        return dict(matches=np.c_[rows[idx], kidx], inliers=np.asarray(ans["inlier_mask"], bool),
+                    similarity=best_sim.cpu().numpy()[idx])
 
     def _result(self, q: "_Query", last: dict | None, iters: list[IterationResult], t: dict, start: np.ndarray,
                 message: str = "") -> LocalizationResult:
@@ -311,7 +356,7 @@ class Localizer:
         pose = final.cam_from_world
         vals: dict = {"inliers": final.num_inliers, "inlier_ratio": final.num_inliers / max(final.num_matches, 1)}
         g = max([i for i, it in enumerate(iters) if it.kind == "global"], default=-1)
-        render_iters = [it for it in iters[g + 1:] if it.kind == "render"]  # the refinement that gave this pose
+        render_iters = iters[g + 1:]  # the refinement (render, guided) that gave this pose
         if len(render_iters) >= 2:
             dt, dr = pose_error(render_iters[-1].cam_from_world, render_iters[-2].cam_from_world)
             vals["iteration_change"] = dt / self.scale
