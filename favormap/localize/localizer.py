@@ -60,7 +60,9 @@ class LocalizeConfig:
     stop_translation: float = 1e-4  # relative to the median landmark distance
     stop_rotation_deg: float = 0.01
     descriptors: str = "rendered"  # "rendered" (FaVoR), "mean" or "nearest" (baselines; see .descriptors)
-    view_limits: ViewLimits = field(default_factory=ViewLimits)
+    # landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
+    # distances (tools/bench_accuracy.py, fox extrapolation: 3/5 localized with 15 deg / 0.5-2x, 5/5 with these)
+    view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
     device: str = "cpu"
     seed: int = 0
 

@@ -1,0 +1,75 @@
+"""SIFT extractor: keypoints described in their own scale/orientation, patches consistent with
+them, rotation invariance, and a SIFT map that localizes (synthetic scenes only)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from favormap import features
+
+
+@pytest.fixture(scope="module")
+def room_image():
+    from favormap.synthetic import camera_path, make_camera, make_room, render
+
+    return render(make_room(0), make_camera(320, 240), camera_path(3)[1])[0]
+
+
+def test_sampling_at_keypoints_reproduces_their_descriptors(room_image):
+    ex = features.create("sift", max_keypoints=500)
+    f = ex.extract(room_image)
+    assert len(f) > 100 and f.descriptors.shape == (len(f), 128)
+    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+    again = ex.sample(f, f.keypoints)
+    assert np.mean(np.sum(again * f.descriptors, 1) > 0.999) > 0.99
+    # a patch pixel next to a keypoint is described in that keypoint's frame: close to it
+    near = ex.sample(f, f.keypoints + [1.0, 0.0])
+    assert np.median(np.sum(near * f.descriptors, 1)) > 0.9
+
+
+def test_descriptors_survive_an_in_plane_rotation(room_image):
+    """Rotate the image by 40 degrees: mutual nearest neighbours with the ratio test must mostly
+    land on the rotated keypoint (an upright, fixed-size descriptor fails this)."""
+    ex = features.create("sift", max_keypoints=800)
+    h, w = room_image.shape[:2]
+    M = cv2.getRotationMatrix2D((w / 2, h / 2), 40, 1.0)
+    rot = cv2.warpAffine(room_image, M, (w, h), flags=cv2.INTER_LINEAR)
+    a, b = ex.extract(room_image), ex.extract(rot)
+    sim = a.descriptors @ b.descriptors.T
+    best = sim.argmax(1)
+    top2 = -np.sort(-sim, 1)[:, :2]
+    ok = (sim.argmax(0)[best] == np.arange(len(a))) & (np.sqrt(np.maximum(2 - 2 * top2[:, 0], 0)) < 0.8 * np.sqrt(2 - 2 * top2[:, 1]))
+    # where the keypoint must land (OpenCV pixel convention = COLMAP's minus 0.5)
+    pa = np.c_[a.keypoints - 0.5, np.ones(len(a))] @ M.T + 0.5
+    err = np.linalg.norm(pa[ok] - b.keypoints[best[ok]], axis=1)
+    assert ok.sum() >= 50, ok.sum()
+    assert np.mean(err < 2.0) > 0.85, np.mean(err < 2.0)
+
+
+def test_a_sift_map_localizes(small_sequence, tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from conftest import small_build_config
+
+    from favormap.build import build_map
+    from favormap.geometry import perturb_pose, pose_error
+    from favormap.localize import Localizer
+    from favormap.mapfile import write_map
+
+    m = build_map(small_sequence, small_build_config(extractor="sift", iterations=60, max_landmarks=300))
+    path = tmp_path / "sift.h5"
+    write_map(m, path)
+    loc = Localizer(path)
+    assert loc.config.ratio == 0.8  # the extractor's default ratio test
+    rng = np.random.default_rng(0)
+    errs = []
+    for fr in small_sequence.frames[1::5]:
+        res = loc.localize(fr.image_path, perturb_pose(fr.cam_from_world, 0.2, 8.0, rng))
+        assert res.success, res.message
+        errs.append(pose_error(res.cam_from_world, fr.cam_from_world))
+    errs = np.array(errs)
+    assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
