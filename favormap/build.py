@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -22,6 +22,7 @@ from .mapfile.model import MapData, new_landmark_ids
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, triangulate
 from .voxels import TrainingRays, VoxelConfig, train_voxels
+from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
 
 
 @dataclass
@@ -98,9 +99,13 @@ def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
     return lms.select(order[:max_landmarks])
 
 
-def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch_size: int) -> TrainingRays:
+def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch_size: int,
+                  box_factor: float | None = None) -> TrainingRays:
     """Descriptor patches S x S around the projection of each landmark in each of its frames, and
-    the viewing rays of their pixels. One ``extractor.sample`` call per frame."""
+    the viewing rays of their pixels. One ``extractor.sample`` call per frame.
+
+    Voxel side of landmark j: ``box_factor * min_i l_ij / f_i`` (paper eq. 2 uses the patch size S,
+    the reference code 12 for S = 7); ``box_factor`` None means S."""
     tr = lms.tracks
     tid = tr.track_of_obs
     fi = tr.frame_idx
@@ -125,11 +130,11 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch
     d_cam = np.einsum("oij,opj->opi", np.linalg.inv(Ks)[fi], hom)
     d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
     centers = camera_centers(T)[fi]
-    # voxel size (paper eq. 2): s_j = min_i S * l_ij / f
+    # voxel size (paper eq. 2): s_j = min_i factor * l_ij / f
     focal = 0.5 * (Ks[fi, 0, 0] + Ks[fi, 1, 1])
     dist = np.linalg.norm(X - centers, axis=1)
     sizes = np.full(len(lms), np.inf)
-    np.minimum.at(sizes, tid, patch_size * dist / focal)
+    np.minimum.at(sizes, tid, (patch_size if box_factor is None else box_factor) * dist / focal)
     return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets)
 
 
@@ -160,6 +165,8 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     reports progress; ``observer`` sees every stage's result (visualisation, debugging)."""
     pr = _Progress(progress)
     obs = observer or BuildObserver()
+    if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)
+        config = replace(config, voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)))
     images = [] if obs.wants_images else None
     extractor = feats_mod.create(config.extractor, max_keypoints=config.max_keypoints, device=config.voxel.device if config.voxel.device != "cpu" else None)
     with pr.stage("extract"):
@@ -182,7 +189,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     if len(lms) == 0:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     with pr.stage("patches"):
-        rays = training_rays(lms, ff, extractor, config.voxel.patch_size)
+        rays = training_rays(lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor)
         pr.callback("patches", 1, 1)
     with pr.stage("train"):
         def on_step(it, loss, psnr):

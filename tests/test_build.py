@@ -60,11 +60,11 @@ def test_map_file_matches_schema_and_roundtrips(small_map):
 
 def test_novel_views_render_close_to_extracted_descriptors(small_map, small_sequence):
     """Between training views the rendered descriptor of a landmark is close to the one truly
-    extracted there (and as close as the landmark's mean observed descriptor, within noise).
+    extracted there, and closer than the landmark's mean observed descriptor.
 
-    Measured, not asserted (see the build issue's note): with R=3 the centre ray of every view
-    crosses the grid centre, so rendered descriptors vary little with the viewpoint and the
-    descriptor observed from the *nearest* training view is closer still at these small baselines.
+    Measured on this fixture: rendered 0.9764 vs mean 0.9715 mean cosine (default VoxelConfig);
+    without centre rays and the view-extrapolation prior (the former training) rendered was 0.9702,
+    below the mean. Views away from the training path: tests/test_voxels_view.py.
     """
     from favormap import features
     from favormap.ops.spatial import project_inside
@@ -95,4 +95,4 @@ def test_novel_views_render_close_to_extracted_descriptors(small_map, small_sequ
         mean_sim.append(np.sum(m.mean_descriptor[vis] * truth, 1))
     rendered_sim, mean_sim = np.concatenate(rendered_sim), np.concatenate(mean_sim)
     assert np.median(rendered_sim) >= 0.9
-    assert rendered_sim.mean() >= mean_sim.mean() - 0.01
+    assert rendered_sim.mean() >= mean_sim.mean() + 0.0025, (rendered_sim.mean(), mean_sim.mean())

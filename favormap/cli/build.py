@@ -23,9 +23,12 @@ def register(sub):
     p.add_argument("--min-track", type=int, default=5, help="shortest track that becomes a landmark (default 5)")
     p.add_argument("--max-landmarks", type=int, default=1500, help="landmark budget (default 1500)")
     p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
-    p.add_argument("--grid", type=int, default=3, help="voxel grid resolution R (default 3)")
-    p.add_argument("--patch", type=int, default=7, help="descriptor patch size S (default 7)")
-    p.add_argument("--iterations", type=int, default=200, help="voxel training iterations (default 200)")
+    p.add_argument("--quality", choices=("fast", "reference"), default="fast",
+                   help="voxel training preset: fast (default; sized for a few CPU cores) or reference (the reference "
+                        "implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: use a GPU)")
+    p.add_argument("--grid", type=int, default=None, help="voxel grid resolution R (default: the preset's, 3)")
+    p.add_argument("--patch", type=int, default=None, help="descriptor patch size S (default: the preset's, 7)")
+    p.add_argument("--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -39,11 +42,12 @@ def config_from_args(args):
     from ..voxels import VoxelConfig
 
     for name in ("min_track", "max_landmarks", "grid", "patch", "iterations", "max_keypoints"):
-        if getattr(args, name) < (2 if name in ("min_track", "grid") else 1):
+        if getattr(args, name) is not None and getattr(args, name) < (2 if name in ("min_track", "grid") else 1):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
         raise InputError("--resize must be >= 0")
-    vox = VoxelConfig(resolution=args.grid, patch_size=args.patch, iterations=args.iterations, device=auto_device(args.device))
+    over = {k: v for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations)) if v is not None}
+    vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
     return BuildConfig(extractor=args.extractor, max_keypoints=args.max_keypoints, max_side=args.resize, min_track=args.min_track,
                        max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, voxel=vox)
 

@@ -54,6 +54,48 @@ def ray_stencils(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: i
     return trilinear_stencil(pts, R), span / n_samples, hit
 
 
+def ray_corners(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: int):
+    """Sparse form of :func:`ray_stencils`: the 8 trilinear corners of every sample. Returns flat
+    node indices (..., 8, N) (long), their weights (..., 8, N), delta (...) and the hit mask (...).
+    The weights are the dense stencil's non-zero entries (both are the nodes' hat functions).
+    (Corner-major layout: every elementwise op runs on contiguous (..., N) blocks.)"""
+    dirs = F.normalize(dirs, dim=-1)
+    t_near, t_far, hit = box_intersections(origins, dirs)
+    span = (t_far - t_near).clamp_min(0.0)
+    steps = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + 0.5) / n_samples
+    t = t_near[..., None] + span[..., None] * steps  # (..., N)
+    idx0, h = None, []
+    for ax in range(3):
+        g = (origins[..., ax, None] + t * dirs[..., ax, None]).clamp(0.0, 1.0) * (R - 1)
+        i0 = g.floor().clamp(0, R - 2)
+        f = g - i0
+        h.append((1.0 - f, f))
+        i0 = i0.long()
+        idx0 = i0 if idx0 is None else idx0 * R + i0
+    corners = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    idx = torch.stack([idx0 + (a * R * R + b * R + c) for a, b, c in corners], -2)
+    hxy = [[h[0][a] * h[1][b] for b in (0, 1)] for a in (0, 1)]
+    w = torch.stack([hxy[a][b] * h[2][c] for a, b, c in corners], -2)
+    return idx, w, span / n_samples, hit
+
+
+def render_sparse(descriptors: torch.Tensor, density_raw: torch.Tensor, idx, w, delta, hit):
+    """:func:`render` with the sparse stencils of :func:`ray_corners`: rays grouped by landmark,
+    idx / w (G, K, 8, N); descriptors (G, R^3, C), density_raw (G, R^3). Returns (G, K, C) and the
+    accumulated opacity (G, K)."""
+    G, K, _, N = idx.shape
+    R3 = density_raw.shape[1]
+    raw = (torch.gather(density_raw, 1, idx.reshape(G, -1)).view(G, K, 8, N) * w).sum(-2)
+    sigma = F.softplus(raw)
+    alpha = 1.0 - torch.exp(-sigma * delta[..., None])
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1] + 1e-10], -1), -1)
+    wt = trans * alpha * hit[..., None]  # (G, K, N)
+    # composite stencil (G, K, R^3): scatter the per-sample corner weights
+    src = (wt[..., None, :] * w).view(G, K, 8 * N)
+    a = torch.zeros(G, K, R3, dtype=w.dtype, device=w.device).scatter_add(2, idx.view(G, K, 8 * N), src)
+    return torch.bmm(a, descriptors), wt.sum(-1)
+
+
 def composite(stencils: torch.Tensor, delta: torch.Tensor, density_raw: torch.Tensor):
     """Composite stencil (..., R^3) and accumulated opacity (...) of rays.
 

@@ -1,0 +1,179 @@
+"""Voxel rendering at views away from the mapping path, sparse vs dense rendering, presets.
+
+The view test maps a short segment of the synthetic orbit (exact poses) and queries views that
+leave it (further along the orbit, raised and lowered cameras re-aimed at the same content). For
+every visible, unoccluded landmark the truth is the descriptor extracted at its projection in the
+query image. With the default VoxelConfig the rendered descriptor must beat the landmark's mean
+descriptor (what the map stores) by a clear margin at those views, and not lose to the descriptor
+of the nearest training view. (With the former training, ``centre_rays=0, prior_rays=0``, rendered
+and mean were within 0.002 of each other and 0.015 below the nearest view; tools/bench_novel_view.py
+has the full table.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+
+def _moved(T, dz, look=1.6):
+    from favormap import geometry
+    from favormap.synthetic.scene import UP
+
+    wfc = geometry.inverse(T)
+    eye, fwd = wfc[:3, 3], wfc[:3, 2]
+    return geometry.look_at(eye + np.array([0.0, 0.0, dz]), eye + look * fwd, up=UP)
+
+
+def _view_pairs(voxel_config, tmp_path, n_train=14, start=8):
+    """(rendered, nearest-view, mean-descriptor) cosines to the truth and the angle to the nearest
+    training view of every (query, landmark) pair."""
+    from favormap import features
+    from favormap.build import BuildConfig, build_map
+    from favormap.geometry import camera_centers
+    from favormap.ops.spatial import project_inside
+    from favormap.synthetic import camera_path, make_room, render, write_sequence
+    from favormap.voxels import render_from_camera
+
+    scene = make_room(0)
+    path = camera_path(40, step=0.07, seed=0)
+    train = [path[i] for i in range(start, start + n_train)]
+    seq = write_sequence(tmp_path / "seq", poses=train, width=320, height=240, scene=scene)
+    cfg = BuildConfig(max_keypoints=1024, max_side=0, max_landmarks=300, voxel=voxel_config)
+    m = build_map(seq, cfg)
+    cam = seq.cameras[0]
+    lo, hi = start, start + n_train - 1
+    queries = [path[lo - 6], path[lo - 3], path[hi + 3], path[hi + 6], path[hi + 9],
+               _moved(path[lo + 3], 0.5), _moved(path[hi - 3], -0.6), _moved(path[hi + 5], 0.45), _moved(path[lo - 4], -0.6)]
+    ex = features.create(m.extractor)
+    R3 = m.grid_resolution ** 3
+    desc = torch.as_tensor(m.descriptors.reshape(m.num_landmarks, R3, -1))
+    dens = torch.as_tensor(m.density.reshape(m.num_landmarks, R3))
+    obs_c = camera_centers(m.cam_from_world[m.track_frame])
+    obs_u = obs_c - m.positions[m.track_landmark]
+    obs_u /= np.linalg.norm(obs_u, axis=1, keepdims=True)
+    train_feats = {}
+    out = {"rendered": [], "nearest": [], "mean": [], "angle": []}
+    for T in queries:
+        assert scene.camera_is_valid(camera_centers(T))
+        img, depth = render(scene, cam, T)
+        vis = np.flatnonzero(project_inside(m.positions, cam, T, margin_px=8))
+        Xc = m.positions[vis] @ T[:3, :3].T + T[:3, 3]
+        uv = Xc[:, :2] / Xc[:, 2:] * [cam.K[0, 0], cam.K[1, 1]] + cam.K[:2, 2]
+        ui = np.clip(uv.astype(int), 0, [cam.width - 1, cam.height - 1])
+        ok = np.abs(depth[ui[:, 1], ui[:, 0]] - Xc[:, 2]) < 0.02 * Xc[:, 2] + 0.005  # not occluded
+        vis, uv = vis[ok], uv[ok]
+        truth = ex.sample(ex.extract(img), uv)
+        c = camera_centers(T)
+        rendered = render_from_camera(desc[vis], dens[vis], torch.as_tensor(m.positions[vis]).float(),
+                                      torch.as_tensor(m.voxel_size[vis]), torch.as_tensor(c).float(), m.render_samples).numpy()
+        nearest = np.zeros_like(truth)
+        for k, j in enumerate(vis):
+            obs = np.flatnonzero(m.track_landmark == j)
+            u = (c - m.positions[j]) / np.linalg.norm(c - m.positions[j])
+            ang = np.degrees(np.arccos(np.clip(obs_u[obs] @ u, -1, 1)))
+            f = int(m.track_frame[obs[np.argmin(ang)]])
+            if f not in train_feats:
+                from favormap.io import load_image
+
+                train_feats[f] = ex.extract(load_image(seq.frames[f].image_path, cam, 0)[0])
+            Tf = m.cam_from_world[f]
+            x = Tf[:3, :3] @ m.positions[j] + Tf[:3, 3]
+            nearest[k] = ex.sample(train_feats[f], (x[:2] / x[2] * [cam.K[0, 0], cam.K[1, 1]] + cam.K[:2, 2])[None])[0]
+            out["angle"].append(ang.min())
+        out["rendered"].append(np.sum(rendered * truth, 1))
+        out["nearest"].append(np.sum(nearest * truth, 1))
+        out["mean"].append(np.sum(m.mean_descriptor[vis] * truth, 1))
+    return {k: np.concatenate(v) if k != "angle" else np.array(v) for k, v in out.items()}
+
+
+def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_path(tmp_path):
+    from favormap.voxels import VoxelConfig
+
+    r = _view_pairs(VoxelConfig(), tmp_path)
+    far = r["angle"] >= 10.0
+    assert far.sum() >= 300 and (~far).sum() >= 300, (far.sum(), (~far).sum())
+    gain_far = r["rendered"][far].mean() - r["mean"][far].mean()
+    gain_all = r["rendered"].mean() - r["mean"].mean()
+    vs_nearest = r["rendered"].mean() - r["nearest"].mean()
+    summary = f"gain over mean: >=10 deg {gain_far:.4f}, all {gain_all:.4f}; vs nearest view {vs_nearest:.4f}"
+    print(summary)
+    # measured: 0.017 / 0.017 / +0.0014 (former training: 0.0015 / 0.0012 / -0.015)
+    assert gain_far >= 0.01, summary
+    assert gain_all >= 0.01, summary
+    assert vs_nearest >= -0.003, summary
+
+
+def test_sparse_rendering_equals_dense_rendering():
+    import torch.nn.functional as F
+
+    from favormap.voxels.render import ray_corners, ray_stencils, render, render_sparse
+
+    g = torch.Generator().manual_seed(0)
+    for R in (2, 3, 5):
+        G, K, N, C = 3, 7, 12, 5
+        d = torch.randn(G, K, 3, generator=g)
+        o = 0.5 - 2.0 * F.normalize(d, dim=-1) + 0.3 * torch.randn(G, K, 3, generator=g)
+        o[:, -1] = torch.tensor([3.0, 3.0, 3.0])  # a ray that misses the box
+        d[:, -1] = torch.tensor([1.0, 0.0, 0.0])
+        desc, dens = torch.randn(G, R ** 3, C, generator=g), torch.randn(G, R ** 3, generator=g)
+        a, op_a = render(desc, dens, *ray_stencils(o, d, R, N))
+        b, op_b = render_sparse(desc, dens, *ray_corners(o, d, R, N))
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(op_a, op_b, atol=1e-5, rtol=1e-5)
+        assert torch.all(b[:, -1] == 0)
+
+
+def test_quality_presets_and_cli_flags():
+    import argparse
+
+    from favormap.cli import build as cli_build
+    from favormap.voxels import QUALITY_PRESETS, VoxelConfig
+
+    assert set(QUALITY_PRESETS) == {"fast", "reference"}
+    ref = VoxelConfig.preset("reference")
+    assert (ref.iterations, ref.rays_per_landmark, ref.box_factor) == (2000, 1024, 12.0)
+    assert VoxelConfig.preset("fast") == VoxelConfig()
+    with pytest.raises(ValueError):
+        VoxelConfig.preset("slow")
+    ap = argparse.ArgumentParser()
+    sub = ap.add_subparsers()
+    cli_build.register(sub)
+    args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "reference", "--iterations", "50", "--device", "cpu"])
+    cfg = cli_build.config_from_args(args).voxel
+    assert (cfg.iterations, cfg.rays_per_landmark, cfg.box_factor, cfg.resolution) == (50, 1024, 12.0, 3)
+    args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
+    assert cli_build.config_from_args(args).voxel == VoxelConfig(device="cpu")
+
+
+def test_reference_preset_trains_in_memory_bounded_groups():
+    """The reference budget (1,024 + 512 rays per landmark and iteration) runs through the same
+    code, landmarks in groups of at most max_batch_rays rays; grouping does not change the result."""
+    from favormap.features import patch_offsets
+    from favormap.geometry import camera_centers, look_at
+    from favormap.voxels import TrainingRays, VoxelConfig, train_voxels
+
+    rng = np.random.default_rng(0)
+    L, C, S, n_cams = 5, 8, 7, 6
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], size=(L, 3))
+    T = [look_at([x, 0.0, 0.0], [0, 0, 5], up=(0, -1, 0)) for x in np.linspace(-1, 1, n_cams)]
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    offs = patch_offsets(S)
+    obs_lm, origins, dirs, targets = [], [], [], []
+    for j in range(L):
+        for Ti in T:
+            p = K @ (Ti[:3, :3] @ X[j] + Ti[:3, 3])
+            uv = p[:2] / p[2] + offs
+            dirs.append(np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T @ Ti[:3, :3])
+            origins.append(camera_centers(Ti))
+            obs_lm.append(j)
+            t = rng.normal(size=(len(offs), C))
+            targets.append(t / np.linalg.norm(t, axis=1, keepdims=True))
+    dist = np.linalg.norm(X[:, None] - np.array(origins[:n_cams])[None], axis=2).min(1)
+    data = TrainingRays(X, 12 * dist / 500.0, np.array(obs_lm), np.array(origins), np.array(dirs, np.float32),
+                        np.array(targets, np.float32))
+    a = train_voxels(data, VoxelConfig.preset("reference", iterations=3))
+    b = train_voxels(data, VoxelConfig.preset("reference", iterations=3, max_batch_rays=2000))  # 1 landmark per group
+    torch.testing.assert_close(a.descriptors, b.descriptors, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(a.density, b.density, atol=1e-5, rtol=1e-4)
