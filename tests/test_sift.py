@@ -64,7 +64,7 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     path = tmp_path / "sift.h5"
     write_map(m, path)
     loc = Localizer(path)
-    assert loc.config.ratio == 0.8  # the extractor's default ratio test
+    assert loc.config.global_ratio == 0.8  # the extractor's ratio test when matching without a prior
     rng = np.random.default_rng(0)
     errs = []
     for fr in small_sequence.frames[1::5]:

@@ -26,7 +26,7 @@ def _moved(T, dz, look=1.6):
     return geometry.look_at(eye + np.array([0.0, 0.0, dz]), eye + look * fwd, up=UP)
 
 
-def _view_pairs(voxel_config, tmp_path, n_train=14, start=8):
+def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
     """(rendered, nearest-view, mean-descriptor) cosines to the truth and the angle to the nearest
     training view of every (query, landmark) pair."""
     from favormap import features
@@ -40,7 +40,7 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8):
     path = camera_path(40, step=0.07, seed=0)
     train = [path[i] for i in range(start, start + n_train)]
     seq = write_sequence(tmp_path / "seq", poses=train, width=320, height=240, scene=scene)
-    cfg = BuildConfig(max_keypoints=1024, max_side=0, max_landmarks=300, voxel=voxel_config)
+    cfg = BuildConfig(extractor=extractor, max_keypoints=1024, max_side=0, max_landmarks=300, voxel=voxel_config)
     m = build_map(seq, cfg)
     cam = seq.cameras[0]
     lo, hi = start, start + n_train - 1
@@ -88,10 +88,16 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8):
     return {k: np.concatenate(v) if k != "angle" else np.array(v) for k, v in out.items()}
 
 
-def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_path(tmp_path):
+@pytest.mark.parametrize("extractor", [
+    "xfeat",
+    pytest.param("sift", marks=pytest.mark.xfail(
+        strict=True, reason="target not met for SIFT: rendered vs mean descriptor -0.0048 (>= 10 deg), -0.0016 (all) "
+                            "on this scene; SIFT's track mean already predicts extrapolated views as well as the grid")),
+])
+def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_path(tmp_path, extractor):
     from favormap.voxels import VoxelConfig
 
-    r = _view_pairs(VoxelConfig(), tmp_path)
+    r = _view_pairs(VoxelConfig(), tmp_path, extractor=extractor)
     far = r["angle"] >= 10.0
     assert far.sum() >= 300 and (~far).sum() >= 300, (far.sum(), (~far).sum())
     gain_far = r["rendered"][far].mean() - r["mean"][far].mean()

@@ -55,6 +55,7 @@ VARIANTS = {
     "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
+    "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
     "rendered guided-3px": ("rendered", {"guided_radius_px": 3.0, "guided_ransac_px": 3.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
 }

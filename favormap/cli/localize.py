@@ -21,8 +21,9 @@ def add_localize_options(p):
                    help="RANSAC inlier threshold in pixels of the map's working resolution (default 4)")
     p.add_argument("--min-inliers", type=int, default=20, help="inliers needed for success (default 20)")
     p.add_argument("--no-mutual", action="store_true", help="do not require mutual nearest-neighbour matches")
-    p.add_argument("--ratio", type=float, default=None,
-                   help="Lowe ratio test on descriptor distances, 1 = off (default: the extractor's, 0.8 for sift, off for xfeat)")
+    p.add_argument("--ratio", type=float, default=1.0,
+                   help="Lowe ratio test on descriptor distances in the rendering iterations (default 1: off; "
+                        "matching without a prior uses the extractor's: 0.8 for sift, off for xfeat)")
     p.add_argument("--no-global", action="store_true",
                    help="never fall back to matching against all landmarks when the prior fails (or is missing)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
@@ -56,7 +57,7 @@ def config_from_args(args):
         raise InputError("--iters must be >= 1")
     if not 0 < args.threshold <= 1:
         raise InputError("--threshold must be in (0, 1]")
-    if args.ratio is not None and not 0 < args.ratio <= 1:
+    if not 0 < args.ratio <= 1:
         raise InputError("--ratio must be in (0, 1]")
     if args.ransac_px <= 0:
         raise InputError("--ransac-px must be > 0")

@@ -28,7 +28,7 @@ class _SiftState:
 @register("sift")
 class SIFTExtractor(Extractor):
     channels = 128
-    match_ratio = 0.8  # Lowe's test, as for any SIFT matcher (tools/bench_accuracy.py: match precision 0.66 -> 0.95)
+    match_ratio = 0.8  # Lowe's test when matching against a whole map (the localizer's prior-free step)
 
     def __init__(self, max_keypoints: int = 2048, device: str | None = None, size: float = 12.0, support_px: float = 4.0):
         super().__init__(max_keypoints, device)

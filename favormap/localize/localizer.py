@@ -49,7 +49,8 @@ class LocalizeConfig:
     iterations: int = 3
     match_threshold: float = 0.7  # cosine similarity (paper's reference config)
     mutual: bool = True  # also require the landmark to be the query feature's best
-    ratio: float | None = None  # Lowe ratio on descriptor distances (1: off; None: the extractor's default)
+    ratio: float = 1.0  # Lowe ratio on descriptor distances in the rendering iterations (1: off)
+    global_ratio: float | None = None  # Lowe ratio when matching against all landmarks (None: the extractor's)
     max_keypoints: int = 4096
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
@@ -158,8 +159,8 @@ class Localizer:
         self.default_camera = self.map.cameras[int(self.map.frame_camera_ids[0])] if self.map.num_frames else next(iter(self.map.cameras.values()))
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
-        if self.config.ratio is None:
-            self.config = dataclasses.replace(self.config, ratio=self.extractor.match_ratio)
+        if self.config.global_ratio is None:
+            self.config = dataclasses.replace(self.config, global_ratio=self.extractor.match_ratio)
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
 
     def close(self):
@@ -250,7 +251,7 @@ class Localizer:
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
-        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.ratio)
+        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
