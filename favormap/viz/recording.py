@@ -225,7 +225,7 @@ def _check_url(url: str) -> None:
               "data logged before it starts may be lost", file=sys.stderr)
 
 
-def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: float = 15.0) -> None:
+def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: float = 30.0) -> None:
     """Start a detached local rerun viewer listening on ``port`` (unless one already listens there)
     and wait until it accepts connections. Raises :class:`InputError` when it cannot start (no
     display, no executable)."""
@@ -255,8 +255,10 @@ def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: fl
             if _port_open(port):
                 return
             time.sleep(0.1)
-        print(f"favormap: warning: the rerun viewer did not listen on port {port} within {wait_s:.0f} s; "
-              "streaming to it anyway", file=sys.stderr)
+        # neither listening nor exited (e.g. a loaded machine without a display): do not stream into nothing
+        proc.kill()
+        raise InputError(f"the rerun viewer could not start (no connection on port {port} within {wait_s:.0f} s); "
+                         "use --rerun-save FILE.rrd (or --rerun-connect URL of a viewer running elsewhere)")
     finally:
         err.close()
 
