@@ -82,3 +82,20 @@ def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -
             K_cv[1, 2] -= 0.5
             img = cv2.undistort(img, K_cv, dist, None, K_cv)
     return np.ascontiguousarray(img), out_cam
+
+
+def prepare_query(image, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
+    """A query image (path, or RGB uint8 array at the camera's resolution or at another resolution
+    with the same aspect ratio) -> (working image, pinhole working camera), through exactly the
+    steps the mapping images went through."""
+    img = read_rgb(image) if not isinstance(image, np.ndarray) else image
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise InputError(f"the query image must be an RGB uint8 array, got {img.dtype} {img.shape}")
+    h, w = img.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        if (w, h) == (camera.height, camera.width):
+            raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height} (rotated?)")
+        if abs(w / h - camera.width / camera.height) > 0.01:
+            raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height}; give --camera")
+        camera = camera.scaled(w, h)  # same camera at another resolution
+    return prepare_image(img, camera, max_side)

@@ -26,7 +26,8 @@ import torch
 
 from ..errors import FavormapError, InputError
 from ..geometry import from_rigid3d, to_rigid3d
-from ..io import Camera, Sequence, load_image, prepare_image, read_rgb
+from ..io import Camera, Sequence, load_image
+from ..io.images import prepare_query
 
 MATCHING_MODES = ("auto", "exhaustive", "sequential")
 
@@ -225,17 +226,7 @@ class StructureBaseline:
     def prepare(self, image, camera: Camera) -> tuple[np.ndarray, Camera]:
         """Query image (path or RGB array at the camera's resolution) -> (working image, pinhole
         camera), exactly as ``Localizer.prepare``."""
-        img = read_rgb(image) if not isinstance(image, np.ndarray) else image
-        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-            raise InputError(f"the query image must be an RGB uint8 array, got {img.dtype} {img.shape}")
-        h, w = img.shape[:2]
-        if (w, h) != (camera.width, camera.height):
-            if (w, h) == (camera.height, camera.width):
-                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height} (rotated?)")
-            if abs(w / h - camera.width / camera.height) > 0.01:
-                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height}; give --camera")
-            camera = camera.scaled(w, h)
-        return prepare_image(img, camera, self.config.max_side)
+        return prepare_query(image, camera, self.config.max_side)
 
     def localize(self, image, camera: Camera) -> BaselineResult:
         """Localize one query image (no prior): SIFT, ratio-test matching to all 3D points, PnP."""

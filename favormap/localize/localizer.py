@@ -28,7 +28,8 @@ import torch
 from .. import features as feats_mod
 from ..errors import InputError
 from ..geometry import from_rigid3d, pose_error
-from ..io import Camera, prepare_image, read_rgb
+from ..io import Camera
+from ..io.images import prepare_query
 from ..mapfile import Map
 from ..ops.spatial import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, make_source
@@ -169,16 +170,7 @@ class Localizer:
     # -- inputs --------------------------------------------------------------------------------------
     def prepare(self, image, camera: Camera | None = None):
         """Query image (path or RGB array at the camera's resolution) -> (working image, pinhole camera)."""
-        camera = camera or self.default_camera
-        img = read_rgb(image) if not isinstance(image, np.ndarray) else image
-        h, w = img.shape[:2]
-        if (w, h) != (camera.width, camera.height):
-            if (w, h) == (camera.height, camera.width):
-                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height} (rotated?)")
-            if abs(w / h - camera.width / camera.height) > 0.01:
-                raise InputError(f"query image is {w}x{h} but the camera is {camera.width}x{camera.height}; give --camera")
-            camera = camera.scaled(w, h)  # same camera at another resolution
-        return prepare_image(img, camera, self.map.max_side)
+        return prepare_query(image, camera or self.default_camera, self.map.max_side)
 
     @staticmethod
     def _check_prior(prior) -> np.ndarray:
