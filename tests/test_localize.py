@@ -234,3 +234,14 @@ def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tm
         name, *nums = line.split()
         est = inverse(np.array(nums, float).reshape(4, 4))
         assert pose_error(est, truth[name])[0] < 0.01
+
+
+def test_demo_runs_end_to_end(tmp_path, capsys):
+    """`favormap demo` (small): renders, builds, localizes held-out frames and prints both methods."""
+    from favormap.cli import main
+
+    assert main(["demo", "--workdir", str(tmp_path), "--frames", "12", "--width", "320", "--height", "240",
+                 "--iterations", "30", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "rendered:" in out and "mean:" in out and "false successes" in out
+    assert (tmp_path / "room.h5").exists()

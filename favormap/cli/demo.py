@@ -63,11 +63,12 @@ def run(args) -> int:
         print(f"\nmap built from {len(train)} frames:")
         print_summary(summary(m, path))
         print(f"\nlocalizing {len(held)} held-out frames from priors moved by {noise[0]} units / {noise[1]} deg:")
-        loc = Localizer(path, LocalizeConfig(device=device))
+        locs = {name: Localizer(path, LocalizeConfig(device=device, descriptors=name)) for name in ("rendered", "mean")}
         try:
-            reports = evaluate(loc, seq.subset(held), EvalConfig(noise=noise, seed=args.seed))
+            reports = evaluate(locs, seq.subset(held), EvalConfig(noise=noise, seed=args.seed))
         finally:
-            loc.close()
+            for loc in locs.values():
+                loc.close()
         print(format_table(reports))
         if args.workdir:
             print(f"\nsequence: {work / 'room'}  map: {path}")
