@@ -174,6 +174,14 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     return T
 
 
+def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixel positions (N, 2) of world points in a pinhole camera with intrinsics ``K`` (COLMAP
+    pixel convention when K is a COLMAP/favormap camera's). Points at depth 0 are not guarded."""
+    Xc = np.asarray(points, np.float64).reshape(-1, 3) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = np.where(np.abs(Xc[:, 2]) < 1e-12, 1e-12, Xc[:, 2])
+    return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
+
+
 def pose_error(cam_from_world_est: np.ndarray, cam_from_world_gt: np.ndarray) -> tuple[float, float]:
     """(translation error in map units between camera centres, rotation error in degrees)."""
     dt = float(np.linalg.norm(camera_centers(cam_from_world_est) - camera_centers(cam_from_world_gt)))

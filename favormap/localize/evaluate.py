@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..geometry import camera_centers, perturb_pose, pose_error
+from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
 from ..ops.spatial import project_inside, visible_rows
 from .localizer import Localizer, match_descriptors
@@ -130,14 +130,6 @@ def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds, extent:
     }
 
 
-def project(camera, cam_from_world: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Pixel positions (N, 2) of world points in a pinhole camera (COLMAP pixel convention)."""
-    Xc = np.asarray(points, np.float64) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    z = np.where(np.abs(Xc[:, 2]) < 1e-12, 1e-12, Xc[:, 2])
-    K = camera.K
-    return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
-
-
 def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     if len(uv) == 0 or len(keypoints) == 0:
         return np.full(len(uv), np.inf)
@@ -150,9 +142,9 @@ def diagnostics_from_matches(camera, gt: np.ndarray, points: np.ndarray, keypoin
     point's projection at the ground-truth pose) and keypoint repeatability (share of the
     candidate ``points`` projecting inside the image that have a query keypoint within ``radius_px``)."""
     inside = project_inside(points, camera, gt) if len(points) else np.zeros(0, bool)
-    uv = project(camera, gt, points[inside]) if inside.any() else np.zeros((0, 2))
+    uv = project(camera.K, gt, points[inside]) if inside.any() else np.zeros((0, 2))
     rep = _nearest_keypoint_distance(uv, keypoints)
-    err = np.linalg.norm(project(camera, gt, matched_points) - matched_keypoints, axis=1) if len(matched_points) else np.zeros(0)
+    err = np.linalg.norm(project(camera.K, gt, matched_points) - matched_keypoints, axis=1) if len(matched_points) else np.zeros(0)
     return {"match_precision": float(np.mean(err <= radius_px)) if len(err) else None,
             "median_match_error_px": float(np.median(err)) if len(err) else None,
             "keypoint_repeatability": float(np.mean(rep <= radius_px)) if len(rep) else None,

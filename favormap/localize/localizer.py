@@ -27,7 +27,7 @@ import torch
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import from_rigid3d, pose_error
+from ..geometry import from_rigid3d, pose_error, project
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
@@ -67,10 +67,6 @@ class LocalizeConfig:
     view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
     device: str = "cpu"
     seed: int = 0
-
-    @property
-    def min_inliers(self) -> int:
-        return self.checks.min_inliers
 
 
 @dataclass
@@ -215,12 +211,12 @@ class Localizer:
             res.cam_from_world = prior
         return res
 
-    def _pnp(self, q: "_Query", points: np.ndarray, kp_idx: np.ndarray, t: dict):
+    def _pnp(self, q: "_Query", points: np.ndarray, kp_idx: np.ndarray, t: dict, max_error_px: float | None = None):
         import pycolmap
 
         s = time.perf_counter()
         est = pycolmap.AbsolutePoseEstimationOptions()
-        est.ransac.max_error = self.config.ransac_max_error_px
+        est.ransac.max_error = max_error_px or self.config.ransac_max_error_px
         est.ransac.random_seed = self.config.seed
         ans = None
         if len(kp_idx) >= 4:
@@ -292,9 +288,7 @@ class Localizer:
         t["visibility"] += time.perf_counter() - s
         rend = self.source(rows, pose, t)
         s = time.perf_counter()
-        Xc = self.map.positions[rows] @ pose[:3, :3].T + pose[:3, 3]
-        K = q.cam.K
-        uv = np.stack([K[0, 0] * Xc[:, 0] / Xc[:, 2] + K[0, 2], K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]], 1)
+        uv = project(q.cam.K, pose, self.map.positions[rows])
         kp = torch.as_tensor(q.feats.keypoints, dtype=torch.float32, device=rend.device)
         near = torch.cdist(torch.as_tensor(uv, dtype=torch.float32, device=rend.device), kp) <= cfg.guided_radius_px
         sim = torch.where(near, rend @ q.desc.T, torch.full((), -2.0, device=rend.device))
@@ -303,12 +297,7 @@ class Localizer:
         idx = torch.nonzero(ok).squeeze(1).cpu().numpy()
         kidx = best.cpu().numpy()[idx]
         t["matching"] += time.perf_counter() - s
-        saved = cfg.ransac_max_error_px
-        try:
-            cfg.ransac_max_error_px = cfg.guided_ransac_px
-            ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t)
-        finally:
-            cfg.ransac_max_error_px = saved
+        ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t, cfg.guided_ransac_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         iters.append(IterationResult(from_rigid3d(ans["cam_from_world"]) if ok else pose, len(rows), len(idx), n_in, ok,
