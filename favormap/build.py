@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from . import features as feats_mod
-from .errors import FavormapError
+from .errors import FavormapError, SequenceError
 from .features import Extractor, Features, patch_offsets
 from .geometry import camera_centers
 from .io import Camera, Sequence, load_image
@@ -159,10 +159,25 @@ def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
     return mean, amax, np.stack([dmin, dmax], 1)
 
 
+def check_build_input(seq: Sequence, config: BuildConfig) -> None:
+    """Every check that could refuse the map, run before the work: the sequence's cameras and poses
+    against the map schema (what the writer checks after the training)."""
+    from .mapfile.writer import check_frames
+
+    if not seq.frames:
+        raise SequenceError(f"sequence {seq.root} has no frames")
+    problems = check_frames(seq.cameras, [f.name for f in seq.frames], [f.camera_id for f in seq.frames],
+                            np.stack([f.cam_from_world for f in seq.frames]))
+    if problems:
+        raise SequenceError(f"sequence {seq.root} cannot become a map: {problems[0]}"
+                            + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+
+
 def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Callable | None = None,
               observer: BuildObserver | None = None) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
     reports progress; ``observer`` sees every stage's result (visualisation, debugging)."""
+    check_build_input(seq, config)
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)

@@ -79,7 +79,35 @@ def cam_from_world_from_center(R_cam_from_world: np.ndarray, center: np.ndarray)
     return T
 
 
-def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+# The one tolerance for rotations read from files (poses, priors, transforms): the largest entry of
+# |R^T R - I|. Real captures carry rounding (7-Scenes pose files ~2e-4, TUM's 4-decimal quaternions
+# ~4e-4); anything within it is projected onto SO(3) at read time, anything beyond is refused.
+ROTATION_TOL = 1e-3
+
+
+def rotation_deviation(R: np.ndarray) -> float:
+    """How far a 3x3 matrix is from a rotation: max |R^T R - I| (inf for det <= 0 or non-finite)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.linalg.det(R) <= 0:
+        return float("inf")
+    return float(np.abs(R.T @ R - np.eye(3)).max())
+
+
+def quaternion_deviation(q) -> float:
+    """:func:`rotation_deviation` of the matrix a quaternion stands for before normalisation (the
+    homogeneous formula gives |q|^2 R, so the deviation is | |q|^4 - 1 |); inf for a zero quaternion."""
+    n = float(np.linalg.norm(np.asarray(q, dtype=np.float64)))
+    return abs(n**4 - 1) if np.isfinite(n) and n > 1e-12 else float("inf")
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation matrix closest to ``R`` (Frobenius norm; SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
+    return U @ D @ Vt
+
+
+def is_rigid(T: np.ndarray, tol: float = ROTATION_TOL) -> bool:
     """True for a finite 4x4 (or 3x4) matrix whose rotation block is orthonormal with det +1."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(T)):

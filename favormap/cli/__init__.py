@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import sys
 
@@ -40,8 +41,27 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time of the record (main() may run in-process)."""
+
+    def emit(self, record):
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def _log_to_stderr() -> None:
+    """favormap's log lines (e.g. a reader's note about projected rotations) as 'favormap: ...' on stderr."""
+    log = logging.getLogger("favormap")
+    if not any(isinstance(h, _StderrHandler) for h in log.handlers):
+        h = _StderrHandler()
+        h.setFormatter(logging.Formatter("favormap: %(message)s"))
+        log.addHandler(h)
+        log.setLevel(logging.INFO)
+
+
 def main(argv=None) -> int:
     os.environ.setdefault("RERUN_ANALYTICS", "false")  # the viewer favormap spawns also gets CI=1 (favormap.viz)
+    _log_to_stderr()
     parser = make_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

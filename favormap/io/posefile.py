@@ -27,7 +27,7 @@ from .. import geometry
 from ..errors import InputError
 from .types import SUPPORTED_MODELS, Camera
 
-_ROT_TOL = 1e-3  # orthonormality tolerance of rotation blocks (text files carry few digits)
+_ROT_TOL = geometry.ROTATION_TOL  # the project's one rotation tolerance (text files carry few digits)
 
 
 def _read_numbers(path: Path, what: str) -> tuple[np.ndarray, int]:
@@ -62,13 +62,6 @@ def _is_float(t: str) -> bool:
         return False
 
 
-def _project_rotation(R: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (SVD), to clean up rounding in text files."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
-    return U @ D @ Vt
-
-
 def _matrix(vals: np.ndarray, path: Path, what: str) -> np.ndarray:
     T = np.eye(4)
     if len(vals) == 16:
@@ -88,15 +81,18 @@ def parse_pose(vals: np.ndarray, n_lines: int = 1, source: str = "<pose>") -> np
         raise InputError(f"pose file {path} contains non-finite numbers (nan/inf)")
     if len(vals) in (16, 12):
         T = _matrix(vals, path, "pose")
-        if not geometry.is_rigid(T, tol=_ROT_TOL):
-            raise InputError(f"pose file {path}: the rotation block is not a rotation (not orthonormal with det +1)")
-        T[:3, :3] = _project_rotation(T[:3, :3])
+        dev = geometry.rotation_deviation(T[:3, :3])
+        if not dev <= _ROT_TOL:
+            raise InputError(f"pose file {path}: the rotation block is not a rotation (not orthonormal with det +1"
+                             + (f": max |R^T R - I| = {dev:.1e} > {_ROT_TOL:.0e})" if dev < float("inf") else ")"))
+        T[:3, :3] = geometry.nearest_rotation(T[:3, :3])
         return T
     if len(vals) in (7, 8) and n_lines == 1:
         t, q = vals[-7:-4], vals[-4:]
         nq = np.linalg.norm(q)
-        if abs(nq - 1) > 1e-2:
-            raise InputError(f"pose file {path}: the quaternion (qx qy qz qw) is not a unit quaternion (norm {nq:.4g})")
+        if not geometry.quaternion_deviation(q) <= _ROT_TOL:
+            raise InputError(f"pose file {path}: the quaternion (qx qy qz qw) is not a unit quaternion (norm {nq:.6g}; "
+                             f"tolerance {_ROT_TOL / 4:.1e})")
         return geometry.pose_from_quat_t(q / nq, t)
     raise InputError(f"pose file {path}: expected a 4x4 (16 numbers) or 3x4 (12) world_from_cam matrix, or one TUM line "
                      f"'tx ty tz qx qy qz qw'; found {len(vals)} number(s) on {n_lines} line(s)")
@@ -147,7 +143,7 @@ def read_transform(path, allow_scale: bool = True) -> tuple[np.ndarray, float]:
     R = A / s
     if not np.allclose(R.T @ R, np.eye(3), atol=_ROT_TOL):
         raise InputError(f"transform file {path}: not a rigid (or uniformly scaled) transform: the 3x3 block is not a scaled rotation")
-    T[:3, :3] = s * _project_rotation(R)
+    T[:3, :3] = s * geometry.nearest_rotation(R)
     return T, s
 
 

@@ -126,6 +126,23 @@ def camera_arrays(cameras: dict[int, Camera]) -> dict[str, np.ndarray]:
     }
 
 
+def check_frames(cameras: dict[int, Camera], names, camera_ids, cam_from_world) -> list[str]:
+    """Problems the writer would find in the cameras/* and frames/* datasets of a map made from these
+    frames (the schema's value checks). :func:`build.build_map` runs it on its input sequence, so that a
+    map the writer would refuse is refused before any image is read, not after the training."""
+    datasets = load_schema(FORMAT_VERSION)["datasets"]
+    arrays = {**camera_arrays(cameras), "frames/names": list(names),
+              "frames/camera_ids": np.asarray(camera_ids), "frames/cam_from_world": np.asarray(cam_from_world)}
+    try:
+        stored = {k: _stored(v, datasets[k]) for k, v in arrays.items()}
+    except (TypeError, ValueError) as e:
+        return [f"the cameras or poses cannot be stored ({type(e).__name__}: {e})"]
+    problems = []
+    for k, a in stored.items():
+        problems += check_values(k, a, {}, stored)[0]
+    return problems
+
+
 class MapWriter:
     """Write a map file dataset by dataset, large datasets row block by row block.
 

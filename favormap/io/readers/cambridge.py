@@ -28,7 +28,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import cam_from_world_from_center, quat_to_rotmat
 from ..types import Frame, Sequence
-from .colmap import guarded, checked_pose, fit_camera, image_size, make_camera, posix_relpath, read_single_camera_text
+from .common import checked_quaternion, fit_camera, guarded, image_size, make_camera, posix_relpath, read_single_camera_text, read_text
 
 NAME = "cambridge"
 SPLIT_FILES = (("train", "dataset_train.txt"), ("test", "dataset_test.txt"))
@@ -43,10 +43,7 @@ def detect(root: Path) -> bool:
 
 
 def _parse(path: Path) -> list[tuple[str, np.ndarray, np.ndarray, str]]:
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SequenceError(f"cannot read {path}: {e}") from None
+    lines = read_text(path).splitlines()
     out = []
     for lineno, line in enumerate(lines, 1):
         if lineno <= HEADER_LINES or not line.strip():
@@ -61,9 +58,7 @@ def _parse(path: Path) -> list[tuple[str, np.ndarray, np.ndarray, str]]:
             raise SequenceError(f"{where}: malformed number ({e})") from None
         if not np.all(np.isfinite(vals)):
             raise SequenceError(f"{where}: non-finite pose values for {tok[0]}")
-        if np.linalg.norm(vals[3:]) < 1e-8:
-            raise SequenceError(f"{where}: zero quaternion for {tok[0]}")
-        out.append((tok[0], vals[:3], vals[3:], where))
+        out.append((tok[0], vals[:3], checked_quaternion(vals[3:], f"{where} ({tok[0]})"), where))
     return out
 
 
@@ -90,7 +85,7 @@ def read(root: Path) -> Sequence:
     frames, split, seen = [], [], {}
     for s, rel, center, q_wxyz, where in entries:
         q_xyzw = np.array([q_wxyz[1], q_wxyz[2], q_wxyz[3], q_wxyz[0]])
-        T = checked_pose(cam_from_world_from_center(quat_to_rotmat(q_xyzw), center), where)
+        T = cam_from_world_from_center(quat_to_rotmat(q_xyzw), center)
         path = root / rel
         name = posix_relpath(path, root)
         if name in seen:

@@ -27,6 +27,7 @@ import numpy as np
 
 from ...errors import SequenceError
 from ..types import Camera, Frame, Sequence
+from .common import checked_pose, guarded
 
 NAME = "favormap"
 FILENAME = "sequence.json"
@@ -36,6 +37,7 @@ def detect(root: Path) -> bool:
     return (root / FILENAME).is_file()
 
 
+@guarded
 def read(root: Path) -> Sequence:
     path = root / FILENAME
     try:
@@ -50,9 +52,7 @@ def read(root: Path) -> Sequence:
         for i, fr in enumerate(data["frames"]):
             if "cam_from_world" not in fr:
                 raise SequenceError(f"{path}: frame {i} ({fr.get('image')}) has no pose")
-            T = np.asarray(fr["cam_from_world"], dtype=np.float64)
-            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise SequenceError(f"{path}: frame {i} has an invalid cam_from_world")
+            T = checked_pose(fr["cam_from_world"], f"{path}: frame {i} ({fr.get('image')}) cam_from_world")
             cam_id = int(fr.get("camera_id", 0))
             if cam_id not in cameras:
                 raise SequenceError(f"{path}: frame {i} refers to unknown camera {cam_id}")

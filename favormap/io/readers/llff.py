@@ -27,7 +27,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, world_from_cam_llff_to_opencv
 from ..types import Camera, Frame, Sequence
-from .colmap import guarded, checked_pose, image_size, make_camera, posix_relpath
+from .common import guarded, checked_pose, image_size, make_camera, posix_relpath
 
 NAME = "llff"
 FILENAME = "poses_bounds.npy"

@@ -37,7 +37,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, world_from_cam_opencv_to_opengl, world_from_cam_opengl_to_opencv
 from ..types import Camera, Frame, Sequence
-from .colmap import guarded, checked_pose, image_size, make_camera, posix_relpath
+from .common import guarded, checked_pose, image_size, make_camera, posix_relpath
 
 NAME = "nerf"
 FILENAME = "transforms.json"

@@ -33,7 +33,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse
 from ..types import Camera, Frame, Sequence
-from .colmap import guarded, checked_pose, fit_camera, image_size, make_camera, posix_relpath, read_single_camera_text
+from .common import checked_pose, fit_camera, guarded, image_size, make_camera, posix_relpath, read_single_camera_text, read_text
 
 NAME = "7scenes"
 DEFAULT_CAMERA = Camera("PINHOLE", 640, 480, [585.0, 585.0, 320.0, 240.0])
@@ -64,10 +64,9 @@ def detect(root: Path) -> bool:
 
 def _read_pose(path: Path) -> np.ndarray | None:
     """world_from_cam of a pose file; None when it holds inf/nan (skipped by the caller)."""
+    text = read_text(path, "pose file")
     try:
-        vals = [float(_MSVC_NONFINITE.sub("nan", x)) for x in path.read_text().split()]
-    except (OSError, UnicodeDecodeError) as e:
-        raise SequenceError(f"cannot read pose file {path}: {e}") from None
+        vals = [float(_MSVC_NONFINITE.sub("nan", x)) for x in text.split()]
     except ValueError as e:
         raise SequenceError(f"pose file {path} is not 16 numbers ({e})") from None
     if len(vals) != 16:
@@ -79,10 +78,7 @@ def _read_pose(path: Path) -> np.ndarray | None:
 
 
 def _read_K_file(path: Path, size: tuple[int, int]) -> Camera:
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SequenceError(f"cannot read camera file {path}: {e}") from None
+    text = read_text(path, "camera file")
     body = " ".join(line.split("#", 1)[0] for line in text.splitlines()).split()
     try:
         vals = [float(x) for x in body]
@@ -99,10 +95,7 @@ def _read_K_file(path: Path, size: tuple[int, int]) -> Camera:
 
 
 def _read_split(path: Path) -> set[int]:
-    try:
-        lines = path.read_text().split()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SequenceError(f"cannot read split file {path}: {e}") from None
+    lines = read_text(path, "split file").split()
     out = set()
     for tok in lines:
         m = re.fullmatch(r"(?:sequence|seq-?)(\d+)", tok.strip(), re.IGNORECASE)

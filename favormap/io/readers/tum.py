@@ -34,7 +34,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, pose_from_quat_t
 from ..types import Camera, Frame, Sequence
-from .colmap import guarded, checked_pose, fit_camera, image_size, posix_relpath, read_single_camera_text
+from .common import checked_quaternion, fit_camera, guarded, image_size, posix_relpath, read_single_camera_text, text_rows
 
 NAME = "tum"
 MAX_DT = 0.02
@@ -60,18 +60,10 @@ def detect(root: Path) -> bool:
 
 
 def _rows(path: Path, ncols: int, what: str):
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SequenceError(f"cannot read {path}: {e}") from None
-    for lineno, line in enumerate(lines, 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        tok = line.split()
+    for where, tok in text_rows(path):
         if len(tok) < ncols:
-            raise SequenceError(f"{path}:{lineno}: expected '{what}', got {len(tok)} fields")
-        yield f"{path}:{lineno}", tok
+            raise SequenceError(f"{where}: expected '{what}', got {len(tok)} fields")
+        yield where, tok
 
 
 def _float(s: str, where: str) -> float:
@@ -104,10 +96,8 @@ def read(root: Path) -> Sequence:
     gt_t, gt_pose = [], []
     for where, t in _rows(gt_path, 8, "timestamp tx ty tz qx qy qz qw"):
         v = [_float(x, where) for x in t[:8]]
-        if np.linalg.norm(v[4:8]) < 1e-8:
-            raise SequenceError(f"{where}: zero quaternion")
         gt_t.append(v[0])
-        gt_pose.append(checked_pose(pose_from_quat_t(v[4:8], v[1:4]), where))
+        gt_pose.append(pose_from_quat_t(checked_quaternion(v[4:8], where), v[1:4]))
     if not rgb:
         raise SequenceError(f"{rgb_path} lists no images")
     if not gt_t:
