@@ -7,7 +7,10 @@ import pytest
 
 from favormap.geometry import camera_centers, look_at, perturb_pose
 from favormap.io import Camera
-from favormap.ops.spatial import SpatialIndex, ViewLimits, frustum_sphere, occluded, reach_sphere, visible_mask, visible_rows
+from favormap.ops.spatial import occluded
+from favormap.visibility import KD_BACKENDS, SpatialIndex, ViewLimits, frustum_sphere, reach_sphere, visible_mask, visible_rows
+
+BACKENDS = pytest.mark.parametrize("backend", sorted(KD_BACKENDS))
 
 
 def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
@@ -39,10 +42,11 @@ def random_pose(rng, scale=10.0):
     return look_at(eye, target, up=(0, 0, 1) if rng.random() < 0.5 else (0, 1, 0))
 
 
-def test_radius_and_knn_match_brute_force():
+@BACKENDS
+def test_radius_and_knn_match_brute_force(backend):
     rng = np.random.default_rng(0)
     P = rng.uniform(-5, 5, (5000, 3))
-    idx = SpatialIndex(P)
+    idx = SpatialIndex(P, backend=backend)
     for _ in range(20):
         c = rng.uniform(-6, 6, 3)
         r = rng.uniform(0.1, 3)
@@ -59,18 +63,19 @@ def test_radius_and_knn_match_brute_force():
     np.testing.assert_allclose(dist, np.sort(D, 1)[:, :4], rtol=1e-6)
     np.testing.assert_allclose(np.take_along_axis(D, rows, 1), dist, rtol=1e-6)
     # more neighbours asked than points, and empty index
-    small = SpatialIndex(P[:3])
+    small = SpatialIndex(P[:3], backend=backend)
     r, d = small.knn_batch(Q[:2], 5)
     assert (r[:, 3:] == -1).all() and np.isinf(d[:, 3:]).all()
-    empty = SpatialIndex(np.zeros((0, 3)))
+    empty = SpatialIndex(np.zeros((0, 3)), backend=backend)
     assert len(empty.radius([0, 0, 0], 1)) == 0 and len(empty.knn([0, 0, 0], 3)[0]) == 0
     assert len(empty.frustum(Camera("PINHOLE", 10, 10, [5, 5, 5, 5]), np.eye(4), 10)) == 0
 
 
-def test_frustum_equals_brute_force_projection_on_random_points():
+@BACKENDS
+def test_frustum_equals_brute_force_projection_on_random_points(backend):
     rng = np.random.default_rng(1)
     P = rng.uniform(-10, 10, (40000, 3))
-    idx = SpatialIndex(P)
+    idx = SpatialIndex(P, backend=backend)
     cams = [Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
             Camera("PINHOLE", 320, 240, [150, 160, 40, 200]),  # wide, off-centre principal point
             Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200])]  # narrow
@@ -128,9 +133,10 @@ def test_reach_sphere_encloses_the_view_pyramid_within_reach(cam):
     assert r <= frustum_sphere(cam, T, reach)[1] + 1e-9  # never worse than the depth-cut frustum's
 
 
-def test_visible_rows_equal_brute_force_on_the_small_map(small_map):
+@BACKENDS
+def test_visible_rows_equal_brute_force_on_the_small_map(small_map, backend):
     m, _ = small_map
-    idx = SpatialIndex(m.positions)
+    idx = SpatialIndex(m.positions, backend=backend)
     cam = m.cameras[0]
     rng = np.random.default_rng(3)
     limits = [ViewLimits(), ViewLimits(5.0, (0.8, 1.2), 10.0), ViewLimits(0.0, (1.0, 1.0), 0.0)]
@@ -150,7 +156,8 @@ def test_visible_rows_equal_brute_force_on_the_small_map(small_map):
     assert np.isin(seen, vis).mean() > 0.95
 
 
-def test_visible_rows_exact_with_landmarks_of_very_different_reach():
+@BACKENDS
+def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend):
     """Most landmarks seen from ~2-5 units, 0.5 % from up to 200: the far ones bypass the KD-tree
     sphere (it would otherwise cover everything), and the result is still exact."""
     rng = np.random.default_rng(4)
@@ -163,7 +170,7 @@ def test_visible_rows_exact_with_landmarks_of_very_different_reach():
     dr = np.c_[lo, lo + rng.uniform(0.5, 3, L)].astype(np.float32)
     far = rng.random(L) < 0.005
     dr[far, 1] = rng.uniform(50, 200, far.sum())
-    idx = SpatialIndex(P)
+    idx = SpatialIndex(P, backend=backend)
     cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
     total = 0
     for _ in range(30):
@@ -201,14 +208,41 @@ def test_occlusion_by_a_mesh():
     assert occluded(P, cam_c, trimesh.Scene([wall])).tolist() == hid.tolist()
 
 
+@BACKENDS
 @pytest.mark.parametrize("n", [1, 999, 2500])
-def test_visible_rows_small_and_degenerate_maps(n):
+def test_visible_rows_small_and_degenerate_maps(n, backend):
     rng = np.random.default_rng(n)
     P = rng.uniform(-1, 1, (n, 3)) + [0, 0, 3]
     vd = np.tile([0, 0, -1.0], (n, 1))
     dr = np.tile([1.0, 4.0], (n, 1))
     va = np.full(n, 30.0)
     cam = Camera("PINHOLE", 64, 48, [40, 40, 32, 24])
-    idx = SpatialIndex(P)
+    idx = SpatialIndex(P, backend=backend)
     got = visible_rows(idx, cam, np.eye(4), vd, va, dr)
     np.testing.assert_array_equal(got, brute_visible(P, vd, va, dr, cam, np.eye(4), ViewLimits()))
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ValueError, match="unknown KD-tree backend"):
+        SpatialIndex(np.zeros((3, 3)), backend="flann")
+
+
+def test_localization_path_does_not_import_open3d(small_map):
+    """The build / localize core runs where Open3D is not installed (e.g. a GPU machine)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "sys.modules['open3d'] = None\n"  # any import of open3d now fails
+        "from favormap.localize import Localizer\n"
+        "import favormap.build, favormap.localize.evaluate\n"
+        f"loc = Localizer({str(small_map[1])!r})\n"
+        "from favormap.visibility import visible_rows\n"
+        "T = loc.map.cam_from_world[0]\n"
+        "cam = next(iter(loc.map.cameras.values()))\n"
+        "print(len(visible_rows(loc.index, cam, T, loc.map.view_dir, loc.map.view_angle, loc.map.depth_range)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) > 0

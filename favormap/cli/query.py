@@ -60,7 +60,7 @@ def run(args) -> int:
     from ..io.posefile import read_camera, read_pose
     from ..mapfile import Map
     from ..ops.query import query_near, query_pose
-    from ..ops.spatial import ViewLimits
+    from ..visibility import ViewLimits
 
     if args.near is not None:
         if args.camera or args.mesh:

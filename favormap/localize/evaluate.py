@@ -16,7 +16,7 @@ import torch
 from ..errors import InputError
 from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
-from ..ops.spatial import project_inside, visible_rows
+from ..visibility import project_inside, visible_rows
 from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))

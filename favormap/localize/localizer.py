@@ -31,7 +31,7 @@ from ..geometry import from_rigid3d, pose_error, project
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
-from ..ops.spatial import SpatialIndex, ViewLimits, visible_mask, visible_rows
+from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, make_source
 
 

@@ -191,7 +191,7 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
         if dedup and len(s_all) and len(mk):
             ex_pos = np.concatenate([meta[s]["positions"][r_all[s_all == s]] for s in range(k)])
             order = np.concatenate([np.flatnonzero(s_all == s) for s in range(k)])  # ex_pos rows -> slots
-            idx = SpatialIndex(ex_pos)
+            idx = SpatialIndex(ex_pos, backend="open3d")
             nn, dist = idx.knn_batch(dk["positions"], 8)
             valid = nn >= 0
             slot = np.where(valid, order[np.maximum(nn, 0)], 0)

@@ -23,7 +23,7 @@ def map_index(m) -> SpatialIndex:
     """A SpatialIndex over the map's positions, built once per map object."""
     idx = getattr(m, "_favormap_spatial_index", None)
     if idx is None or len(idx) != len(m.positions):
-        idx = SpatialIndex(m.positions)
+        idx = SpatialIndex(m.positions, backend="open3d")
         try:
             m._favormap_spatial_index = idx
         except AttributeError:
