@@ -24,7 +24,15 @@ def small_build_config(**over):
 
 @pytest.fixture(scope="session")
 def small_sequence(tmp_path_factory):
-    """A 16-frame 320x240 synthetic room sequence in the favormap layout (with depth maps)."""
+    """A 16-frame 320x240 synthetic room sequence in the favormap layout (with depth maps).
+
+    ``FAVORMAP_SMALL_SEQUENCE=DIR`` reads a copy written beforehand (``tools/gpu_check.sh prepare``)
+    instead of rendering it: the renderer needs Open3D, which a GPU machine may lack."""
+    pre = os.environ.get("FAVORMAP_SMALL_SEQUENCE")
+    if pre:
+        from favormap.io import read_sequence
+
+        return read_sequence(pre)
     from favormap.synthetic import write_sequence
 
     root = tmp_path_factory.mktemp("seq_small")

@@ -201,7 +201,7 @@ def run_split(split: Split, args, build_cfg) -> list[dict]:
         variants = args.variants if prior_mode == "noise" else [v for v in args.variants if v == "rendered"]
         for name in variants:
             source_name, over = VARIANTS[name]
-            cfg = dc.replace(localizer_config(over), descriptors=source_name)
+            cfg = dc.replace(localizer_config(over), descriptors=source_name, device=args.device)
             loc = Localizer(m, cfg, descriptor_source=make_source(source_name, m, cfg.device, obs_desc))
             outs = []
             for fr, prior in zip(split.queries.frames, priors):
@@ -301,6 +301,8 @@ def main():
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
+    ap.add_argument("--quality", default=None, help="voxel training preset (fast | reference; default: the build default)")
+    ap.add_argument("--device", default="cpu", help="torch device for training and localization (cpu | cuda)")
     ap.add_argument("--orbit-frames", type=int, default=24)
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
     ap.add_argument("--baseline-budget", type=int, default=0, help="also run the baseline restricted to N longest tracks")
@@ -318,6 +320,11 @@ def main():
     from favormap.build import BuildConfig
 
     build_cfg = BuildConfig()
+    if args.quality:
+        from favormap.voxels import VoxelConfig
+
+        build_cfg.voxel = VoxelConfig.preset(args.quality)
+    build_cfg.voxel.device = args.device
     for k in ("extractor", "min_track", "max_landmarks"):
         if getattr(args, k) is not None:
             setattr(build_cfg, k, getattr(args, k))
@@ -345,7 +352,8 @@ def main():
     print(markdown(rows))
     print(f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {build_cfg.extractor}, "
           f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
-          f"{build_cfg.voxel.iterations} training iterations")
+          f"{build_cfg.voxel.iterations} training iterations x {build_cfg.voxel.rays_per_landmark} rays, "
+          f"box factor {build_cfg.voxel.box_factor}, device {args.device}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
 

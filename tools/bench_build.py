@@ -21,7 +21,9 @@ def main():
     ap.add_argument("sequence", nargs="?", default=None)
     ap.add_argument("--max-landmarks", type=int, default=1500)
     ap.add_argument("--iterations", type=int, default=None)
-    ap.add_argument("--extractor", default="xfeat")
+    ap.add_argument("--extractor", default=None, help="default: the build default")
+    ap.add_argument("--quality", default=None, help="voxel training preset (fast | reference)")
+    ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args()
 
@@ -41,7 +43,15 @@ def main():
             seq_path = str(Path(tmp.name) / "room")
             write_sequence(seq_path, n_frames=30)
     seq = read_sequence(seq_path)
-    cfg = BuildConfig(extractor=args.extractor, max_landmarks=args.max_landmarks)
+    cfg = BuildConfig(max_landmarks=args.max_landmarks)
+    if args.extractor:
+        cfg.extractor = args.extractor
+    if args.max_side is not None:
+        cfg.max_side = args.max_side
+    if args.quality:
+        from favormap.voxels import VoxelConfig
+
+        cfg.voxel = VoxelConfig.preset(args.quality)
     cfg.voxel.device = args.device
     if args.iterations:
         cfg.voxel.iterations = args.iterations
@@ -54,8 +64,8 @@ def main():
     total = time.perf_counter() - t
     timings = dict(m.provenance["timings"], write=round(write_s, 3))
     st = m.provenance["stats"]
-    print(f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {args.extractor}, "
-          f"device {args.device}, torch threads {torch.get_num_threads()}, cores {os.cpu_count()}")
+    print(f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
+          f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, torch threads {torch.get_num_threads()}, cores {os.cpu_count()}")
     print(f"{'stage':<12} {'seconds':>9} {'share':>7}")
     for k, v in timings.items():
         print(f"{k:<12} {v:>9.2f} {100 * v / total:>6.1f}%")

@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# GPU check: the CUDA tests against the CPU result, and GPU build / accuracy figures.
+#
+# A GPU machine may lack open3d, pycolmap and rerun (and a package registry), so the check has two halves:
+#   bash tools/gpu_check.sh prepare   # here, on the machine with the full install: fills .gpu/ with a pycolmap
+#                                     # wheel for the GPU machine's Python, the pre-rendered small test sequence
+#                                     # and (when ../shared/data/fox exists) the fox sequence
+#   bash tools/gpu_check.sh run [OUT] # there (needs torch with CUDA, numpy, h5py, opencv, scipy, pytest):
+#                                     # installs the wheels into /tmp/site, runs tests/test_cuda.py, times fox builds
+#                                     # (fast and reference quality) and runs the accuracy benchmark on the GPU
+# .gpu/ is ignored by git; carry it to the GPU machine (about 55 MB). GPU_PY (default 3.12) is the GPU machine's
+# Python version for the wheel. Results (log, JSON) go to OUT (default: $OUT, else ./gpu-out).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export RERUN_ANALYTICS=false PYTHONUNBUFFERED=1
+mode="${1:-}"
+
+case "$mode" in
+prepare)
+    py="${GPU_PY:-3.12}"
+    rm -rf .gpu && mkdir -p .gpu/whl
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$py" --implementation cp \
+        --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+        -d .gpu/whl "pycolmap==$(python3 -c 'import pycolmap; print(pycolmap.__version__)')"
+    python3 - <<'PY'
+import sys
+sys.path.insert(0, "tests")
+from conftest import SMALL
+from favormap.synthetic import write_sequence
+write_sequence(".gpu/small", depth=True, **SMALL)
+PY
+    if [ -d ../shared/data/fox ]; then cp -r ../shared/data/fox .gpu/fox; fi
+    du -sh .gpu
+    echo "prepared .gpu/: carry it to the GPU machine and run 'bash tools/gpu_check.sh run' there"
+    ;;
+run)
+    out="${2:-${OUT:-gpu-out}}"
+    mkdir -p "$out"
+    [ -d .gpu/whl ] || { echo "error: .gpu/ missing: run 'bash tools/gpu_check.sh prepare' on a full install first" >&2; exit 1; }
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .gpu/whl/*.whl
+    export PYTHONPATH="$PWD:/tmp/site${PYTHONPATH:+:$PYTHONPATH}" FAVORMAP_SMALL_SEQUENCE="$PWD/.gpu/small"
+    {
+        nvidia-smi -L || true
+        python3 -c 'import torch; print("torch", torch.__version__, "cuda", torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else "")'
+        echo "== CUDA tests (against the CPU result)"
+        python3 -m pytest -p no:cacheprovider -m cuda tests/test_cuda.py -v -rs 2>&1 || echo "CUDA TESTS FAILED"
+        if [ -d .gpu/fox ]; then
+            export FAVORMAP_FOX="$PWD/.gpu/fox"
+            echo "== fox build, 640 px, fast quality, GPU"
+            timeout 120 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(fast build failed or timed out)"
+            echo "== accuracy, reference quality, GPU (fox hold-out and extrapolation, with the pycolmap baseline)"
+            timeout "${GPU_ACC_TIMEOUT:-330}" python3 tools/bench_accuracy.py --splits fox-holdout,fox-extrap --quality reference \
+                --device cuda --priors noise,none --variants rendered,mean,nearest-view --workdir /tmp/acc \
+                --json "$out/accuracy-reference.json" || echo "(accuracy run failed or timed out)"
+            echo "== fox build, full resolution, fast quality, GPU"
+            timeout 120 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --max-landmarks 20000 \
+                || echo "(full-resolution build failed or timed out)"
+        fi
+    } 2>&1 | tee "$out/gpu_check.log"
+    ;;
+*)
+    echo "usage: bash tools/gpu_check.sh prepare | run [OUT]" >&2
+    exit 2
+    ;;
+esac
