@@ -1,17 +1,55 @@
 #!/usr/bin/env bash
 # One-shot setup of a fresh Debian machine for favormap (system packages + Python packages).
-# Usage: bash tools/setup.sh        (as root, or with sudo available)
+# Usage: bash tools/setup.sh        (as root, or with sudo available; PYTHON=... picks the interpreter)
+#
+# Where the Python packages go:
+#   - inside an active virtual environment: into it;
+#   - a system Python that refuses `pip install` (PEP 668, "externally managed", e.g. Debian 12's), or one
+#     without pip: into the project's own .venv (created here), which tools/test then uses;
+#   - otherwise (pyenv, conda, a Python that allows pip): into that Python.
+# FAVORMAP_SETUP_DRY_RUN=1 prints the decision and stops before installing anything.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
-# open3d needs libusb; libgomp for torch/open3d threading
-if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
-  $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
-fi
 PY=${PYTHON:-python3}
+DRY=${FAVORMAP_SETUP_DRY_RUN:-}
+
+in_venv() { "$1" -c 'import sys; sys.exit(0 if sys.prefix != sys.base_prefix else 1)'; }
+externally_managed() {
+  "$1" -c 'import os, sys, sysconfig
+sys.exit(0 if os.path.isfile(os.path.join(sysconfig.get_path("stdlib"), "EXTERNALLY-MANAGED")) else 1)'
+}
+has_pip() { "$1" -m pip --version >/dev/null 2>&1; }
+
+VENV=""
+if in_venv "$PY"; then
+  echo "setup: installing into the active virtual environment ($("$PY" -c 'import sys; print(sys.prefix)'))"
+elif externally_managed "$PY" || ! has_pip "$PY"; then
+  VENV=.venv
+  echo "setup: $PY refuses pip install (PEP 668) or has no pip: installing into the project venv $PWD/$VENV"
+else
+  echo "setup: installing into $("$PY" -c 'import sys; print(sys.executable)')"
+fi
+[ -z "$DRY" ] || exit 0
+
+# open3d needs libusb; libgomp for torch/open3d threading; python3-venv for the project venv
+PKGS=""
+ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0" || PKGS="libusb-1.0-0 libgomp1"
+if [ -n "$VENV" ] && ! "$PY" -c 'import ensurepip, venv' >/dev/null 2>&1; then PKGS="$PKGS python3-venv"; fi
+if [ -n "$PKGS" ]; then
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq $PKGS >/dev/null
+fi
+if [ -n "$VENV" ]; then
+  [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
+  PY="$VENV/bin/python"
+  "$PY" -m pip install -q --upgrade pip
+fi
 # torch 2.13.0 first: on this platform it resolves to the CPU wheel (an unpinned torch pulls a CUDA build)
-$PY -m pip install -q "torch==2.13.0"
-$PY -m pip install -q -e ".[test]"
-$PY -c "import favormap, open3d, pycolmap, torch, h5py, cv2, rerun, trimesh; print('favormap', favormap.__version__, 'ready')"
+"$PY" -m pip install -q "torch==2.13.0"
+"$PY" -m pip install -q -e ".[test]"
+"$PY" -c "import favormap, open3d, pycolmap, torch, h5py, cv2, rerun, trimesh; print('favormap', favormap.__version__, 'ready')"
+if [ -n "$VENV" ]; then
+  echo "setup: tools/test runs the tests in $VENV; for the favormap command: source $VENV/bin/activate"
+fi

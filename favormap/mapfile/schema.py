@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 from datetime import datetime
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 from typing import Callable
 
@@ -39,15 +38,9 @@ ATTR_DIMS = (("C", "channels"), ("R", "grid_resolution"), ("L", "num_landmarks")
 
 
 def _schema_dir() -> Path:
-    """The source checkout's top-level schemas/ (editable installs), else the copy that a wheel
-    installs as data files under <prefix>/share/favormap/schemas."""
-    import sys
-
-    for cand in (Path(__file__).resolve().parents[2] / "schemas", Path(sys.prefix) / "share" / "favormap" / "schemas",
-                 Path(str(resources.files("favormap").joinpath("schemas")))):
-        if (cand / f"favormap-map.v{FORMAT_VERSION}.json").is_file():
-            return cand
-    return Path(__file__).resolve().parents[2] / "schemas"
+    """favormap/schemas: package data in a wheel or ``pip install --target``; in a source checkout a
+    link to the top-level schemas/ (the source of the files)."""
+    return Path(__file__).resolve().parents[1] / "schemas"
 
 
 @lru_cache(maxsize=None)

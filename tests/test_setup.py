@@ -1,0 +1,113 @@
+"""Set-up, CI and installation (issue 12, items 5-7): the README's commands, the project venv on a
+system Python that refuses pip (PEP 668), the pytest summary line, the schema in a wheel."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def readme_commands() -> list[str]:
+    text = (REPO / "README.md").read_text()
+    block = re.search(r"```bash\n(.*?)```", text, re.S).group(1)
+    return [ln.split("#", 1)[0].strip() for ln in block.strip().splitlines()]
+
+
+def test_readme_starts_with_setup_test_demo_and_ci_runs_them():
+    setup, test, demo = readme_commands()  # exactly three lines
+    assert setup == "bash tools/setup.sh" and demo == "favormap demo"
+    ci = [ln.strip() for ln in (REPO / ".ci" / "run").read_text().splitlines()]
+    assert setup in ci and test in ci and ci.index(setup) < ci.index(test)
+
+
+def _run_setup_dry(python: str, env_extra=None) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "VIRTUAL_ENV"}
+    env.update({"PYTHON": python, "FAVORMAP_SETUP_DRY_RUN": "1", **(env_extra or {})})
+    r = subprocess.run(["bash", str(REPO / "tools" / "setup.sh")], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def _externally_managed(python: str) -> bool:
+    r = subprocess.run([python, "-c", "import os, sysconfig; print(os.path.isfile(os.path.join("
+                        "sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED')))"], capture_output=True, text=True)
+    return r.stdout.strip() == "True"
+
+
+def test_setup_uses_a_project_venv_only_where_pip_is_refused(tmp_path):
+    # a Python that allows pip (this interpreter, when it is not marked PEP 668): installs into it
+    if not _externally_managed(sys.executable) and sys.prefix == sys.base_prefix:
+        out = _run_setup_dry(sys.executable)
+        assert "setup: installing into /" in out and ".venv" not in out
+    # an active venv: installs into it
+    v = tmp_path / "v"
+    venv.create(v, with_pip=False)
+    assert "active virtual environment" in _run_setup_dry(str(v / "bin" / "python"))
+    # a PEP 668 system Python (Debian 12's /usr/bin/python3 here): the project venv
+    system = shutil.which("python3", path="/usr/bin")
+    if system is None or not _externally_managed(system):
+        pytest.skip("no externally managed (PEP 668) system Python on this machine")
+    out = _run_setup_dry(system)
+    assert "PEP 668" in out and "/.venv" in out
+
+
+def test_tools_test_runs_in_the_project_venv(tmp_path):
+    """tools/test uses .venv/bin/python when setup made a .venv (and no other venv is active)."""
+    fake = tmp_path / "repo"
+    (fake / "tools").mkdir(parents=True)
+    (fake / "tests").mkdir()
+    shutil.copy(REPO / "tools" / "test", fake / "tools" / "test")
+    (fake / "tests" / "test_where.py").write_text(
+        "import sys\n\ndef test_where():\n    print('PREFIX', sys.prefix)\n")
+    venv.create(fake / ".venv", with_pip=False, system_site_packages=True)  # pytest from this Python's site
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHON")}
+    r = subprocess.run(["bash", str(fake / "tools" / "test"), "-s", "-q", "-p", "no:cacheprovider"], env=env,
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert f"PREFIX {fake / '.venv'}" in r.stdout
+    assert re.search(r"^1 passed", r.stdout, re.M), r.stdout
+
+
+def test_quiet_runs_still_print_the_summary_line(tmp_path):
+    """With the project's pytest configuration, `-q` (as developers add it) keeps "N passed"."""
+    (tmp_path / "test_one.py").write_text("def test_one():\n    pass\n")
+    r = subprocess.run([sys.executable, "-m", "pytest", "-c", str(REPO / "pyproject.toml"), "--rootdir", str(tmp_path),
+                        "-q", "-p", "no:cacheprovider", str(tmp_path / "test_one.py")],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert re.search(r"^1 passed", r.stdout, re.M), r.stdout
+
+
+def test_wheel_install_finds_its_schema(tmp_path, small_map):
+    """`pip wheel` + `pip install --target`: `favormap validate` finds the schema shipped as package data."""
+    _, map_path = small_map
+    wheels, target, src = tmp_path / "wheels", tmp_path / "target", tmp_path / "src"
+    for name in ("favormap", "schemas"):  # a copy, so that the build leaves the checkout alone
+        shutil.copytree(REPO / name, src / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-q",
+                        "-w", str(wheels)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    (whl,) = wheels.glob("favormap-*.whl")
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(whl)],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (target / "favormap" / "schemas" / "favormap-map.v1.json").is_file()
+    assert not (target / "favormap" / "schemas").is_symlink()
+    env = {**os.environ, "PYTHONPATH": str(target), "RERUN_ANALYTICS": "false"}
+    code = "import sys, favormap; from favormap.cli import main; print(favormap.__file__); sys.exit(main(sys.argv[1:]))"
+    r = subprocess.run([sys.executable, "-c", code, "validate", str(map_path)], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.splitlines()[0].startswith(str(target))
+    assert "valid" in r.stdout.lower()
