@@ -74,9 +74,13 @@ def run(args) -> int:
     from ..errors import InputError
     from ..io import read_sequence
     from ..mapfile import write_map
-    from ..mapfile.writer import check_output_path
+    from ..mapfile.writer import check_output_path, is_hdf5
 
-    out = check_output_path(args.output)  # before any work
+    out = check_output_path(args.output, [args.sequence])  # before any work
+    seq_dir = Path(args.sequence)
+    if out.exists() and seq_dir.is_dir() and out.resolve().is_relative_to(seq_dir.resolve()) and not is_hdf5(out):
+        raise InputError(f"output {out} is also an input (a file of the sequence {seq_dir}, not a map); "
+                         "write the map elsewhere")
     if args.exclude_every < 0 or args.exclude_every == 1:
         raise InputError("--exclude-every must be 0 (off) or >= 2")
     seq = read_sequence(args.sequence, args.format)

@@ -103,6 +103,12 @@ def run(args) -> int:
     query = Path(args.query)
     if not query.exists():
         raise InputError(f"query not found: {query}")
+    if args.output:  # before any work: a folder that exists and takes files, and not one of the inputs
+        from ..mapfile.writer import check_output_path
+
+        out = check_output_path(args.output, [args.map, query, args.prior, args.priors, args.camera])
+        if query.is_dir() and out.suffix.lower() in IMAGE_EXT and out.resolve().parent == query.resolve():
+            raise InputError(f"output {out} would be taken for a query image of {query}; write it elsewhere")
     if query.is_dir():
         priors = read_priors(Path(args.priors)) if args.priors else None
         images = sorted(p for p in query.iterdir() if p.suffix.lower() in IMAGE_EXT)

@@ -26,18 +26,35 @@ POSE_CONVENTION = ("cam_from_world 4x4; OpenCV camera axes (x right, y down, z f
 PARTIAL_SUFFIX = ".partial"
 
 
-def check_output_path(path) -> Path:
+def check_output_path(path, inputs=()) -> Path:
     """Fail early (before any work) when ``path`` cannot receive an output file: a directory, a
-    missing or read-only folder. Returns ``path`` as a Path."""
+    missing or read-only folder (tried by creating a file there), or the same file as one of
+    ``inputs`` (paths; None entries are skipped). Returns ``path`` as a Path."""
     path = Path(path)
     if path.is_dir():
         raise FavormapError(f"output {path} is a directory")
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise FavormapError(f"output folder does not exist: {parent}")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise FavormapError(f"output folder is not writable: {parent}")
+    for src in inputs:
+        if src is not None and path.exists() and Path(src).exists() and os.path.samefile(path, src):
+            raise FavormapError(f"output {path} is also an input ({src}); write to another file")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=parent)
+    except OSError as e:
+        raise FavormapError(f"output folder is not writable: {parent} ({e.strerror or e})") from None
+    os.close(fd)
+    os.unlink(probe)
     return path
+
+
+def is_hdf5(path) -> bool:
+    """True when ``path`` starts with the HDF5 signature (a map, or what is left of one)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == b"\x89HDF\r\n\x1a\n"
+    except OSError:
+        return False
 
 
 def _fsync_dir(folder: Path):

@@ -77,7 +77,7 @@ def export_landmarks(m, out, boxes: bool = False, color_by: str = "quality") -> 
         raise InputError(f"cannot export to {out.name}: the file name must end in {', '.join(FORMATS)}")
     if color_by not in COLOR_BY:
         raise InputError(f"unknown colouring {color_by!r} (use {' or '.join(COLOR_BY)})")
-    check_output_path(out)
+    check_output_path(out, [m] if isinstance(m, (str, Path)) else [getattr(m, "path", None)])
     if isinstance(m, (str, Path)):
         with Map.open(m) as mm:
             return export_landmarks(mm, out, boxes, color_by)

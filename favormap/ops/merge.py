@@ -137,7 +137,7 @@ def merge_maps(paths, out, dedup_radius: float | None = None, transform: np.ndar
     paths = [Path(p) for p in paths]
     if len(paths) < 2:
         raise InputError("merge needs at least two maps")
-    check_output_path(out)  # fail before any work
+    check_output_path(out, paths)  # fail before any work
     if dedup_radius is not None and not (dedup_radius >= 0 and np.isfinite(dedup_radius)):
         raise InputError(f"--dedup-radius must be a finite number >= 0, got {dedup_radius}")
     with ExitStack() as stack:

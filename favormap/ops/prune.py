@@ -154,7 +154,7 @@ def select_rows(m, max_landmarks: int | None = None, min_track: int | None = Non
 def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None,
               bbox=None, chunk: int = 4096, progress=None, allow_empty: bool = False) -> PruneResult:
     """Write the pruned map of ``path`` to ``out`` (atomic; voxel grids streamed)."""
-    check_output_path(out)  # fail before any work
+    check_output_path(out, [path])  # fail before any work
     with Map.open(path) as m:
         res = select_rows(m, max_landmarks, min_track, min_quality, bbox)
         rows = res.rows

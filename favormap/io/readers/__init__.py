@@ -1,5 +1,6 @@
 """Sequence readers. Each module defines ``NAME``, ``detect(root) -> bool`` and
-``read(root) -> Sequence``; register new ones in ``READERS`` (detection order)."""
+``read(root) -> Sequence`` (and optionally ``DESCRIPTOR_FILES``, glob patterns of the files a user
+may give instead of the folder); register new ones in ``READERS`` (detection order)."""
 
 from __future__ import annotations
 

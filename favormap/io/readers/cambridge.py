@@ -32,6 +32,7 @@ from .common import checked_quaternion, fit_camera, guarded, image_size, make_ca
 
 NAME = "cambridge"
 SPLIT_FILES = (("train", "dataset_train.txt"), ("test", "dataset_test.txt"))
+DESCRIPTOR_FILES = tuple(f for _, f in SPLIT_FILES)
 CAMERA_FILES = ("camera.txt", "cameras.txt")
 DEFAULT_FOCAL_RATIO = 0.87  # focal length / image width
 HEADER_LINES = 3

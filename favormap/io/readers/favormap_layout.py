@@ -31,6 +31,7 @@ from .common import checked_pose, guarded
 
 NAME = "favormap"
 FILENAME = "sequence.json"
+DESCRIPTOR_FILES = (FILENAME,)
 
 
 def detect(root: Path) -> bool:

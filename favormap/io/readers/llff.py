@@ -31,6 +31,7 @@ from .common import guarded, checked_pose, image_size, make_camera, posix_relpat
 
 NAME = "llff"
 FILENAME = "poses_bounds.npy"
+DESCRIPTOR_FILES = (FILENAME,)
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 

@@ -41,6 +41,7 @@ from .common import guarded, checked_pose, image_size, make_camera, posix_relpat
 
 NAME = "nerf"
 FILENAME = "transforms.json"
+DESCRIPTOR_FILES = (FILENAME, "transforms_*.json")
 SPLITS = ("train", "val", "test")
 _EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y", "cx", "cy", "w", "h",

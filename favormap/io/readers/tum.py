@@ -37,6 +37,7 @@ from ..types import Camera, Frame, Sequence
 from .common import checked_quaternion, fit_camera, guarded, image_size, posix_relpath, read_single_camera_text, text_rows
 
 NAME = "tum"
+DESCRIPTOR_FILES = ("rgb.txt", "groundtruth.txt")
 MAX_DT = 0.02
 
 
