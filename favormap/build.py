@@ -19,6 +19,7 @@ from .features import Extractor, Features, patch_offsets
 from .geometry import camera_centers
 from .io import Camera, Sequence, load_image
 from .mapfile.model import MapData, new_landmark_ids
+from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, triangulate
 from .voxels import TrainingRays, VoxelConfig, train_voxels
@@ -38,9 +39,12 @@ class BuildConfig:
     min_angle_deg: float = 1.0
     max_landmarks: int = 1500
     voxel: VoxelConfig = field(default_factory=VoxelConfig)
+    threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule); not stored in the map
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d.pop("threads")
+        return d
 
 
 @dataclass
@@ -68,7 +72,13 @@ class _Progress:
     """Per-stage progress reporting; ``callback(stage, done, total)``."""
 
     def __init__(self, callback):
-        self.callback = callback or (lambda *a: None)
+        cb = callback or (lambda *a: None)
+
+        def report(stage, done, total):
+            rebalance()  # thread pools follow the machine's load (favormap.threads)
+            cb(stage, done, total)
+
+        self.callback = report
         self.timings: dict[str, float] = {}
 
     @contextmanager
@@ -178,6 +188,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
     reports progress; ``observer`` sees every stage's result (visualisation, debugging)."""
     check_build_input(seq, config)
+    configure_threads(config.threads)
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)

@@ -12,6 +12,7 @@ import logging
 import os
 import sys
 
+from .. import threads  # first: its CPU-load window starts at import (favormap.threads)
 from ..errors import FavormapError
 
 # subcommand modules, in --help order
@@ -68,6 +69,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
+        if hasattr(args, "threads"):  # heavy commands: size the thread pools once, before any work
+            threads.configure_threads(args.threads)
         return int(args.func(args) or 0)
     except FavormapError as e:
         print(f"favormap {args.command}: error: {e}", file=sys.stderr)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..viz import add_rerun_args, recording_from_args
+from ..threads import add_threads_arg
 from .common import StageBars, auto_device, human_size, print_json
 
 
@@ -30,6 +31,7 @@ def register(sub):
     p.add_argument("--patch", type=int, default=None, help="descriptor patch size S (default: the preset's, 7)")
     p.add_argument("--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
+    add_threads_arg(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     add_rerun_args(p)
@@ -49,7 +51,8 @@ def config_from_args(args):
     over = {k: v for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations)) if v is not None}
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
     return BuildConfig(extractor=args.extractor, max_keypoints=args.max_keypoints, max_side=args.resize, min_track=args.min_track,
-                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, voxel=vox)
+                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, voxel=vox,
+                       threads=getattr(args, "threads", None))
 
 
 def summary(m, path: Path) -> dict:

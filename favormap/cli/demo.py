@@ -5,6 +5,7 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+from ..threads import add_threads_arg
 from .common import StageBars, auto_device
 
 
@@ -21,6 +22,7 @@ def register(sub):
     p.add_argument("--iterations", type=int, default=200, help="voxel training iterations")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto")
+    add_threads_arg(p)
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=run)
 

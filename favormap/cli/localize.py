@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..viz import add_rerun_args, recording_from_args
+from ..threads import add_threads_arg
 from .common import auto_device, print_json
 
 IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
@@ -27,6 +28,7 @@ def add_localize_options(p):
     p.add_argument("--no-global", action="store_true",
                    help="never fall back to matching against all landmarks when the prior fails (or is missing)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
+    add_threads_arg(p)
 
 
 def register(sub):
@@ -66,7 +68,8 @@ def config_from_args(args):
     return LocalizeConfig(iterations=args.iters, match_threshold=args.threshold, max_keypoints=args.max_keypoints,
                           ransac_max_error_px=args.ransac_px, checks=SuccessChecks(min_inliers=args.min_inliers),
                           mutual=not args.no_mutual, ratio=args.ratio, global_fallback=not args.no_global,
-                          descriptors=getattr(args, "descriptors", "rendered"), device=auto_device(args.device))
+                          descriptors=getattr(args, "descriptors", "rendered"), device=auto_device(args.device),
+                          threads=getattr(args, "threads", None))
 
 
 def read_priors(path: Path) -> dict[str, np.ndarray]:

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ..viz import add_rerun_args, recording_from_args
+from ..threads import add_threads_arg
 from .common import StageBars, human_size, print_json
 
 
@@ -23,6 +24,7 @@ def register(sub):
     p.add_argument("--transform", metavar="FILE", help="4x4 b_to_a matrix (rigid or similarity) applied to the second and later maps")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_threads_arg(p)
     add_rerun_args(p)
     p.set_defaults(func=run)
 

@@ -6,6 +6,7 @@ import re
 from pathlib import Path
 
 from ..viz import add_rerun_args, recording_from_args
+from ..threads import add_threads_arg
 from .common import StageBars, human_size, print_json
 
 _LABELS = {"min_track": "track shorter than --min-track", "min_quality": "PSNR below --min-quality",
@@ -25,6 +26,7 @@ def register(sub):
     p.add_argument("--bbox", metavar="x0,y0,z0,x1,y1,z1", help="keep landmarks inside this axis-aligned box")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_threads_arg(p)
     add_rerun_args(p)
     p.set_defaults(func=run)
     p._negative_number_matcher = re.compile(r"^-\.?\d")  # '--bbox -1,-2,...' is a value, not an option

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 import sys
 
+from ..threads import add_threads_arg
 from .common import print_json
 
 
@@ -30,6 +31,7 @@ def register(sub):
     p.add_argument("--margin", type=float, default=0.0, metavar="PX", help="keep landmarks at least this far inside the image")
     p.add_argument("--limit", type=int, default=20, help="landmarks listed in the human output (default 20; 0: all)")
     p.add_argument("--json", action="store_true", help="one JSON object (visible_ids / ids, counts)")
+    add_threads_arg(p)
     p.set_defaults(func=run)
     p._negative_number_matcher = re.compile(r"^-\.?\d")  # '--near -1e-3 2 3' are values, not options
 

@@ -31,6 +31,7 @@ from ..geometry import from_rigid3d, pose_error, project
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
+from ..threads import configure_threads
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, make_source
 
@@ -67,6 +68,7 @@ class LocalizeConfig:
     view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
     device: str = "cpu"
     seed: int = 0
+    threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule)
 
 
 @dataclass
@@ -144,12 +146,19 @@ class Localizer:
     """Localizes query images against one map; keep it alive to localize many queries.
 
     ``descriptor_source`` overrides ``config.descriptors`` (e.g. nearest-view descriptors, which
-    need data the map does not hold)."""
+    need data the map does not hold).
+
+    Thread safety: one Localizer may be shared by several threads; :meth:`localize` calls run
+    concurrently and give the same results as one after the other (the map's voxel cache takes a
+    lock; everything else a call touches is its own or read-only). Threads of one process share
+    the torch/OpenCV pools sized by ``config.threads``; for throughput on several cores, processes
+    (one Localizer each) scale better than threads (tools/bench_load.py)."""
 
     def __init__(self, map_: Map | str, config: LocalizeConfig | None = None,
                  descriptor_source: DescriptorSource | None = None):
-        self.map = map_ if isinstance(map_, Map) else Map.open(map_)
         self.config = config or LocalizeConfig()
+        configure_threads(self.config.threads)
+        self.map = map_ if isinstance(map_, Map) else Map.open(map_)
         self.extractor = feats_mod.create(self.map.extractor, max_keypoints=self.config.max_keypoints,
                                           device=None if self.config.device == "cpu" else self.config.device)
         self.index = SpatialIndex(self.map.positions)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -72,6 +73,7 @@ class Map:
         self.bytes_read = 0  # voxel bytes read from disk (tests and benchmarks look at it)
         self.cache_size = max(1, int(cache_size))
         self._slot = None  # row -> cache slot (created on the first voxel read)
+        self._lock = threading.Lock()  # voxels() may be called from several threads (a shared Localizer)
         try:
             with _guard(self.path, "the file structure (HDF5 metadata)"):
                 view = open_view(self._f, self.path)
@@ -194,11 +196,15 @@ class Map:
 
         Rows not in the cache are read in sorted contiguous runs; the cache is a fixed-size ring of
         ``cache_size`` grids (oldest inserted evicted first), indexed by a row -> slot array, so a
-        call costs a few numpy operations whatever the number of rows."""
+        call costs a few numpy operations whatever the number of rows. Thread-safe."""
         rows = np.asarray(rows, np.int64).ravel()
-        R3 = self.grid_resolution ** 3
         if len(rows) and (rows.min() < 0 or rows.max() >= len(self)):
             raise IndexError("landmark row out of range")
+        with self._lock:
+            return self._voxels(rows)
+
+    def _voxels(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        R3 = self.grid_resolution ** 3
         if self._slot is None:
             self._slot = np.full(len(self), -1, np.int64)
             self._slot_row = np.full(self.cache_size, -1, np.int64)
