@@ -12,7 +12,8 @@ The rule (:func:`resolve_threads`), applied at the start of every heavy command:
 3. else the CPUs this process may use, its CPU affinity (``os.sched_getaffinity``) capped by the
    cgroup CPU quota (v2 ``cpu.max``, v1 ``cpu.cfs_quota_us / cpu.cfs_period_us``), less the CPUs
    other processes kept busy (from ``/proc/stat``, the affinity CPUs only, this process's own time
-   taken out) since this module was imported (at least :data:`MIN_WINDOW_S`), rounded, at least 1.
+   taken out) since this module was imported (at least :data:`MIN_WINDOW_S`; a fresh measurement
+   when that was more than :data:`MAX_WINDOW_S` ago), rounded, at least 1.
    Long commands re-apply it every few seconds (:func:`rebalance`, from the build's progress), so a
    build gives back a core when a second one starts and takes it again when that one ends.
 
@@ -95,6 +96,7 @@ def available_cpus() -> int:
 
 
 MIN_WINDOW_S = 0.3  # shortest window over which other processes' CPU use is measured
+MAX_WINDOW_S = 10.0  # an older starting sample is replaced by a fresh MIN_WINDOW_S measurement
 REBALANCE_S = 3.0  # rebalance() re-measures at most this often
 
 
@@ -156,6 +158,8 @@ _last: _Sample = _start
 
 
 def _free_cpus(since: "_Sample") -> tuple[int, _Sample]:
+    if time.monotonic() - since.t > MAX_WINDOW_S:  # the load long ago says little about now
+        since = _Sample()
     wait = MIN_WINDOW_S - (time.monotonic() - since.t)
     if wait > 0:
         time.sleep(wait)
@@ -226,7 +230,6 @@ def rebalance() -> int | None:
         if not _auto:
             return _applied
         n, now = _free_cpus(_last)
-        # our own threads count as ours: a process using n threads sees the others' load only
         _last = now
         if n != _applied:
             _set_pools(n, first=False)
@@ -268,4 +271,4 @@ def add_threads_arg(parser) -> None:
     """``--threads N`` for a heavy CLI command."""
     parser.add_argument("--threads", type=_positive_int, metavar="N", default=None,
                         help="CPU threads for torch/OpenCV (default: OMP_NUM_THREADS when set, else the CPUs this "
-                             "process may use: affinity and cgroup quota)")
+                             "process may use (affinity, cgroup quota) that other processes leave free)")

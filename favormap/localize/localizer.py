@@ -151,8 +151,8 @@ class Localizer:
     Thread safety: one Localizer may be shared by several threads; :meth:`localize` calls run
     concurrently and give the same results as one after the other (the map's voxel cache takes a
     lock; everything else a call touches is its own or read-only). Threads of one process share
-    the torch/OpenCV pools sized by ``config.threads``; for throughput on several cores, processes
-    (one Localizer each) scale better than threads (tools/bench_load.py)."""
+    the torch/OpenCV pools sized by ``config.threads``; on 2 cores, 4 threads sharing one Localizer
+    localized as many queries per second as 4 processes, in less memory (tools/bench_load.py)."""
 
     def __init__(self, map_: Map | str, config: LocalizeConfig | None = None,
                  descriptor_source: DescriptorSource | None = None):
