@@ -22,6 +22,22 @@ def small_build_config(**over):
     return cfg
 
 
+def localize_perturbed(loc, frames, trans=0.2, deg=8.0, seed=0):
+    """(N, 2) translation / rotation errors of ``loc`` on ``frames`` from priors moved by ``trans``
+    units and ``deg`` degrees; every query must succeed."""
+    import numpy as np
+
+    from favormap.geometry import perturb_pose, pose_error
+
+    rng = np.random.default_rng(seed)
+    errs = []
+    for fr in frames:
+        res = loc.localize(fr.image_path, perturb_pose(fr.cam_from_world, trans, deg, rng))
+        assert res.success, res.message
+        errs.append(pose_error(res.cam_from_world, fr.cam_from_world))
+    return np.array(errs)
+
+
 @pytest.fixture(scope="session")
 def small_sequence(tmp_path_factory):
     """A 16-frame 320x240 synthetic room sequence in the favormap layout (with depth maps).

@@ -53,10 +53,9 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from conftest import small_build_config
+    from conftest import localize_perturbed, small_build_config
 
     from favormap.build import build_map
-    from favormap.geometry import perturb_pose, pose_error
     from favormap.localize import Localizer
     from favormap.mapfile import write_map
 
@@ -65,11 +64,5 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     write_map(m, path)
     loc = Localizer(path)
     assert loc.config.global_ratio == 0.8  # the extractor's ratio test when matching without a prior
-    rng = np.random.default_rng(0)
-    errs = []
-    for fr in small_sequence.frames[1::5]:
-        res = loc.localize(fr.image_path, perturb_pose(fr.cam_from_world, 0.2, 8.0, rng))
-        assert res.success, res.message
-        errs.append(pose_error(res.cam_from_world, fr.cam_from_world))
-    errs = np.array(errs)
+    errs = localize_perturbed(loc, small_sequence.frames[1::5])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs

