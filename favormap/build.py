@@ -9,20 +9,24 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
+import torch
 
 from . import features as feats_mod
 from .errors import FavormapError, SequenceError
+from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
 from .geometry import camera_centers
-from .io import Camera, Sequence, load_image
+from .io import Camera, Sequence
+from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, new_landmark_ids
 from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, triangulate
-from .voxels import TrainingRays, VoxelConfig, train_voxels
+from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
 from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
 
 
@@ -38,6 +42,9 @@ class BuildConfig:
     max_reproj_px: float = 5.0
     min_angle_deg: float = 1.0
     max_landmarks: int = 1500
+    # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
+    # this, not on who runs the batches (LocalExecutor or Ray workers)
+    train_batch: int = 1024
     voxel: VoxelConfig = field(default_factory=VoxelConfig)
     threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule); not stored in the map
 
@@ -88,17 +95,81 @@ class _Progress:
         self.timings[name] = round(time.perf_counter() - t, 3)
 
 
-def extract_sequence(seq: Sequence, extractor: Extractor, max_side: int, progress=None, keep_images: list | None = None) -> FrameFeatures:
-    features, cams = [], []
-    for i, fr in enumerate(seq.frames):
-        img, wcam = load_image(fr.image_path, seq.cameras[fr.camera_id], max_side)
-        features.append(extractor.extract(img))
-        cams.append(wcam)
-        if keep_images is not None:
-            keep_images.append(img)
-        if progress:
-            progress("extract", i + 1, len(seq.frames))
-    return FrameFeatures(features, cams, np.stack([f.cam_from_world for f in seq.frames]))
+@dataclass(frozen=True)
+class ExtractorSpec:
+    """A picklable recipe for an extractor (tasks on other processes or machines make their own)."""
+
+    name: str
+    max_keypoints: int = 2048
+    device: str | None = None
+
+    def create(self, device: str | None = None) -> Extractor:
+        return _cached_extractor(self.name, self.max_keypoints, device or self.device)
+
+    @property
+    def uses_device(self) -> bool:
+        """Whether the extractor runs on a torch device (a GPU helps)."""
+        return self.name in ("xfeat",)
+
+
+@lru_cache(maxsize=8)
+def _cached_extractor(name: str, max_keypoints: int, device: str | None) -> Extractor:
+    return feats_mod.create(name, max_keypoints=max_keypoints, device=device)
+
+
+def _extractor(ex: Extractor | ExtractorSpec, device: str | None = None) -> Extractor:
+    return ex.create(device) if isinstance(ex, ExtractorSpec) else ex
+
+
+def _on_cpu(x):
+    """Torch tensors in a (nested tuple/list of) extractor state moved to the CPU, so that a result
+    computed on a GPU worker can be read on a machine without one."""
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    if isinstance(x, (tuple, list)):
+        return type(x)(_on_cpu(v) for v in x)
+    return x
+
+
+@dataclass
+class ExtractTask:
+    """One frame to extract: the image file's bytes (workers need no access to the sequence)."""
+
+    name: str  # the image path, for messages
+    data: bytes
+    camera: Camera
+    max_side: int
+    extractor: Extractor | ExtractorSpec
+    keep_image: bool = False
+
+
+@dataclass
+class ExtractedFrame:
+    features: Features
+    camera: Camera  # working pinhole camera
+    image: np.ndarray | None = None  # the working image, when asked for
+
+
+def extract_frame(task: ExtractTask, device: str | None = None, report=None) -> ExtractedFrame:
+    img, cam = decode_and_prepare(task.data, task.name, task.camera, task.max_side)
+    f = _extractor(task.extractor, device).extract(img)
+    if f.dense is not None:
+        f.dense = _on_cpu(f.dense)
+    return ExtractedFrame(f, cam, img if task.keep_image else None)
+
+
+def extract_sequence(seq: Sequence, extractor: Extractor | ExtractorSpec, max_side: int, progress=None,
+                     keep_images: list | None = None, executor: Executor | None = None) -> FrameFeatures:
+    """Features of every frame (one task per frame; the image bytes are read here, lazily)."""
+    tasks = (ExtractTask(str(fr.image_path), read_image_bytes(fr.image_path), seq.cameras[fr.camera_id], max_side,
+                         extractor, keep_images is not None) for fr in seq.frames)
+    n = len(seq.frames)
+    gpu = isinstance(extractor, ExtractorSpec) and extractor.uses_device
+    out = (executor or LocalExecutor()).map(extract_frame, tasks, n, gpu=gpu,
+                                            progress=(lambda d: progress("extract", int(d), n)) if progress else None)
+    if keep_images is not None:
+        keep_images.extend(r.image for r in out)
+    return FrameFeatures([r.features for r in out], [r.camera for r in out], np.stack([f.cam_from_world for f in seq.frames]))
 
 
 def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
@@ -109,10 +180,23 @@ def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
     return lms.select(order[:max_landmarks])
 
 
-def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch_size: int,
-                  box_factor: float | None = None) -> TrainingRays:
+@dataclass
+class PatchTask:
+    """Descriptor samples at ``points`` (n, 2) of one frame."""
+
+    extractor: Extractor | ExtractorSpec
+    features: Features
+    points: np.ndarray
+
+
+def sample_patches(task: PatchTask, device: str | None = None, report=None) -> np.ndarray:
+    return _extractor(task.extractor, "cpu" if isinstance(task.extractor, ExtractorSpec) else None).sample(task.features, task.points)
+
+
+def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor | ExtractorSpec, patch_size: int,
+                  box_factor: float | None = None, executor: Executor | None = None, progress=None) -> TrainingRays:
     """Descriptor patches S x S around the projection of each landmark in each of its frames, and
-    the viewing rays of their pixels. One ``extractor.sample`` call per frame.
+    the viewing rays of their pixels. One ``extractor.sample`` task per frame.
 
     Voxel side of landmark j: ``box_factor * min_i l_ij / f_i`` (paper eq. 2 uses the patch size S,
     the reference code 12 for S = 7); ``box_factor`` None means S."""
@@ -128,13 +212,17 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch
     offs = patch_offsets(patch_size)
     pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
-    targets = np.zeros((len(tid), P, extractor.channels), np.float32)
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
-    for f in range(len(ff.features)):
-        sel = order[bounds[f] : bounds[f + 1]]
-        if len(sel):
-            targets[sel] = extractor.sample(ff.features[f], pix[sel].reshape(-1, 2)).reshape(len(sel), P, -1)
+    frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
+    tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f]:bounds[f + 1]]].reshape(-1, 2)) for f in frames)
+    n = len(frames)
+    samples = (executor or LocalExecutor()).map(sample_patches, tasks, n,
+                                                progress=(lambda d: progress("patches", int(d), n)) if progress else None)
+    targets = np.zeros((len(tid), P, samples[0].shape[-1] if samples else 0), np.float32)
+    for f, s in zip(frames, samples):
+        sel = order[bounds[f]:bounds[f + 1]]
+        targets[sel] = s.reshape(len(sel), P, -1)
     # ray directions in world
     hom = np.concatenate([pix, np.ones(pix.shape[:2] + (1,))], -1)
     d_cam = np.einsum("oij,opj->opi", np.linalg.inv(Ks)[fi], hom)
@@ -146,6 +234,52 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor, patch
     sizes = np.full(len(lms), np.inf)
     np.minimum.at(sizes, tid, (patch_size if box_factor is None else box_factor) * dist / focal)
     return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets)
+
+
+@dataclass
+class TrainTask:
+    """One batch of landmarks to train (``config.seed`` already the batch's)."""
+
+    rays: TrainingRays
+    config: VoxelConfig
+
+
+def train_batch(task: TrainTask, device: str | None = None, report=None) -> VoxelGrids:
+    cfg = task.config if device is None else replace(task.config, device=device)
+    iters = cfg.iterations
+    g = train_voxels(task.rays, cfg, progress=(lambda it, loss, psnr: report((it + 1) / iters)) if report else None)
+    return VoxelGrids(g.descriptors.cpu(), g.density.cpu(), g.psnr, g.cosine, g.history)
+
+
+def batch_bounds(n_landmarks: int, batch: int) -> np.ndarray:
+    """Landmark index bounds of the training batches: ceil(L / batch) batches of near-equal size."""
+    nb = max(1, -(-n_landmarks // max(1, batch)))
+    return np.round(np.linspace(0, n_landmarks, nb + 1)).astype(int)
+
+
+def rays_subset(rays: TrainingRays, lo: int, hi: int) -> TrainingRays:
+    """The training data of landmarks lo..hi-1 (landmark indices renumbered from 0)."""
+    sel = (rays.obs_landmark >= lo) & (rays.obs_landmark < hi)
+    return TrainingRays(rays.centers[lo:hi], rays.sizes[lo:hi], rays.obs_landmark[sel] - lo, rays.obs_origin[sel],
+                        rays.ray_dirs[sel], rays.targets[sel])
+
+
+def train_batches(rays: TrainingRays, cfg: VoxelConfig, batch: int, executor: Executor | None = None,
+                  progress=None) -> VoxelGrids:
+    """All landmarks' voxels, trained in batches of ``batch`` landmarks (batch b seeded ``cfg.seed + b``;
+    one batch is exactly ``train_voxels(rays, cfg)``). History: landmark-weighted mean over the batches."""
+    bounds = batch_bounds(len(rays.centers), batch)
+    tasks = (TrainTask(rays_subset(rays, lo, hi), replace(cfg, seed=cfg.seed + b))
+             for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:])))
+    nb = len(bounds) - 1
+    total = nb * cfg.iterations
+    parts = (executor or LocalExecutor()).map(train_batch, tasks, nb, gpu=True,
+                                              progress=(lambda d: progress("train", int(d * cfg.iterations), total)) if progress else None)
+    w = np.diff(bounds) / bounds[-1]
+    history = [(it, float(sum(wi * p.history[k][1] for wi, p in zip(w, parts))),
+                float(sum(wi * p.history[k][2] for wi, p in zip(w, parts)))) for k, (it, _, _) in enumerate(parts[0].history)]
+    return VoxelGrids(torch.cat([p.descriptors for p in parts]), torch.cat([p.density for p in parts]),
+                      np.concatenate([p.psnr for p in parts]), np.concatenate([p.cosine for p in parts]), history)
 
 
 def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
@@ -184,19 +318,32 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
 
 
 def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Callable | None = None,
-              observer: BuildObserver | None = None) -> MapData:
+              observer: BuildObserver | None = None, executor: Executor | None = None, ray: str | None = None) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
-    reports progress; ``observer`` sees every stage's result (visualisation, debugging)."""
+    reports progress; ``observer`` sees every stage's result (visualisation, debugging).
+
+    Feature extraction (per frame), descriptor patches (per frame) and voxel training (per batch of
+    ``config.train_batch`` landmarks) run on ``executor`` (default: this process). ``ray`` ("auto" or
+    a cluster address) runs them as Ray tasks instead (:class:`favormap.distributed.RayExecutor`;
+    ``pip install favormap[distributed]``); the map is the same either way."""
     check_build_input(seq, config)
-    configure_threads(config.threads)
+    if ray is not None:
+        if executor is not None:
+            raise ValueError("build_map: give either executor or ray, not both")
+        from .distributed import RayExecutor
+
+        with RayExecutor(ray, gpus=config.voxel.device != "cpu") as ex:
+            return build_map(seq, config, progress, observer, executor=ex)
+    configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
+    executor = executor or LocalExecutor()
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)
         config = replace(config, voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)))
     images = [] if obs.wants_images else None
-    extractor = feats_mod.create(config.extractor, max_keypoints=config.max_keypoints, device=config.voxel.device if config.voxel.device != "cpu" else None)
+    extractor = ExtractorSpec(config.extractor, config.max_keypoints, config.voxel.device if config.voxel.device != "cpu" else None)
     with pr.stage("extract"):
-        ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images)
+        ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor)
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
         tracks = track_features(ff.features, ff.cam_from_world, ff.cameras, config.min_track, config.match_window,
@@ -215,17 +362,14 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     if len(lms) == 0:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     with pr.stage("patches"):
-        rays = training_rays(lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor)
-        pr.callback("patches", 1, 1)
+        rays = training_rays(lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor, executor, pr.callback)
     with pr.stage("train"):
-        def on_step(it, loss, psnr):
-            pr.callback("train", it + 1, config.voxel.iterations)
-            obs.on_train_step(it, loss, psnr)
-
-        grids = train_voxels(rays, config.voxel, progress=on_step)
-        pr.callback("train", config.voxel.iterations, config.voxel.iterations)
+        grids = train_batches(rays, config.voxel, config.train_batch, executor, pr.callback)
+    for it, loss, psnr in grids.history:  # the (landmark-weighted) training curve
+        obs.on_train_step(it, loss, psnr)
+    channels = rays.targets.shape[-1]
     view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
-    mean_desc = np.zeros((len(lms), extractor.channels), np.float64)
+    mean_desc = np.zeros((len(lms), channels), np.float64)
     np.add.at(mean_desc, rays.obs_landmark, rays.targets.mean(1))
     mean_desc /= np.maximum(np.linalg.norm(mean_desc, axis=1, keepdims=True), 1e-12)
     stats = {
@@ -241,7 +385,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     R = config.voxel.resolution
     m = MapData(
         extractor=config.extractor,
-        channels=extractor.channels,
+        channels=channels,
         grid_resolution=R,
         patch_size=config.voxel.patch_size,
         render_samples=config.voxel.samples,
@@ -267,7 +411,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
         track_frame=lms.tracks.frame_idx.astype(np.int32),
         track_xy=lms.tracks.xy.astype(np.float32),
         provenance={"source": str(seq.root), "source_format": seq.format, "config": config.to_dict(),
-                    "timings": pr.timings, "stats": stats, "training_history": grids.history},
+                    "timings": pr.timings, "stats": stats, "training_history": grids.history, "executor": executor.describe()},
     )
     obs.on_map(m, pr.timings)
     return m

@@ -98,7 +98,8 @@ def track_features(
     n = len(features)
     counts = np.array([len(f) for f in features])
     base = np.concatenate([[0], np.cumsum(counts)])
-    desc = [torch.from_numpy(f.descriptors) for f in features]
+    # (a copy where the array is read-only, e.g. zero-copy from Ray's object store)
+    desc = [torch.from_numpy(f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()) for f in features]
     rows, cols = [], []
     for a in range(n):
         for b in range(a + 1, min(n, a + 1 + window)):

@@ -96,3 +96,18 @@ def test_novel_views_render_close_to_extracted_descriptors(small_map, small_sequ
     rendered_sim, mean_sim = np.concatenate(rendered_sim), np.concatenate(mean_sim)
     assert np.median(rendered_sim) >= 0.9
     assert rendered_sim.mean() >= mean_sim.mean() + 0.0025, (rendered_sim.mean(), mean_sim.mean())
+
+
+def test_ray_option_without_ray_is_one_clear_error(monkeypatch, small_sequence, tmp_path, capsys):
+    """--ray where Ray is not installed: one error line saying what to install, no map."""
+    import sys
+
+    from favormap.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    out = tmp_path / "m.h5"
+    rc = main(["build", str(small_sequence.root), "-o", str(out), "--ray", "auto", "-q"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "\n" not in err, err
+    assert "Ray, which is not installed: pip install 'favormap[distributed]'" in err
+    assert not out.exists()

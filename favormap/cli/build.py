@@ -32,6 +32,16 @@ def register(sub):
     p.add_argument("--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     add_threads_arg(p)
+    p.add_argument("--train-batch", type=int, default=1024, metavar="N",
+                   help="landmarks trained together, one task per batch (default 1024; the map depends on it, "
+                        "not on where the batches run)")
+    p.add_argument("--ray", metavar="auto|local|ADDRESS",
+                   help="run extraction, patches and training as Ray tasks: 'auto' (the cluster of RAY_ADDRESS or "
+                        "one started here with 'ray start', else a local one), 'local', or a cluster address "
+                        "HOST:PORT (needs: pip install 'favormap[distributed]')")
+    p.add_argument("--ray-retries", type=int, default=3, metavar="N",
+                   help="re-runs of a Ray task whose worker died (default 3)")
+    p.add_argument("--ray-cpus", type=float, default=1, metavar="C", help="CPUs per Ray task (default 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     add_rerun_args(p)
@@ -43,7 +53,7 @@ def config_from_args(args):
     from ..errors import InputError
     from ..voxels import VoxelConfig
 
-    for name in ("min_track", "max_landmarks", "grid", "patch", "iterations", "max_keypoints"):
+    for name in ("min_track", "max_landmarks", "grid", "patch", "iterations", "max_keypoints", "train_batch"):
         if getattr(args, name) is not None and getattr(args, name) < (2 if name in ("min_track", "grid") else 1):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
@@ -51,7 +61,7 @@ def config_from_args(args):
     over = {k: v for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations)) if v is not None}
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
     return BuildConfig(extractor=args.extractor, max_keypoints=args.max_keypoints, max_side=args.resize, min_track=args.min_track,
-                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, voxel=vox,
+                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, train_batch=args.train_batch, voxel=vox,
                        threads=getattr(args, "threads", None))
 
 
@@ -90,14 +100,25 @@ def run(args) -> int:
     config = config_from_args(args)
     if args.exclude_every:
         seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
+    executor = None
+    if args.ray is not None:
+        from ..distributed import RayExecutor
+
+        if args.ray_retries < 0:
+            raise InputError("--ray-retries must be >= 0")
+        if args.ray_cpus <= 0:
+            raise InputError("--ray-cpus must be > 0")
+        executor = RayExecutor(args.ray, cpus_per_task=args.ray_cpus, gpus=args.device != "cpu", max_retries=args.ray_retries)
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap build")
     try:
-        m = build_map(seq, config, progress=bars, observer=rec.build_observer() if rec else None)
+        m = build_map(seq, config, progress=bars, observer=rec.build_observer() if rec else None, executor=executor)
     finally:
         bars.close()
         if rec is not None:
             rec.close()
+        if executor is not None:
+            executor.close()
     write_map(m, out)
     s = summary(m, out)
     print_json(s) if args.json else print_summary(s)

@@ -36,19 +36,28 @@ def truncation(data: bytes) -> str | None:
 def imread(path: Path, flags: int = cv2.IMREAD_COLOR, error: type[InputError] = InputError) -> np.ndarray:
     """Decode an image file, with one clear ``error`` naming the file when it is missing,
     unreadable, truncated or not an image (no decoder warning reaches the terminal)."""
+    return decode_image(read_image_bytes(path, error), path, flags, error)
+
+
+def read_image_bytes(path: Path, error: type[InputError] = InputError) -> bytes:
+    """The undecoded bytes of an image file (one clear ``error`` when missing or unreadable)."""
     path = Path(path)
     if not path.is_file():
         raise error(f"image not found: {path}")
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except OSError as e:
         raise error(f"cannot read image {path}: {e.strerror or e}") from None
+
+
+def decode_image(data: bytes, name, flags: int = cv2.IMREAD_COLOR, error: type[InputError] = InputError) -> np.ndarray:
+    """Decode the bytes of an image file (``name`` only for the error message)."""
     why = truncation(data)
     if why:
-        raise error(f"cannot read image {path}: {why}")
+        raise error(f"cannot read image {name}: {why}")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
     if img is None:
-        raise error(f"cannot read image {path}: not a readable image file")
+        raise error(f"cannot read image {name}: not a readable image file")
     return img
 
 
@@ -59,10 +68,15 @@ def read_rgb(path: Path) -> np.ndarray:
 def load_image(path: Path, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
     """Read an image taken with ``camera``; return it undistorted and resized (RGB uint8) together
     with its pinhole working camera."""
-    img = read_rgb(path)
+    return decode_and_prepare(None, path, camera, max_side)
+
+
+def decode_and_prepare(data: bytes | None, name, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
+    """:func:`load_image` of an image file's bytes (``data``; None: read the file ``name``)."""
+    img = read_rgb(name) if data is None else cv2.cvtColor(decode_image(data, name), cv2.COLOR_BGR2RGB)
     h, w = img.shape[:2]
     if (w, h) != (camera.width, camera.height):
-        raise InputError(f"image {path} is {w}x{h} but its camera is {camera.width}x{camera.height}")
+        raise InputError(f"image {name} is {w}x{h} but its camera is {camera.width}x{camera.height}")
     return prepare_image(img, camera, max_side)
 
 

@@ -1,0 +1,168 @@
+"""Distributed builds on a Ray cluster (``pip install favormap[distributed]``).
+
+:class:`RayExecutor` runs the build's independent tasks (feature extraction per frame, descriptor
+patches per frame, voxel training per landmark batch: see :mod:`favormap.executor`) as Ray tasks;
+the driver (the ``favormap build`` process) only reads the image files, tracks, triangulates and
+writes the map. The task functions are the very ones the single-process build runs, so the map is
+the same up to floating-point noise (training batches are seeded per batch, not per worker).
+
+- ``address``: "auto" connects to the cluster of ``RAY_ADDRESS`` or one started on this machine
+  with ``ray start``, else starts a local instance with every core; "local" always starts a local
+  instance; anything else is a cluster address (``HOST:6379``, ``ray://HOST:10001``).
+- A task whose worker process dies (killed, out of memory, machine lost) is re-run by Ray up to
+  ``max_retries`` times; a task that still fails ends the build with one error and no map is
+  written (the map file is written by the driver, atomically, after every task has succeeded).
+- Tasks take ``cpus_per_task`` CPUs (their torch/OpenCV threads are set to that) and, where the
+  cluster has GPUs and ``gpus`` allows, one GPU each for training (and for extractors that run on
+  torch); the device of a task is then the GPU Ray gave it.
+- Nothing phones home: Ray's usage statistics are switched off (``RAY_USAGE_STATS_ENABLED=0``) and
+  a local instance starts without its dashboard.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+
+from .errors import FavormapError, InputError
+from .executor import Executor
+
+INSTALL_HINT = "pip install 'favormap[distributed]'"
+
+
+def import_ray():
+    """The ``ray`` module, or one clear error saying how to install it."""
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"  # before ray is imported: nothing phones home
+    try:
+        import ray
+    except ImportError:
+        raise InputError(f"--ray needs Ray, which is not installed: {INSTALL_HINT}") from None
+    return ray
+
+
+def _set_threads(n: int) -> None:
+    import cv2
+    import torch
+
+    torch.set_num_threads(max(1, n))
+    cv2.setNumThreads(max(1, n))
+
+
+def _run(fn, task, use_gpu: bool):
+    """Body of every Ray task: threads and device from the resources Ray assigned to this task."""
+    import ray
+
+    res = ray.get_runtime_context().get_assigned_resources()
+    _set_threads(int(res.get("CPU", 1)))
+    device = "cuda" if use_gpu and ray.get_gpu_ids() else "cpu"
+    return fn(task, device=device)
+
+
+class RayExecutor(Executor):
+    """Build tasks as Ray tasks. ``gpus``: let tasks that can use a GPU ask for one where the
+    cluster has GPUs (False: CPU only, e.g. ``--device cpu``). At most ``max_in_flight`` tasks are
+    submitted at a time (default: 2 per CPU of the cluster), so the image bytes and patches waiting
+    in the object store stay bounded."""
+
+    name = "ray"
+
+    def __init__(self, address: str = "auto", cpus_per_task: float = 1, gpus: bool = True, max_retries: int = 3,
+                 max_in_flight: int | None = None):
+        if cpus_per_task <= 0:
+            raise InputError(f"cpus per Ray task must be > 0, not {cpus_per_task}")
+        if max_retries < 0:
+            raise InputError(f"Ray task retries must be >= 0, not {max_retries}")
+        ray = self.ray = import_ray()
+        self.address = address
+        self._owns = not ray.is_initialized()
+        if self._owns:
+            kw = dict(include_dashboard=False, logging_level="WARNING", log_to_driver=False)
+            try:
+                if address == "local":
+                    ray.init(address="local", **kw)
+                elif address == "auto":
+                    ray.init(**kw)  # RAY_ADDRESS / a cluster started on this machine, else a local instance
+                else:
+                    ray.init(address=address, **{k: v for k, v in kw.items() if k != "include_dashboard"})
+            except (ConnectionError, RuntimeError, ValueError, TimeoutError) as e:
+                raise FavormapError(f"cannot connect to the Ray cluster at {address!r}: {_first_line(e)}") from None
+        res = ray.cluster_resources()
+        self.cluster_cpus = float(res.get("CPU", 0))
+        self.cluster_gpus = float(res.get("GPU", 0))
+        if self.cluster_cpus < cpus_per_task:
+            raise FavormapError(f"the Ray cluster has {self.cluster_cpus:g} CPUs, fewer than one task needs ({cpus_per_task:g})")
+        self.cpus_per_task = cpus_per_task
+        self.use_gpus = bool(gpus) and self.cluster_gpus >= 1
+        self.max_retries = int(max_retries)
+        self.max_in_flight = max_in_flight or max(2, int(2 * self.cluster_cpus / cpus_per_task))
+        self._remote = ray.remote(_run)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "address": self.address, "nodes": len([n for n in self.ray.nodes() if n.get("Alive")]),
+                "cpus": self.cluster_cpus, "gpus": self.cluster_gpus, "cpus_per_task": self.cpus_per_task,
+                "gpu_tasks": self.use_gpus}
+
+    def map(self, fn, tasks, total, gpu=False, progress=None):
+        ray = self.ray
+        use_gpu = gpu and self.use_gpus
+        remote = self._remote.options(num_cpus=self.cpus_per_task, num_gpus=1 if use_gpu else 0,
+                                      max_retries=self.max_retries, retry_exceptions=False,
+                                      name=f"favormap.{fn.__name__}")
+        refs, index = [], {}
+        pending: deque = deque()
+        results: list = [None] * total
+        done = 0
+        it = iter(tasks)
+        try:
+            while True:
+                while len(pending) < self.max_in_flight:
+                    t = next(it, None)
+                    if t is None:
+                        break
+                    ref = remote.remote(fn, t, use_gpu)
+                    index[ref] = len(refs)
+                    refs.append(ref)
+                    pending.append(ref)
+                if not pending:
+                    break
+                ready, rest = ray.wait(list(pending), num_returns=1)
+                pending = deque(rest)
+                for ref in ready:
+                    results[index.pop(ref)] = ray.get(ref)
+                    done += 1
+                    if progress:
+                        progress(done)
+        except BaseException as e:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise _translate(e, fn.__name__, self.max_retries) from None
+        if len(refs) != total:
+            raise FavormapError(f"internal: {len(refs)} Ray tasks for {total} expected")
+        return results
+
+    def close(self) -> None:
+        if self._owns and self.ray.is_initialized():
+            self.ray.shutdown()
+        self._owns = False
+
+
+def _first_line(e: BaseException) -> str:
+    s = str(e).strip()
+    return s.splitlines()[0] if s else type(e).__name__
+
+
+def _translate(e: BaseException, what: str, retries: int) -> BaseException:
+    """A Ray failure as the build's own error (one line), the task's own errors unchanged."""
+    from ray import exceptions as rex
+
+    if isinstance(e, rex.RayTaskError):
+        cause = getattr(e, "cause", None)
+        if isinstance(cause, FavormapError):
+            return cause
+        return FavormapError(f"Ray task {what} failed: {_first_line(cause) if cause else _first_line(e)}")
+    if isinstance(e, (rex.WorkerCrashedError, rex.NodeDiedError, rex.ObjectLostError, rex.OwnerDiedError)):
+        return FavormapError(f"a Ray worker running {what} died and the task failed after {retries} retries "
+                             f"({type(e).__name__})")
+    if isinstance(e, rex.RayError):
+        return FavormapError(f"Ray failed running {what}: {_first_line(e)}")
+    return e
