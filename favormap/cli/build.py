@@ -102,7 +102,10 @@ def run(args) -> int:
         seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
     executor = None
     if args.ray is not None:
+        from ..build import check_build_input
         from ..distributed import RayExecutor
+
+        check_build_input(seq, config)  # before a cluster is started or joined
 
         if args.ray_retries < 0:
             raise InputError("--ray-retries must be >= 0")
