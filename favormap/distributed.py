@@ -21,8 +21,11 @@ the same up to floating-point noise (training batches are seeded per batch, not 
 
 from __future__ import annotations
 
+import hashlib
 import os
+import socket
 from collections import deque
+from functools import lru_cache
 
 from .errors import FavormapError, InputError
 from .executor import Executor
@@ -48,10 +51,32 @@ def _set_threads(n: int) -> None:
     cv2.setNumThreads(max(1, n))
 
 
-def _run(fn, task, use_gpu: bool):
-    """Body of every Ray task: threads and device from the resources Ray assigned to this task."""
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+@lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """Hash of favormap's Python sources (driver and workers must run the same code)."""
+    h = hashlib.sha1()
+    for root, dirs, files in sorted(os.walk(_PACKAGE_DIR)):
+        dirs.sort()
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(root, name)
+                h.update(os.path.relpath(path, _PACKAGE_DIR).encode())
+                with open(path, "rb") as f:
+                    h.update(f.read())
+    return h.hexdigest()
+
+
+def _run(fn, task, use_gpu: bool, fingerprint: str):
+    """Body of every Ray task: same code as the driver's, threads and device from the resources Ray
+    assigned to this task."""
     import ray
 
+    if code_fingerprint() != fingerprint:
+        raise FavormapError(f"a Ray worker on {socket.gethostname()} runs other favormap code ({_PACKAGE_DIR}) than "
+                            "this driver: install the same favormap version on every machine")
     res = ray.get_runtime_context().get_assigned_resources()
     _set_threads(int(res.get("CPU", 1)))
     device = "cuda" if use_gpu and ray.get_gpu_ids() else "cpu"
@@ -62,12 +87,14 @@ class RayExecutor(Executor):
     """Build tasks as Ray tasks. ``gpus``: let tasks that can use a GPU ask for one where the
     cluster has GPUs (False: CPU only, e.g. ``--device cpu``). At most ``max_in_flight`` tasks are
     submitted at a time (default: 2 per CPU of the cluster), so the image bytes and patches waiting
-    in the object store stay bounded."""
+    in the object store stay bounded. ``num_cpus``: CPUs of a local instance this starts (default:
+    every core). An executor that starts or joins Ray shuts its connection down on :meth:`close`;
+    one created where Ray is already initialised uses that connection and leaves it open."""
 
     name = "ray"
 
     def __init__(self, address: str = "auto", cpus_per_task: float = 1, gpus: bool = True, max_retries: int = 3,
-                 max_in_flight: int | None = None):
+                 max_in_flight: int | None = None, num_cpus: int | None = None):
         if cpus_per_task <= 0:
             raise InputError(f"cpus per Ray task must be > 0, not {cpus_per_task}")
         if max_retries < 0:
@@ -75,17 +102,29 @@ class RayExecutor(Executor):
         ray = self.ray = import_ray()
         self.address = address
         self._owns = not ray.is_initialized()
+        self.context = None  # what ray.init returned, when this executor started or joined Ray
         if self._owns:
-            kw = dict(include_dashboard=False, logging_level="WARNING", log_to_driver=False)
-            try:
-                if address == "local":
-                    ray.init(address="local", **kw)
-                elif address == "auto":
-                    ray.init(**kw)  # RAY_ADDRESS / a cluster started on this machine, else a local instance
+            # the driver's favormap code goes to the workers with the job (Ray caches it by content),
+            # so worker machines need favormap's dependencies, not favormap itself
+            kw = dict(include_dashboard=False, logging_level="WARNING", log_to_driver=False,
+                      runtime_env={"py_modules": [_PACKAGE_DIR], "excludes": ["__pycache__/"]})
+            if address not in ("auto", "local"):
+                kw.pop("include_dashboard")  # a setting of the cluster, not of a driver joining it
+            elif num_cpus is not None:
+                kw["num_cpus"] = int(num_cpus)
+            # Ray's C++ client logs every failed connection attempt on stderr: keep that for the message
+            with _captured_stderr() as log:
+                try:
+                    self.context = ray.init(**({} if address == "auto" else {"address": address}), **kw)
+                except (ConnectionError, RuntimeError, ValueError, TimeoutError) as e:
+                    err = e
                 else:
-                    ray.init(address=address, **{k: v for k, v in kw.items() if k != "include_dashboard"})
-            except (ConnectionError, RuntimeError, ValueError, TimeoutError) as e:
-                raise FavormapError(f"cannot connect to the Ray cluster at {address!r}: {_first_line(e)}") from None
+                    err = None
+            if err is not None:
+                hint = ""
+                if "InvalidAuthToken" in log.text:
+                    hint = " (the cluster refused this machine's token: set RAY_AUTH_MODE=token and the cluster's RAY_AUTH_TOKEN)"
+                raise FavormapError(f"cannot connect to the Ray cluster at {address!r}: {_first_line(err)}{hint}") from None
         res = ray.cluster_resources()
         self.cluster_cpus = float(res.get("CPU", 0))
         self.cluster_gpus = float(res.get("GPU", 0))
@@ -95,6 +134,7 @@ class RayExecutor(Executor):
         self.use_gpus = bool(gpus) and self.cluster_gpus >= 1
         self.max_retries = int(max_retries)
         self.max_in_flight = max_in_flight or max(2, int(2 * self.cluster_cpus / cpus_per_task))
+        self._fingerprint = code_fingerprint()
         self._remote = ray.remote(_run)
 
     def describe(self) -> dict:
@@ -119,7 +159,7 @@ class RayExecutor(Executor):
                     t = next(it, None)
                     if t is None:
                         break
-                    ref = remote.remote(fn, t, use_gpu)
+                    ref = remote.remote(fn, t, use_gpu, self._fingerprint)
                     index[ref] = len(refs)
                     refs.append(ref)
                     pending.append(ref)
@@ -144,6 +184,32 @@ class RayExecutor(Executor):
         if self._owns and self.ray.is_initialized():
             self.ray.shutdown()
         self._owns = False
+
+
+class _captured_stderr:
+    """File descriptor 2 into a temporary file while in the block (C++ logging included); ``text``
+    holds what was written."""
+
+    def __enter__(self):
+        import sys
+        import tempfile
+
+        sys.stderr.flush()
+        self._tmp = tempfile.TemporaryFile()
+        self._saved = os.dup(2)
+        os.dup2(self._tmp.fileno(), 2)
+        self.text = ""
+        return self
+
+    def __exit__(self, *exc):
+        import sys
+
+        sys.stderr.flush()
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._tmp.seek(0)
+        self.text = self._tmp.read().decode(errors="replace")
+        self._tmp.close()
 
 
 def _first_line(e: BaseException) -> str:

@@ -22,12 +22,18 @@ CFG = dict(iterations=30, max_landmarks=150, train_batch=50)  # 3 training batch
 
 @pytest.fixture(scope="module")
 def ray_two_workers():
-    """A local Ray instance with two CPU slots (two worker processes run tasks at a time)."""
+    """A local Ray instance with two CPU slots (two worker processes run tasks at a time), started
+    the way ``favormap build --ray local`` starts one (``ray.init(num_cpus=2)``, no dashboard, no usage
+    statistics, the driver's favormap code shipped to the workers)."""
+    from favormap.distributed import RayExecutor
+
     if ray.is_initialized():
         ray.shutdown()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
-    yield
-    ray.shutdown()
+    with RayExecutor("local", num_cpus=2) as ex:
+        assert ex.context is not None and not ex.context.dashboard_url  # no dashboard
+        assert os.environ["RAY_USAGE_STATS_ENABLED"] == "0"
+        yield ex
+    assert not ray.is_initialized()
 
 
 @pytest.fixture(scope="module")
@@ -141,3 +147,14 @@ def test_ray_task_error_is_one_clear_error(ray_two_workers, small_sequence, tmp_
     seq.frames[3].image_path.write_bytes(b"not an image")
     with RayExecutor("auto") as ex, pytest.raises(InputError, match="not a readable image"):
         build_map(seq, small_build_config(**CFG), executor=ex)
+
+
+def test_ray_worker_with_other_code_is_refused(ray_two_workers, small_sequence):
+    """Workers must run the driver's favormap: a task seeing other code fails with one clear error."""
+    from favormap.build import build_map
+    from favormap.distributed import RayExecutor
+    from favormap.errors import FavormapError
+
+    with RayExecutor("auto") as ex, pytest.raises(FavormapError, match="runs other favormap code"):
+        ex._fingerprint = "0" * 40  # as if the driver ran another version
+        build_map(small_sequence, small_build_config(**CFG), executor=ex)
