@@ -116,7 +116,7 @@ class RayExecutor(Executor):
             with _captured_stderr() as log:
                 try:
                     self.context = ray.init(**({} if address == "auto" else {"address": address}), **kw)
-                except (ConnectionError, RuntimeError, ValueError, TimeoutError) as e:
+                except Exception as e:  # noqa: BLE001 - Ray raises plain Exceptions too (e.g. a node start-up timeout)
                     err = e
                 else:
                     err = None
@@ -124,7 +124,8 @@ class RayExecutor(Executor):
                 hint = ""
                 if "InvalidAuthToken" in log.text:
                     hint = " (the cluster refused this machine's token: set RAY_AUTH_MODE=token and the cluster's RAY_AUTH_TOKEN)"
-                raise FavormapError(f"cannot connect to the Ray cluster at {address!r}: {_first_line(err)}{hint}") from None
+                what = "start a local Ray instance" if address == "local" else f"connect to the Ray cluster at {address!r}"
+                raise FavormapError(f"cannot {what}: {_first_line(err)}{hint}") from None
         res = ray.cluster_resources()
         self.cluster_cpus = float(res.get("CPU", 0))
         self.cluster_gpus = float(res.get("GPU", 0))
