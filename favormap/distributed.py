@@ -44,11 +44,10 @@ def import_ray():
 
 
 def _set_threads(n: int) -> None:
-    import cv2
-    import torch
+    """torch/OpenCV pools of this worker = the CPUs Ray gave the task (an explicit count: see favormap.threads)."""
+    from .threads import configure_threads
 
-    torch.set_num_threads(max(1, n))
-    cv2.setNumThreads(max(1, n))
+    configure_threads(max(1, n))
 
 
 _PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
