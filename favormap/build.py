@@ -109,7 +109,7 @@ class ExtractorSpec:
     @property
     def uses_device(self) -> bool:
         """Whether the extractor runs on a torch device (a GPU helps)."""
-        return self.name in ("xfeat",)
+        return self.name in ("xfeat", "disk")
 
 
 @lru_cache(maxsize=8)
