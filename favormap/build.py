@@ -22,7 +22,7 @@ from .features import Extractor, Features, patch_offsets
 from .geometry import camera_centers
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
-from .mapfile.model import MapData, new_landmark_ids
+from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, triangulate
@@ -378,7 +378,9 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
         "triangulated": int(len(all_lms)),
         "landmarks": int(len(lms)),
         "mean_track_length": float(lms.tracks.lengths.mean()),
-        "median_reproj_error_px": float(np.median(lms.reproj_errors)),
+        # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean
+        # reprojection error over its observations, as stored (float32) in landmarks/reproj_error
+        "median_reproj_error_px": median_landmark_reproj_error(lms.mean_reproj_error.astype(np.float32)),
         "median_psnr": float(np.median(grids.psnr)),
         "median_cosine": float(np.median(grids.cosine)),
     }

@@ -1,6 +1,13 @@
 """The project's error types. Every failure a user can cause ends in one of these."""
 
 
+def first_line(e: BaseException) -> str:
+    """The first line of an exception's message (its type name when the message is empty): for
+    one-line error reports of foreign exceptions (h5py, trimesh, rerun, ...)."""
+    s = str(e).strip()
+    return s.splitlines()[0] if s else type(e).__name__
+
+
 class FavormapError(Exception):
     """Base class: the CLI prints ``favormap: error: <message>`` and exits non-zero."""
 

@@ -118,3 +118,27 @@ def test_a_file_is_named_as_given_not_as_its_folder(tiny_seq, capsys, no_image_r
 def test_the_descriptor_file_may_stand_for_its_folder(tiny_seq, monkeypatch):
     seq = read_sequence(tiny_seq / "sequence.json")
     assert seq.root == tiny_seq and len(seq) == 2
+
+
+def test_build_with_a_truncated_image_names_the_file(tiny_seq, tmp_path):
+    """A corrupt or truncated image stops build with exit 1 and one line naming it; no decoder
+    warning (libjpeg/libpng write to the C stderr) reaches the terminal."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import cv2
+
+    img = tiny_seq / "images" / "1.jpg"
+    ok, buf = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (8, 8, 3), dtype=np.uint8))
+    img.write_bytes(buf.tobytes()[: len(buf) // 2])
+    data = json.loads((tiny_seq / "sequence.json").read_text())
+    data["frames"][1]["image"] = "images/1.jpg"
+    (tiny_seq / "sequence.json").write_text(json.dumps(data))
+    r = subprocess.run([sys.executable, "-m", "favormap", "build", str(tiny_seq), "-o", str(tmp_path / "m.h5"), "-q"],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "RERUN_ANALYTICS": "false"})
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(img) in lines[0] and "truncated JPEG" in lines[0], r.stderr
+    assert not (tmp_path / "m.h5").exists()

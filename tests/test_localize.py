@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,12 +237,19 @@ def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tm
         assert pose_error(est, truth[name])[0] < 0.01
 
 
-def test_demo_runs_end_to_end(tmp_path, capsys):
-    """`favormap demo` (small): renders, builds, localizes held-out frames and prints both methods."""
+def test_demo_runs_end_to_end(tmp_path, capsys, monkeypatch):
+    """`favormap demo` (small): renders, builds, localizes held-out frames and prints both methods;
+    its work folder (default ./favormap-demo) is kept, so every path it prints exists afterwards."""
+    import re
+
     from favormap.cli import main
 
-    assert main(["demo", "--workdir", str(tmp_path), "--frames", "12", "--width", "320", "--height", "240",
-                 "--iterations", "30", "-q"]) == 0
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--frames", "12", "--width", "320", "--height", "240", "--iterations", "30", "-q"]) == 0
     out = capsys.readouterr().out
     assert "rendered:" in out and "mean:" in out and "false successes" in out
-    assert (tmp_path / "room.h5").exists()
+    assert (tmp_path / "favormap-demo" / "room.h5").exists()
+    printed = re.findall(r"(\S*favormap-demo\S*?)(?:[,)\s]|$)", out)
+    assert printed
+    for p in printed:
+        assert (tmp_path / p).exists() or Path(p).exists(), p

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
-from .common import StageBars, auto_device, human_size, print_json
+from .common import StageBars, auto_device, human_size, print_json, reproj_error_line
 
 
 def register(sub):
@@ -76,7 +76,7 @@ def print_summary(s: dict) -> None:
     print(f"tracks              {s['tracks']}")
     print(f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']})")
     print(f"mean track length   {s['mean_track_length']:.2f}")
-    print(f"median reproj error {s['median_reproj_error_px']:.3f} px")
+    print(reproj_error_line(s["median_reproj_error_px"]))
     print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
     print(f"file                {s['file']}  ({human_size(s['file_size'])})")
     print("seconds per stage   " + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items()) + f"  (total {s['total_seconds']:.1f})")

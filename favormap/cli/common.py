@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import sys
 
-import numpy as np
-
 
 def auto_device(name: str | None) -> str:
     import torch
@@ -21,6 +19,8 @@ def auto_device(name: str | None) -> str:
 
 
 def print_json(obj) -> None:
+    import numpy as np
+
     def default(o):
         if isinstance(o, np.generic):
             return o.item()
@@ -65,3 +65,8 @@ class StageBars:
         for b in self.bars.values():
             b.close()
         self.bars = {}
+
+
+def reproj_error_line(px: float) -> str:
+    """The one wording of the map's reprojection-error figure (build summary and info)."""
+    return f"median reproj error {px:.3f} px  (per landmark: mean over its observations)"

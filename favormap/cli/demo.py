@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
 from ..threads import add_threads_arg
@@ -14,7 +13,8 @@ def register(sub):
                        description="Render a textured synthetic room along a camera path (Open3D raycasting), build a "
                                    "map from 4 of every 5 frames, then localize the held-out frames from priors "
                                    "perturbed by --noise and print the errors.")
-    p.add_argument("--workdir", help="keep the sequence and map here (default: a temporary folder)")
+    p.add_argument("--workdir", default="favormap-demo",
+                   help="where the rendered sequence and the map are written and kept (default ./favormap-demo)")
     p.add_argument("--frames", type=int, default=30, help="frames rendered (default 30)")
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
@@ -42,39 +42,29 @@ def run(args) -> int:
         raise InputError("--frames must be >= 10")
     noise = parse_noise(args.noise)
     device = auto_device(args.device)
-    tmp = None
-    if args.workdir:
-        work = Path(args.workdir)
-        work.mkdir(parents=True, exist_ok=True)
-    else:
-        tmp = tempfile.TemporaryDirectory(prefix="favormap-demo-")
-        work = Path(tmp.name)
+    work = Path(args.workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"rendering a synthetic room: {args.frames} frames {args.width}x{args.height} -> {work / 'room'}")
+    seq = write_sequence(work / "room", n_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+    held = [i for i in range(len(seq)) if i % 5 == 2]
+    train = [i for i in range(len(seq)) if i % 5 != 2]
+    cfg = BuildConfig(voxel=VoxelConfig(iterations=args.iterations, device=device))
+    bars = StageBars(args.quiet)
     try:
-        print(f"rendering a synthetic room: {args.frames} frames {args.width}x{args.height} -> {work / 'room'}")
-        seq = write_sequence(work / "room", n_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
-        held = [i for i in range(len(seq)) if i % 5 == 2]
-        train = [i for i in range(len(seq)) if i % 5 != 2]
-        cfg = BuildConfig(voxel=VoxelConfig(iterations=args.iterations, device=device))
-        bars = StageBars(args.quiet)
-        try:
-            m = build_map(seq.subset(train), cfg, progress=bars)
-        finally:
-            bars.close()
-        path = work / "room.h5"
-        write_map(m, path)
-        print(f"\nmap built from {len(train)} frames:")
-        print_summary(summary(m, path))
-        print(f"\nlocalizing {len(held)} held-out frames from priors moved by {noise[0]} units / {noise[1]} deg:")
-        locs = {name: Localizer(path, LocalizeConfig(device=device, descriptors=name)) for name in ("rendered", "mean")}
-        try:
-            reports = evaluate(locs, seq.subset(held), EvalConfig(noise=noise, seed=args.seed))
-        finally:
-            for loc in locs.values():
-                loc.close()
-        print(format_table(reports))
-        if args.workdir:
-            print(f"\nsequence: {work / 'room'}  map: {path}")
+        m = build_map(seq.subset(train), cfg, progress=bars)
     finally:
-        if tmp is not None:
-            tmp.cleanup()
+        bars.close()
+    path = work / "room.h5"
+    write_map(m, path)
+    print(f"\nmap built from {len(train)} frames:")
+    print_summary(summary(m, path))
+    print(f"\nlocalizing {len(held)} held-out frames from priors moved by {noise[0]} units / {noise[1]} deg:")
+    locs = {name: Localizer(path, LocalizeConfig(device=device, descriptors=name)) for name in ("rendered", "mean")}
+    try:
+        reports = evaluate(locs, seq.subset(held), EvalConfig(noise=noise, seed=args.seed))
+    finally:
+        for loc in locs.values():
+            loc.close()
+    print(format_table(reports))
+    print(f"\nkept: sequence {work / 'room'}, map {path}  (try: favormap info {path})")
     return 0

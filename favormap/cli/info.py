@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .common import human_size, print_json
+from .common import human_size, print_json, reproj_error_line
 
 
 def register(sub):
@@ -27,7 +27,7 @@ def run(args) -> int:
     print(f"grid / patch        R={info['grid_resolution']} / S={info['patch_size']}  (render samples {info['render_samples']}, images max side {info['max_side']})")
     if info["num_landmarks"]:
         print(f"mean track length   {info['mean_track_length']:.2f}")
-        print(f"median reproj error {info['median_reproj_error_px']:.3f} px")
+        print(reproj_error_line(info["median_reproj_error_px"]))
         print(f"median PSNR         {info['median_psnr']:.2f} dB")
         lo, hi = info["bbox"]
         print("bounding box        " + " .. ".join("(" + ", ".join(f"{v:.3f}" for v in c) + ")" for c in (lo, hi)))

@@ -5,8 +5,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
 from .common import auto_device, print_json
@@ -72,8 +70,10 @@ def config_from_args(args):
                           threads=getattr(args, "threads", None))
 
 
-def read_priors(path: Path) -> dict[str, np.ndarray]:
+def read_priors(path: Path) -> dict:
     """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world."""
+    import numpy as np
+
     from ..errors import InputError
     from ..geometry import inverse
     from ..io.posefile import parse_pose
@@ -170,7 +170,7 @@ def run(args) -> int:
 
 
 def print_result(name: str, res) -> None:
-    from ..geometry import camera_centers, rotmat_to_quat
+    from ..geometry import camera_centers, inverse, rotmat_to_quat
 
     T = res.cam_from_world
     status = "localized" if res.success else f"NOT localized: {res.message}"
@@ -178,8 +178,9 @@ def print_result(name: str, res) -> None:
     for k, it in enumerate(res.iterations, 1):
         c = camera_centers(it.cam_from_world)
         print(f"  iter {k}: visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
-              f"centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f})")
+              f"camera centre in world ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) scene units")
     if res.success:
-        q = rotmat_to_quat(T[:3, :3])
-        print(f"  cam_from_world: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t ({', '.join(f'{v:.6f}' for v in T[:3, 3])})")
+        for label, P in (("cam_from_world", T), ("world_from_cam", inverse(T))):
+            q = rotmat_to_quat(P[:3, :3])
+            print(f"  {label}: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t ({', '.join(f'{v:.6f}' for v in P[:3, 3])}) scene units")
     print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))

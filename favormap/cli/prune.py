@@ -9,10 +9,6 @@ from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
 from .common import StageBars, human_size, print_json
 
-_LABELS = {"min_track": "track shorter than --min-track", "min_quality": "PSNR below --min-quality",
-           "bbox": "outside --bbox", "budget": "over --max-landmarks (spatially even selection)"}
-
-
 def register(sub):
     p = sub.add_parser("prune", help="drop landmarks by track length, quality, region or to a budget",
                        description="Write a smaller map: drop landmarks with short tracks, low training PSNR or outside a "
@@ -34,7 +30,7 @@ def register(sub):
 
 def run(args) -> int:
     from ..errors import InputError
-    from ..ops.prune import parse_bbox, prune_map
+    from ..ops.prune import parse_bbox, prune_map, reason_text
 
     if args.max_landmarks is not None and args.max_landmarks < 1:
         raise InputError(f"--max-landmarks must be >= 1, got {args.max_landmarks}")
@@ -57,7 +53,8 @@ def run(args) -> int:
         return 0
     print(f"kept                {res.num_after} of {res.num_before} landmarks")
     for k, v in res.removed.items():
-        extra = f"  (grid cell {res.cell_size:.4g})" if k == "budget" and res.cell_size else ""
-        print(f"removed {v:>7}     {_LABELS[k]}" + (f"  [{res.failing[k]} fail it in all]" if res.failing.get(k, v) != v else "") + extra)
+        also = res.failing.get(k, v) - v
+        print(f"removed {v:>7}     {reason_text(k, res)}"
+              + (f"  ({also} more fail this test but were already removed above)" if also else ""))
     print(f"file                {args.output}  ({human_size(d['file_size'])})")
     return 0

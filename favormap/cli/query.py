@@ -41,7 +41,7 @@ def _load_mesh(path):
 
     import trimesh
 
-    from ..errors import InputError
+    from ..errors import InputError, first_line
 
     path = Path(path)
     if not path.is_file():
@@ -49,7 +49,7 @@ def _load_mesh(path):
     try:
         mesh = trimesh.load(str(path), force="mesh")
     except Exception as e:  # noqa: BLE001 - trimesh raises many types
-        raise InputError(f"cannot read mesh {path}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
+        raise InputError(f"cannot read mesh {path}: {type(e).__name__}: {first_line(e)}") from None
     if len(getattr(mesh, "faces", [])) == 0:
         raise InputError(f"mesh {path} has no triangles")
     return mesh
@@ -103,16 +103,18 @@ def _print_human(res, d, positions, quality, limit):
         print(f"visible             {d['num_visible']} of {d['num_landmarks']} landmarks")
         print(f"in frustum          {d['num_in_frustum']}  (within trained depth/angle: {d['num_view_ok']}, occluded: {d['num_occluded']})")
         c = res.camera
-        print(f"camera              {c.model} {c.width}x{c.height}  centre (" + ", ".join(f"{v:.3f}" for v in res.camera_center) + ")")
+        print(f"camera              {c.model} {c.width}x{c.height}  centre in world (" + ", ".join(f"{v:.3f}" for v in res.camera_center)
+              + ") scene units")
         dist = np.linalg.norm(positions - res.camera_center, axis=1)
     else:
         print(f"found               {d['count']} of {d['num_landmarks']} landmarks")
         dist = res.distances
     n = len(res.rows) if limit <= 0 else min(limit, len(res.rows))
     if n:
-        print(f"{'id':>20} {'row':>8} {'x':>9} {'y':>9} {'z':>9} {'dist':>8} {'psnr':>6}")
+        print("positions and distances in scene units, training PSNR in dB")
+        print(f"{'id':>20} {'row':>8} {'x':>9} {'y':>9} {'z':>9} {'dist':>8} {'PSNR dB':>7}")
         for i in range(n):
             x, y, z = positions[i]
-            print(f"{int(res.ids[i]):>20} {int(res.rows[i]):>8} {x:9.3f} {y:9.3f} {z:9.3f} {dist[i]:8.3f} {quality[i]:6.1f}")
+            print(f"{int(res.ids[i]):>20} {int(res.rows[i]):>8} {x:9.3f} {y:9.3f} {z:9.3f} {dist[i]:8.3f} {quality[i]:7.1f}")
         if n < len(res.rows):
             print(f"... {len(res.rows) - n} more (--limit 0 lists all, --json prints every id)")

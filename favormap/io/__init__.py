@@ -5,9 +5,20 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import SequenceError
-from .images import load_image, prepare_image, read_rgb, working_camera
 from .readers import READERS
 from .types import Camera, Frame, Sequence
+
+_IMAGES = ("load_image", "prepare_image", "read_rgb", "working_camera")
+
+
+def __getattr__(name):
+    # the image functions need OpenCV: imported on first use, so that commands that only read maps
+    # (info, validate, query) do not pay for it
+    if name in _IMAGES:
+        from . import images
+
+        return getattr(images, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["Camera", "Frame", "Sequence", "read_sequence", "detect_format", "load_image", "prepare_image",
            "read_rgb", "working_camera", "READERS"]

@@ -203,3 +203,109 @@ def read_camera(spec) -> Camera:
     if not lines:
         raise InputError(f"camera {source}: no camera found")
     return _camera_from_tokens(lines[0].split(), source)
+
+
+# -- converting poses from other tools into a prior -------------------------------------------------
+POSE_SOURCES = ("world_from_cam", "cam_from_world", "opengl", "nerf", "colmap", "tum", "7scenes")  # see `favormap pose --help`
+
+
+def _text_of(source: str) -> tuple[str, str]:
+    """(text, label): the file's text when ``source`` names a file, else ``source`` itself."""
+    p = Path(source)
+    if len(source) < 4096 and "\n" not in source and p.is_file():
+        try:
+            return p.read_text(), str(p)
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(f"cannot read {p}: {e}") from None
+    return source, "<argument>"
+
+
+def _rigid(R, t, label) -> np.ndarray:
+    dev = geometry.rotation_deviation(R)
+    if not dev <= _ROT_TOL:
+        raise InputError(f"{label}: the rotation is not a rotation (max |R^T R - I| = {dev:.1e} > {_ROT_TOL:.0e})")
+    T = np.eye(4)
+    T[:3, :3] = geometry.nearest_rotation(R)
+    T[:3, 3] = t
+    return T
+
+
+def _quat(q_xyzw, label) -> np.ndarray:
+    q = np.asarray(q_xyzw, np.float64)
+    if not geometry.quaternion_deviation(q) <= _ROT_TOL:
+        raise InputError(f"{label}: not a unit quaternion (norm {np.linalg.norm(q):.6g})")
+    return geometry.quat_to_rotmat(q / np.linalg.norm(q))
+
+
+def _numbers(text: str, label: str) -> np.ndarray:
+    tokens = " ".join(ln.split("#", 1)[0].replace(",", " ") for ln in text.splitlines()).split()
+    try:
+        return np.array([float(t) for t in tokens])
+    except ValueError:
+        raise InputError(f"{label}: expected numbers only") from None
+
+
+def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
+    """cam_from_world (4x4, OpenCV axes) of a pose given in another tool's form (``POSE_SOURCES``,
+    described in :mod:`favormap.cli.pose`);
+    ``source`` is a file or the text itself. Write it as a prior with :func:`write_pose`."""
+    if kind not in POSE_SOURCES:
+        raise InputError(f"unknown pose source {kind!r} (known: {', '.join(POSE_SOURCES)})")
+    text, label = _text_of(source)
+    if kind in ("world_from_cam", "7scenes"):
+        vals = _numbers(text, label)
+        return geometry.inverse(parse_pose(vals, len([ln for ln in text.splitlines() if ln.strip()]), label))
+    if kind in ("cam_from_world", "opengl"):
+        vals = _numbers(text, label)
+        if len(vals) not in (12, 16):
+            raise InputError(f"{label}: expected a 4x4 (16 numbers) or 3x4 (12) matrix, found {len(vals)} numbers")
+        M = _matrix(vals, label, "pose")
+        T = _rigid(M[:3, :3], M[:3, 3], label)
+        if kind == "cam_from_world":
+            return T
+        return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(T))
+    if kind == "nerf":
+        if not name:
+            raise InputError("--name is needed with nerf: the file_path (or its file name) of the frame")
+        try:
+            frames = json.loads(text)["frames"]
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise InputError(f"{label}: not a transforms.json ({type(e).__name__}: {e})") from None
+        for fr in frames:
+            fp = str(fr.get("file_path", ""))
+            if name in (fp, Path(fp).name, Path(fp).stem, Path(fp).with_suffix("").as_posix()):
+                M = np.asarray(fr["transform_matrix"], np.float64)
+                M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
+                return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}")))
+        raise InputError(f"{label}: no frame with file_path {name!r}")
+    if kind == "colmap":
+        lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+        if name:  # images.txt: the first line of each image pair names the image last
+            lines = [t for t in lines if len(t) >= 10 and t[9] == name]
+            if not lines:
+                raise InputError(f"{label}: no image named {name!r}")
+        tok = lines[0] if lines else []
+        nums = tok[1:8] if len(tok) >= 10 else tok
+        vals = _numbers(" ".join(nums), label)
+        if len(vals) != 7:
+            raise InputError(f"{label}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' or 'QW QX QY QZ TX TY TZ'")
+        qw, qx, qy, qz, tx, ty, tz = vals
+        T = np.eye(4)
+        T[:3, :3] = _quat([qx, qy, qz, qw], label)
+        T[:3, 3] = [tx, ty, tz]
+        return T
+    # tum
+    rows = [_numbers(ln, label) for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if name is not None:
+        try:
+            t0 = float(name)
+        except ValueError:
+            raise InputError(f"--name for tum is a timestamp, got {name!r}") from None
+        rows = [r for r in rows if len(r) == 8]
+        if not rows:
+            raise InputError(f"{label}: no 'timestamp tx ty tz qx qy qz qw' line")
+        rows = [min(rows, key=lambda r: abs(r[0] - t0))]
+    if len(rows) != 1 or len(rows[0]) not in (7, 8):
+        raise InputError(f"{label}: expected one line 'timestamp tx ty tz qx qy qz qw' (or give the file and --name TIMESTAMP)")
+    v = rows[0][-7:]
+    return geometry.inverse(_rigid(_quat(v[3:], label), v[:3], label))

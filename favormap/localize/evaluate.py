@@ -208,8 +208,8 @@ def format_table(reports: list[EvalReport]) -> str:
         lines.append(f"{rep.method}: {s['localized']}/{s['queries']} localized, {s['false_successes']} false successes, "
                      f"median {_fmt(s['median_translation'], '.4f')} units / {_fmt(s['median_rotation_deg'], '.3f')} deg "
                      f"(p90 {_fmt(s['p90_translation'], '.4f')} units), {s['mean_time_s'] * 1000:.0f} ms/query")
-        lines.append(f"  {'iter':>4}  {'median t (units)':>16}  {'median R (deg)':>14}  {'mean inliers':>12}")
+        lines.append(f"  {'iter':>4}  {'median t (units)':>16}  {'median R (deg)':>14}  {'mean inliers (count)':>20}")
         for it in s["per_iteration"]:
-            lines.append(f"  {it['iteration']:>4}  {it['median_translation']:>16.4f}  {it['median_rotation_deg']:>14.3f}  {it['mean_inliers']:>12.1f}")
+            lines.append(f"  {it['iteration']:>4}  {it['median_translation']:>16.4f}  {it['median_rotation_deg']:>14.3f}  {it['mean_inliers']:>20.1f}")
         lines.append("  recall (units/deg): " + ", ".join(f"({k}) {100 * v:.1f} %" for k, v in s["recall"].items()))
     return "\n".join(lines)

@@ -25,6 +25,13 @@ def new_landmark_ids(n: int, avoid: np.ndarray | None = None) -> np.ndarray:
     return ids[:n]
 
 
+def median_landmark_reproj_error(reproj_error) -> float | None:
+    """The map's reprojection-error figure, one definition for build's summary and ``info``: the
+    median over landmarks of each landmark's mean reprojection error over its observations (px)."""
+    e = np.asarray(reproj_error)
+    return float(np.median(e)) if e.size else None
+
+
 @dataclass
 class MapData:
     extractor: str

@@ -10,18 +10,15 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import FavormapError, MapFormatError
+from ..errors import FavormapError, MapFormatError, first_line
 from ..io import Camera
-from .model import MapData
+from .model import MapData, median_landmark_reproj_error
 from .schema import FORMAT, check_structure, check_values, open_view
 
 _LANDMARK_ARRAYS = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine",
                     "view_dir", "view_angle", "depth_range")
 
 
-def _first_line(e: BaseException) -> str:
-    s = str(e).strip()
-    return s.splitlines()[0] if s else type(e).__name__
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -38,7 +35,7 @@ def _open_h5(path: Path) -> h5py.File:
     except Exception as e:  # noqa: BLE001 - OSError mostly; anything from a hostile file
         if isinstance(e, OSError) and "truncated" in str(e):
             raise MapFormatError(f"{path} is not a complete favormap map (truncated HDF5 file)") from None
-        raise MapFormatError(f"{path} is not a favormap map (not a readable HDF5 file: {_first_line(e)})") from None
+        raise MapFormatError(f"{path} is not a favormap map (not a readable HDF5 file: {first_line(e)})") from None
 
 
 @contextmanager
@@ -49,9 +46,9 @@ def _guard(path: Path, what: str):
     except FavormapError:
         raise
     except OSError as e:
-        raise MapFormatError(f"{path}: {what} is corrupted (checksum or read error: {_first_line(e)})") from None
+        raise MapFormatError(f"{path}: {what} is corrupted (checksum or read error: {first_line(e)})") from None
     except Exception as e:  # noqa: BLE001 - h5py/numpy raise KeyError, ValueError, RuntimeError, ... on damage
-        raise MapFormatError(f"{path}: {what} is corrupted ({type(e).__name__}: {_first_line(e)})") from None
+        raise MapFormatError(f"{path}: {what} is corrupted ({type(e).__name__}: {first_line(e)})") from None
 
 
 def _strings(a) -> list[str]:
@@ -118,7 +115,7 @@ class Map:
             self.close()
             if isinstance(e, FavormapError) or not isinstance(e, Exception):
                 raise
-            raise MapFormatError(f"{self.path} is corrupted: {type(e).__name__}: {_first_line(e)}") from None
+            raise MapFormatError(f"{self.path} is corrupted: {type(e).__name__}: {first_line(e)}") from None
         self._index = None
 
     def _ds(self, path: str):
@@ -184,7 +181,7 @@ class Map:
             "max_side": self.max_side,
             "file_size": self.file_size,
             "mean_track_length": float(np.mean(self.track_length)) if len(self) else 0.0,
-            "median_reproj_error_px": float(np.median(self.reproj_error)) if len(self) else None,
+            "median_reproj_error_px": median_landmark_reproj_error(self.reproj_error),
             "median_psnr": float(np.median(self.quality)) if len(self) else None,
             "bbox": [self.positions.min(0).tolist(), self.positions.max(0).tolist()] if len(self) else None,
             "build_stats": st,

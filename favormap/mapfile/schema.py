@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import MapFormatError
+from ..errors import MapFormatError, first_line
 
 FORMAT = "favormap-map"
 FORMAT_VERSION = 1
@@ -58,9 +58,6 @@ def numpy_dtype(name: str):
     return h5py.string_dtype() if name == "str" else np.dtype(name)
 
 
-def _first_line(e: BaseException) -> str:
-    s = str(e).strip()
-    return s.splitlines()[0] if s else type(e).__name__
 
 
 # -- header -----------------------------------------------------------------------------------------
@@ -119,7 +116,7 @@ class MapView:
             try:
                 obj = f.get(p)
             except Exception as e:  # noqa: BLE001 - h5py raises many types on broken links/headers
-                datasets[p] = f"cannot be opened ({_first_line(e)})"
+                datasets[p] = f"cannot be opened ({first_line(e)})"
                 continue
             if obj is None and _link_exists(f, p):
                 obj = "cannot be opened (damaged object header)"
@@ -191,7 +188,7 @@ def check_attributes(attrs: dict, version: int = FORMAT_VERSION, values: bool = 
                 try:
                     obj = json.loads(v)
                 except ValueError as e:
-                    problems.append(f"attribute {name!r} is not valid JSON ({_first_line(e)})")
+                    problems.append(f"attribute {name!r} is not valid JSON ({first_line(e)})")
                     continue
                 if not isinstance(obj, dict):
                     problems.append(f"attribute {name!r} should be a JSON object, not {type(obj).__name__}")
@@ -237,7 +234,7 @@ def check_datasets(view: MapView, version: int = FORMAT_VERSION, h5: bool = True
         try:
             dtype, shape = obj.dtype, tuple(obj.shape)
         except Exception as e:  # noqa: BLE001
-            problems.append(f"{path!r} cannot be inspected ({_first_line(e)})")
+            problems.append(f"{path!r} cannot be inspected ({first_line(e)})")
             broken.add(path)
             continue
         if want == "str":
@@ -266,7 +263,7 @@ def check_datasets(view: MapView, version: int = FORMAT_VERSION, h5: bool = True
                 if obj.chunks is None or not obj.fletcher32:
                     problems.append(f"{path!r} has no Fletcher-32 checksum")
             except Exception as e:  # noqa: BLE001
-                problems.append(f"{path!r} has an unreadable filter pipeline ({_first_line(e)})")
+                problems.append(f"{path!r} has an unreadable filter pipeline ({first_line(e)})")
     return problems
 
 

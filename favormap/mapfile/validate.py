@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FavormapError
+from ..errors import FavormapError, first_line
 from .schema import (
     FORMAT,
     FORMAT_VERSION,
@@ -54,15 +54,12 @@ class Report:
         return asdict(self)
 
 
-def _first_line(e: BaseException) -> str:
-    s = str(e).strip()
-    return s.splitlines()[0] if s else type(e).__name__
 
 
 def _describe(e: BaseException) -> str:
     if isinstance(e, OSError):
-        return f"checksum mismatch or read error ({_first_line(e)})"
-    return f"{type(e).__name__}: {_first_line(e)}"
+        return f"checksum mismatch or read error ({first_line(e)})"
+    return f"{type(e).__name__}: {first_line(e)}"
 
 
 def _read_full(ds, path: str, spec: dict, report: Report) -> np.ndarray | None:
@@ -139,7 +136,7 @@ def validate(path) -> Report:
         with open(path, "rb") as fh:
             head = fh.read(8)
     except OSError as e:
-        report.problems.append(f"{path} cannot be read ({_first_line(e)})")
+        report.problems.append(f"{path} cannot be read ({first_line(e)})")
         return report
     if size == 0:
         report.problems.append(f"{path} is empty (0 bytes)")
@@ -153,12 +150,12 @@ def validate(path) -> Report:
         if "truncated" in str(e):
             report.problems.append(f"{path} is truncated (an incompletely written or damaged HDF5 file)")
         else:
-            report.problems.append(f"{path} is not a readable HDF5 file ({_first_line(e)})")
+            report.problems.append(f"{path} is not a readable HDF5 file ({first_line(e)})")
         return report
     try:
         _validate_open(f, path, report)
     except Exception as e:  # noqa: BLE001 - validation itself must never crash on a hostile file
-        report.problems.append(f"{path}: unexpected damage, validation stopped ({type(e).__name__}: {_first_line(e)})")
+        report.problems.append(f"{path}: unexpected damage, validation stopped ({type(e).__name__}: {first_line(e)})")
     finally:
         try:
             f.close()
@@ -221,7 +218,7 @@ def _validate_open(f, path: Path, report: Report) -> None:
         try:
             problems, warnings = check_values(p, a, dims, {k: v for k, v in arrays.items() if k not in broken})
         except Exception as e:  # noqa: BLE001
-            problems, warnings = [f"{p!r}: values cannot be checked ({type(e).__name__}: {_first_line(e)})"], []
+            problems, warnings = [f"{p!r}: values cannot be checked ({type(e).__name__}: {first_line(e)})"], []
         report.problems += problems
         report.warnings += warnings
 

@@ -24,6 +24,25 @@ from .merge import LANDMARK_META, copy_voxels
 REASONS = ("min_track", "min_quality", "bbox", "budget")
 
 
+def reason_text(reason: str, res: "PruneResult") -> str:
+    """Why landmarks were removed, in words, with the setting that removed them."""
+    p = res.params
+    if reason == "min_track":
+        return f"seen in fewer than {p['min_track']} frames (--min-track {p['min_track']})"
+    if reason == "min_quality":
+        return f"training PSNR below {p['min_quality']:g} dB (--min-quality {p['min_quality']:g})"
+    if reason == "bbox":
+        lo, hi = np.asarray(p["bbox"], float).reshape(2, 3)
+        return f"outside the box ({', '.join(f'{v:g}' for v in lo)}) .. ({', '.join(f'{v:g}' for v in hi)}) (--bbox)"
+    cell = f", one or more per grid cell of {res.cell_size:.4g} scene units" if res.cell_size else ""
+    return f"over the budget of {p['max_landmarks']} landmarks, thinned evenly in space (--max-landmarks{cell})"
+
+
+def removal_summary(res: "PruneResult") -> str:
+    """'1101 seen in fewer than 5 frames (--min-track 5), ...' for the reasons that removed landmarks."""
+    return "; ".join(f"{v} {reason_text(k, res)}" for k, v in res.removed.items() if v) or "nothing selected"
+
+
 def _cell_keys(p: np.ndarray, lo: np.ndarray, cell: float) -> np.ndarray:
     ijk = np.floor((p - lo) / cell).astype(np.int64)
     dims = ijk.max(0) + 1
@@ -109,6 +128,7 @@ class PruneResult:
     failing: dict = field(default_factory=dict)  # reason -> landmarks failing it (may overlap)
     cell_size: float | None = None
     rows: np.ndarray | None = None
+    params: dict = field(default_factory=dict)  # the settings: max_landmarks, min_track, min_quality, bbox
 
     def to_dict(self) -> dict:
         return {"output": None if self.path is None else str(self.path), "num_before": self.num_before,
@@ -148,7 +168,9 @@ def select_rows(m, max_landmarks: int | None = None, min_track: int | None = Non
             rows = rows[sel]
         else:
             removed["budget"] = failing["budget"] = 0
-    return PruneResult(None, L, len(rows), removed, failing, cell, rows)
+    params = {"max_landmarks": max_landmarks, "min_track": min_track, "min_quality": min_quality,
+              "bbox": None if bbox is None else parse_bbox(bbox).tolist()}
+    return PruneResult(None, L, len(rows), removed, failing, cell, rows, params)
 
 
 def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None,
@@ -159,8 +181,8 @@ def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None
         res = select_rows(m, max_landmarks, min_track, min_quality, bbox)
         rows = res.rows
         if len(rows) == 0 and not allow_empty:
-            why = ", ".join(f"{k} {v}" for k, v in res.removed.items() if v) or "nothing to keep"
-            raise InputError(f"pruning {path} would remove all {res.num_before} landmarks ({why}); nothing written")
+            raise InputError(f"pruning {path} would remove all {res.num_before} landmarks ({removal_summary(res)}); "
+                             "nothing written")
         remap = np.full(len(m), -1, np.int64)
         remap[rows] = np.arange(len(rows))
         tl, tf, txy = m.tracks()

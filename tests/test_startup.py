@@ -1,0 +1,49 @@
+"""Start-up: each command imports only what it needs (issue 12, item 15). Times are measured by
+tools/bench_startup.py, not here; these tests check which heavy modules a command pulls in."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("torch", "open3d", "pycolmap", "cv2", "h5py", "scipy", "rerun", "trimesh", "numpy", "tqdm")
+
+
+def loaded(argv: list[str]) -> set[str]:
+    code = ("import sys\nfrom favormap.cli import main\ntry:\n    rc = main(sys.argv[1:])\nexcept SystemExit:\n    rc = 0\n"
+            f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))\nprint('RC', rc)")
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "RERUN_ANALYTICS": "false"})
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("LOADED"))
+    assert "Traceback" not in r.stderr, r.stderr
+    return {m for m in line.split(" ", 1)[1].split(",") if m}
+
+
+def test_help_imports_no_heavy_module():
+    assert loaded(["--help"]) == set()
+    assert loaded(["localize", "--help"]) == set()
+
+
+@pytest.mark.parametrize("cmd", ["info", "validate"])
+def test_map_reading_commands_import_neither_torch_nor_opencv(small_map, cmd):
+    _, path = small_map
+    mods = loaded([cmd, str(path)])
+    assert "h5py" in mods  # it did read the map
+    assert not mods & {"torch", "cv2", "open3d", "pycolmap", "rerun", "trimesh", "scipy"}, mods
+
+
+def test_localize_does_not_import_open3d_or_the_writer_stack(small_map, small_sequence, tmp_path):
+    import numpy as np
+
+    from favormap.geometry import inverse
+
+    _, path = small_map
+    fr = small_sequence.frames[3]
+    prior = tmp_path / "prior.txt"
+    np.savetxt(prior, inverse(fr.cam_from_world))
+    mods = loaded(["localize", str(path), str(fr.image_path), "--prior", str(prior)])
+    assert {"torch", "cv2", "h5py"} <= mods
+    assert not mods & {"open3d", "rerun", "trimesh"}, mods
