@@ -27,7 +27,7 @@ import socket
 from collections import deque
 from functools import lru_cache
 
-from .errors import FavormapError, InputError
+from .errors import FavormapError, InputError, first_line
 from .executor import Executor
 
 INSTALL_HINT = "pip install 'favormap[distributed]'"
@@ -124,7 +124,7 @@ class RayExecutor(Executor):
                 if "InvalidAuthToken" in log.text:
                     hint = " (the cluster refused this machine's token: set RAY_AUTH_MODE=token and the cluster's RAY_AUTH_TOKEN)"
                 what = "start a local Ray instance" if address == "local" else f"connect to the Ray cluster at {address!r}"
-                raise FavormapError(f"cannot {what}: {_first_line(err)}{hint}") from None
+                raise FavormapError(f"cannot {what}: {first_line(err)}{hint}") from None
         res = ray.cluster_resources()
         self.cluster_cpus = float(res.get("CPU", 0))
         self.cluster_gpus = float(res.get("GPU", 0))
@@ -212,11 +212,6 @@ class _captured_stderr:
         self._tmp.close()
 
 
-def _first_line(e: BaseException) -> str:
-    s = str(e).strip()
-    return s.splitlines()[0] if s else type(e).__name__
-
-
 def _translate(e: BaseException, what: str, retries: int) -> BaseException:
     """A Ray failure as the build's own error (one line), the task's own errors unchanged."""
     from ray import exceptions as rex
@@ -225,10 +220,10 @@ def _translate(e: BaseException, what: str, retries: int) -> BaseException:
         cause = getattr(e, "cause", None)
         if isinstance(cause, FavormapError):
             return cause
-        return FavormapError(f"Ray task {what} failed: {_first_line(cause) if cause else _first_line(e)}")
+        return FavormapError(f"Ray task {what} failed: {first_line(cause) if cause else first_line(e)}")
     if isinstance(e, (rex.WorkerCrashedError, rex.NodeDiedError, rex.ObjectLostError, rex.OwnerDiedError)):
         return FavormapError(f"a Ray worker running {what} died and the task failed after {retries} retries "
                              f"({type(e).__name__})")
     if isinstance(e, rex.RayError):
-        return FavormapError(f"Ray failed running {what}: {_first_line(e)}")
+        return FavormapError(f"Ray failed running {what}: {first_line(e)}")
     return e
