@@ -77,11 +77,27 @@ class _Killer:
                         title = f.read()
                 except OSError:
                     continue
-                if title.startswith(self.title):
+                if title.startswith(self.title) and self._busy(p):
                     os.kill(int(p), signal.SIGKILL)
                     self.killed.append(int(p))
                     return
             time.sleep(0.01)
+
+    def _busy(self, pid: str) -> bool:
+        """Still running the task: it used CPU within the last 50 ms and still has the task's title
+        (a worker that has just finished may keep the title for a moment)."""
+        def cpu():
+            with open(f"/proc/{pid}/stat") as f:
+                v = f.read().rsplit(")", 1)[1].split()
+            return int(v[11]) + int(v[12])
+
+        try:
+            a = cpu()
+            time.sleep(0.05)
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                return cpu() > a and f.read().startswith(self.title)
+        except (OSError, IndexError, ValueError):
+            return False
 
     def __enter__(self):
         self._thread.start()
@@ -121,7 +137,7 @@ def test_ray_build_with_a_dead_worker_and_no_retries_writes_no_map(ray_two_worke
 
     out = tmp_path / "map.h5"
     args = ["build", str(small_sequence.root), "-o", str(out), "--resize", "0", "--max-keypoints", "1024",
-            "--max-landmarks", "150", "--iterations", "30", "--train-batch", "50", "--ray", "auto", "--ray-retries", "0", "-q"]
+            "--max-landmarks", "150", "--iterations", "150", "--train-batch", "50", "--ray", "auto", "--ray-retries", "0", "-q"]
     with _Killer("train_batch") as killer:
         rc = main(args)
     assert len(killer.killed) == 1
