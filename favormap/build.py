@@ -19,7 +19,7 @@ from . import features as feats_mod
 from .errors import FavormapError, SequenceError
 from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
-from .geometry import camera_centers
+from .geometry import camera_centers, direction_cones, project, unproject
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
@@ -206,9 +206,7 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor | Extr
     T = ff.cam_from_world
     Ks = np.stack([c.K for c in ff.cameras])
     X = lms.positions[tid]
-    Xc = np.einsum("oij,oj->oi", T[fi, :3, :3], X) + T[fi, :3, 3]
-    uv = np.einsum("oij,oj->oi", Ks[fi], Xc)
-    uv = uv[:, :2] / uv[:, 2:3]
+    uv = project(Ks[fi], T[fi], X)
     offs = patch_offsets(patch_size)
     pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
@@ -224,8 +222,7 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor | Extr
         sel = order[bounds[f]:bounds[f + 1]]
         targets[sel] = s.reshape(len(sel), P, -1)
     # ray directions in world
-    hom = np.concatenate([pix, np.ones(pix.shape[:2] + (1,))], -1)
-    d_cam = np.einsum("oij,opj->opi", np.linalg.inv(Ks)[fi], hom)
+    d_cam = unproject(Ks[fi][:, None], pix)
     d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
     centers = camera_centers(T)[fi]
     # voxel size (paper eq. 2): s_j = min_i factor * l_ij / f
@@ -289,13 +286,7 @@ def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
     c = camera_centers(cam_from_world)[lms.tracks.frame_idx]
     v = c - lms.positions[tid]
     dist = np.linalg.norm(v, axis=1)
-    u = v / np.maximum(dist[:, None], 1e-12)
-    mean = np.zeros((len(lms), 3))
-    np.add.at(mean, tid, u)
-    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    ang = np.degrees(np.arccos(np.clip(np.sum(u * mean[tid], 1), -1, 1)))
-    amax = np.zeros(len(lms))
-    np.maximum.at(amax, tid, ang)
+    mean, amax = direction_cones(v / np.maximum(dist[:, None], 1e-12), tid, len(lms))
     dmin = np.full(len(lms), np.inf)
     dmax = np.zeros(len(lms))
     np.minimum.at(dmin, tid, dist)
@@ -317,7 +308,7 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
                             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
 
 
-def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Callable | None = None,
+def build_map(seq: Sequence, config: BuildConfig | None = None, progress: Callable | None = None,
               observer: BuildObserver | None = None, executor: Executor | None = None, ray: str | None = None) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
     reports progress; ``observer`` sees every stage's result (visualisation, debugging).
@@ -326,6 +317,7 @@ def build_map(seq: Sequence, config: BuildConfig = BuildConfig(), progress: Call
     ``config.train_batch`` landmarks) run on ``executor`` (default: this process). ``ray`` ("auto" or
     a cluster address) runs them as Ray tasks instead (:class:`favormap.distributed.RayExecutor`;
     ``pip install favormap[distributed]``); the map is the same either way."""
+    config = BuildConfig() if config is None else config
     check_build_input(seq, config)
     if ray is not None:
         if executor is not None:

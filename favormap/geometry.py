@@ -10,6 +10,7 @@ Conventions (pycolmap's):
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 # OpenGL / NeRF camera axes (x right, y up, z backward) -> OpenCV axes.
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -26,14 +27,6 @@ def inverse(T: np.ndarray) -> np.ndarray:
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
     out[..., 3, 3] = 1.0
     return out
-
-
-def cam_from_world_from_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
-    return inverse(world_from_cam)
-
-
-def world_from_cam_from_cam_from_world(cam_from_world: np.ndarray) -> np.ndarray:
-    return inverse(cam_from_world)
 
 
 def world_from_cam_opengl_to_opencv(world_from_cam_gl: np.ndarray) -> np.ndarray:
@@ -57,17 +50,6 @@ def world_from_cam_llff_to_opencv(pose_3x4: np.ndarray) -> np.ndarray:
     T[..., :3, 3] = P[..., :3, 3]
     T[..., 3, 3] = 1.0
     return T
-
-
-def world_from_cam_opencv_to_llff(world_from_cam_cv: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`world_from_cam_llff_to_opencv`: (...,4,4) -> LLFF (...,3,4)."""
-    T = np.asarray(world_from_cam_cv, dtype=np.float64)
-    P = np.zeros(T.shape[:-2] + (3, 4))
-    P[..., :, 0] = T[..., :3, 1]
-    P[..., :, 1] = T[..., :3, 0]
-    P[..., :, 2] = -T[..., :3, 2]
-    P[..., :, 3] = T[..., :3, 3]
-    return P
 
 
 def cam_from_world_from_center(R_cam_from_world: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -131,40 +113,14 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def quat_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
-    """Unit quaternion(s) (x, y, z, w) -> rotation matrix(es)."""
+    """Quaternion(s) (x, y, z, w), normalised here -> rotation matrix(es) (...,3,3)."""
     q = np.asarray(q_xyzw, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    R = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return R.reshape(q.shape[:-1] + (3, 3))
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
-    R = np.asarray(R, dtype=np.float64)
-    m = R
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = np.sqrt(tr + 1.0) * 2
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return q if q[3] >= 0 else -q
 
 
@@ -176,11 +132,14 @@ def pose_from_quat_t(q_xyzw, t) -> np.ndarray:
 
 
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Rodrigues rotation matrix."""
+    """Rotation matrix of ``angle_rad`` about ``axis`` (right-handed)."""
     axis = np.asarray(axis, dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K
+    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * float(angle_rad)).as_matrix()
+
+
+def slerp(R0: np.ndarray, R1: np.ndarray, w: float) -> np.ndarray:
+    """The rotation a fraction ``w`` of the way from ``R0`` to ``R1`` along the shorter arc."""
+    return Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R0, R1])))([float(w)]).as_matrix()[0]
 
 
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
@@ -202,12 +161,44 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     return T
 
 
-def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Pixel positions (N, 2) of world points in a pinhole camera with intrinsics ``K`` (COLMAP
-    pixel convention when K is a COLMAP/favormap camera's). Points at depth 0 are not guarded."""
-    Xc = np.asarray(points, np.float64).reshape(-1, 3) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    z = np.where(np.abs(Xc[:, 2]) < 1e-12, 1e-12, Xc[:, 2])
-    return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
+def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray, with_depth: bool = False):
+    """Pixel positions (N, 2) of world points (N, 3) in a pinhole camera with intrinsics ``K`` (COLMAP
+    pixel convention when K is a COLMAP/favormap camera's): the one pinhole projection of favormap.
+    ``K`` (3,3) and ``cam_from_world`` (4,4) may also be given per point, (N,3,3) and (N,4,4).
+    With ``with_depth`` also the z-depths (N,): points at depth <= 0 are behind the camera and get
+    meaningless pixels (depth 0 is guarded against division only)."""
+    T = np.asarray(cam_from_world, np.float64)
+    K = np.asarray(K, np.float64)
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    Xc = np.einsum("...ij,...j->...i", T[..., :3, :3], X) + T[..., :3, 3]
+    z = Xc[:, 2]
+    zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
+    uv = np.stack([K[..., 0, 0] * Xc[:, 0] / zs + K[..., 0, 2], K[..., 1, 1] * Xc[:, 1] / zs + K[..., 1, 2]], 1)
+    return (uv, z) if with_depth else uv
+
+
+def unproject(K: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Camera-frame rays (..., 3) with z = 1 through pixels (..., 2) of a pinhole camera with
+    intrinsics ``K`` (broadcast against the pixels' leading dimensions): the inverse of :func:`project`."""
+    K = np.asarray(K, np.float64)
+    px = np.asarray(pixels, np.float64)
+    xy = (px - K[..., :2, 2]) / np.stack([K[..., 0, 0], K[..., 1, 1]], -1)
+    return np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
+
+
+def direction_cones(directions: np.ndarray, group: np.ndarray, n_groups: int,
+                    valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per group of unit directions: the mean direction (unit, (G,3)) and the largest angle in degrees
+    of one of its directions from that mean ((G,)). ``valid`` masks directions out of both."""
+    d = np.asarray(directions, np.float64)
+    ok = np.ones(len(d), bool) if valid is None else np.asarray(valid, bool)
+    mean = np.zeros((n_groups, 3))
+    np.add.at(mean, group, np.where(ok[:, None], d, 0.0))
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    ang = np.degrees(np.arccos(np.clip(np.sum(d * mean[group], 1), -1, 1)))
+    out = np.zeros(n_groups)
+    np.maximum.at(out, group, np.where(ok, ang, 0.0))
+    return mean, out
 
 
 def pose_error(cam_from_world_est: np.ndarray, cam_from_world_gt: np.ndarray) -> tuple[float, float]:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, inverse
+from .geometry import camera_centers, direction_cones, inverse
 from .tracking import Tracks
 
 
@@ -76,8 +76,9 @@ def dlt(P: np.ndarray, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
 
 
-def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig = TriangulationConfig()) -> Landmarks:
+def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig | None = None) -> Landmarks:
     """Triangulate every track. ``cam_from_world``: (M,4,4) per frame; ``Ks``: (M,3,3) pinhole."""
+    config = TriangulationConfig() if config is None else config
     if len(tracks) == 0:
         return Landmarks(np.zeros((0, 3)), tracks, np.zeros(0), np.zeros(0))
     fi = tracks.frame_idx
@@ -168,14 +169,5 @@ def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, conf
 
 def _max_angle(rays: np.ndarray, tracks: Tracks, valid: np.ndarray) -> np.ndarray:
     """Largest angle (degrees) between the valid viewing rays of each track (vs. their mean ray)."""
-    tid = tracks.track_of_obs
-    r = np.where(valid[:, None], rays, 0.0)
-    mean = np.zeros((len(tracks), 3))
-    np.add.at(mean, tid, r)
-    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    cos = np.clip(np.sum(rays * mean[tid], 1), -1, 1)
-    ang = np.degrees(np.arccos(cos))
-    ang = np.where(valid, ang, 0.0)
-    out = np.zeros(len(tracks))
-    np.maximum.at(out, tid, ang)
+    _, out = direction_cones(rays, tracks.track_of_obs, len(tracks), valid)
     return 2.0 * out  # spread of the rays ~ twice the largest deviation from the mean

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers
+from .geometry import camera_centers, project, unproject
 from .io import Camera
 
 
@@ -277,6 +277,10 @@ def _min_radius(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarr
     return centers[i], float(radii[i])
 
 
+def _corners(camera: Camera) -> np.ndarray:
+    return np.array([[0, 0], [camera.width, 0], [0, camera.height], [camera.width, camera.height]], float)
+
+
 def frustum_sphere(camera: Camera, cam_from_world: np.ndarray, max_depth: float, min_depth: float = 0.0) -> tuple[np.ndarray, float]:
     """A small sphere (centre, radius) enclosing the frustum between ``min_depth`` and ``max_depth``.
 
@@ -284,9 +288,7 @@ def frustum_sphere(camera: Camera, cam_from_world: np.ndarray, max_depth: float,
     camera centre when ``min_depth`` is 0), so any sphere holding the corners holds it. The centre
     is searched on the segment between the near and far corner centroids, where the radius (the
     farthest corner) is a convex function of the position."""
-    K = camera.K
-    corners_px = np.array([[0, 0], [camera.width, 0], [0, camera.height], [camera.width, camera.height]], float)
-    rays = np.c_[(corners_px - K[:2, 2]) / [K[0, 0], K[1, 1]], np.ones(4)]
+    rays = unproject(camera.K, _corners(camera))
     wfc_R = cam_from_world[:3, :3].T
     c = camera_centers(cam_from_world)
     far = (rays * max_depth) @ wfc_R.T + c
@@ -305,9 +307,7 @@ def reach_sphere(camera: Camera, cam_from_world: np.ndarray, reach: float) -> tu
     convex in ρ, and the angle φ from ``u`` is largest at a vertex of the pyramid's cross-section),
     so the radius is exact over those 5 points. Falls back to :func:`frustum_sphere` for fields of
     view of 180 degrees or more."""
-    K = camera.K
-    corners_px = np.array([[0, 0], [camera.width, 0], [0, camera.height], [camera.width, camera.height]], float)
-    rays = np.c_[(corners_px - K[:2, 2]) / [K[0, 0], K[1, 1]], np.ones(4)]
+    rays = unproject(camera.K, _corners(camera))
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     u = rays.mean(0)
     u /= np.linalg.norm(u)
@@ -321,22 +321,18 @@ def reach_sphere(camera: Camera, cam_from_world: np.ndarray, reach: float) -> tu
 
 def project_inside(points: np.ndarray, camera: Camera, cam_from_world: np.ndarray, min_depth=0.0, max_depth=np.inf, margin_px=0.0) -> np.ndarray:
     """Mask of points in front of a pinhole camera, inside its image and depth range."""
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    Xc = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    z = Xc[:, 2]
+    uv, z = project(camera.K, cam_from_world, points, with_depth=True)
+    u, v = uv[:, 0], uv[:, 1]
     ok = (z > max(min_depth, 1e-9)) & (z <= max_depth)
-    zs = np.where(ok, z, 1.0)
-    K = camera.K
-    u = K[0, 0] * Xc[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * Xc[:, 1] / zs + K[1, 2]
     return ok & (u >= margin_px) & (u <= camera.width - margin_px) & (v >= margin_px) & (v <= camera.height - margin_px)
 
 
 def visible_mask(positions: np.ndarray, camera: Camera, cam_from_world: np.ndarray, view_dir: np.ndarray,
-                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits = ViewLimits()) -> np.ndarray:
+                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits | None = None) -> np.ndarray:
     """The exact visibility test of :func:`visible_rows` on explicit arrays (no index): in front of
     the camera, inside the image (with the margin), within the distance range and the viewing-angle
     range each landmark was trained for."""
+    limits = ViewLimits() if limits is None else limits
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
     ok = project_inside(positions, camera, cam_from_world, margin_px=max(limits.image_margin_px, 0.0))
     c = camera_centers(cam_from_world)
@@ -351,13 +347,14 @@ def visible_mask(positions: np.ndarray, camera: Camera, cam_from_world: np.ndarr
 
 
 def visible_rows(index: SpatialIndex, camera: Camera, cam_from_world: np.ndarray, view_dir: np.ndarray,
-                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits = ViewLimits()) -> np.ndarray:
+                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits | None = None) -> np.ndarray:
     """Landmarks visible from a pose: in the frustum, within the distance range and the viewing
     angle range they were trained for (paper sec. 3.3). Returns sorted rows; equal to
     ``flatnonzero(visible_mask(all positions, ...))``, but only landmarks near the frustum are
     tested (KD-tree queries per reach tier)."""
     if len(index) == 0:
         return np.zeros(0, np.int64)
+    limits = ViewLimits() if limits is None else limits
     depth_range = np.asarray(depth_range)
     view_dir = np.asarray(view_dir)
     view_angle = np.asarray(view_angle)

@@ -96,7 +96,9 @@ def test_schema_is_consistent_with_the_code():
     from favormap.io.types import SUPPORTED_MODELS
 
     assert s["datasets"]["cameras/models"]["values"]["enum"] == list(SUPPORTED_MODELS)
-    assert set(s["datasets"]) == set(f"landmarks/{k}" for k in MapData.LANDMARK_FIELDS if k not in ("descriptors", "density")) | {
+    # every per-landmark dataset of this version is a field of MapData (none ride in MapData.extra)
+    assert set(MapData.landmark_names()) <= set(MapData.__dataclass_fields__)
+    assert set(s["datasets"]) == set(f"landmarks/{k}" for k in MapData.landmark_names() if k not in ("descriptors", "density")) | {
         "voxels/descriptors", "voxels/density", "cameras/ids", "cameras/models", "cameras/sizes", "cameras/params",
         "frames/names", "frames/camera_ids", "frames/cam_from_world", "tracks/landmark_index", "tracks/frame_index", "tracks/xy"}
     known = {"finite", "not_nan", "min", "max", "exclusive_min", "unique", "nonzero", "range", "in", "enum", "unit_norm",
@@ -344,6 +346,53 @@ def test_older_versions_are_migrated_in_memory(rmap, tmp_path, monkeypatch):
         monkeypatch.delitem(schema_mod.MIGRATIONS, 1)
         with h5py.File(p, "r") as f:
             assert "no migration from map format version 1 to 2" in schema_mod.check_file(f, 2)[0]
+    finally:
+        schema_mod.load_schema.cache_clear()
+
+
+def test_a_landmark_field_added_to_the_schema_is_carried_everywhere(tmp_path, monkeypatch):
+    """The schema is the one list of landmark fields: a copy of it with one more per-landmark
+    dataset is read, written, selected, merged and pruned without touching the code."""
+    from favormap.ops.merge import merge_maps
+    from favormap.ops.prune import prune_map
+
+    v1 = json.loads(json.dumps(load_schema(1)))
+    v1["datasets"]["landmarks/sharpness"] = {"dtype": "float32", "shape": ["L"], "values": {"finite": True, "min": 0},
+                                            "description": "a field added by the test"}
+    sdir = tmp_path / "schemas"
+    sdir.mkdir()
+    (sdir / "favormap-map.v1.json").write_text(json.dumps(v1))
+    monkeypatch.setattr(schema_mod, "_schema_dir", lambda: sdir)
+    schema_mod.load_schema.cache_clear()
+    try:
+        m = random_map(3, L=30)
+        sharp = np.random.default_rng(3).uniform(0, 5, m.num_landmarks).astype(np.float32)
+        with pytest.raises(MapFormatError, match="sharpness"):  # a map without the new field cannot be written
+            write_map(m, tmp_path / "missing.h5")
+        m.extra["sharpness"] = sharp
+        a = write_map(m, tmp_path / "a.h5")
+        with h5py.File(a, "r") as f:
+            assert "landmarks/sharpness" in f and check_file(f) == []
+        with Map.open(a) as mp:  # read: in memory at open, and in load()
+            np.testing.assert_array_equal(mp.sharpness, sharp)
+            np.testing.assert_array_equal(mp.load().sharpness, sharp)
+        sel = m.select_landmarks(np.array([4, 1, 7]))
+        np.testing.assert_array_equal(sel.sharpness, sharp[[4, 1, 7]])
+        # merge: the same map twice keeps every landmark once, with its value
+        merged = merge_maps([a, a], tmp_path / "merged.h5").path
+        with Map.open(merged) as mp:
+            assert len(mp) == m.num_landmarks
+            order = np.argsort(m.ids)
+            np.testing.assert_array_equal(mp.sharpness[np.argsort(mp.ids)], sharp[order])
+        # merge without dedup (every landmark twice) and prune by quality
+        both = merge_maps([a, a], tmp_path / "both.h5", dedup=False).path
+        with Map.open(both) as mp:
+            np.testing.assert_array_equal(mp.sharpness, np.concatenate([sharp, sharp]))
+        keep = m.quality >= np.median(m.quality)
+        pruned = prune_map(a, tmp_path / "pruned.h5", min_quality=float(np.median(m.quality))).path
+        with Map.open(pruned) as mp:
+            np.testing.assert_array_equal(mp.ids, m.ids[keep])
+            np.testing.assert_array_equal(mp.sharpness, sharp[keep])
     finally:
         schema_mod.load_schema.cache_clear()
 

@@ -70,24 +70,16 @@ def voxels_of(path, rows=None):
 
 # -- streaming writer ---------------------------------------------------------------------------------
 def write_streaming(m, path, chunk=37, nan_at=None):
-    from favormap.mapfile.writer import MapWriter, camera_arrays
-    from favormap.ops.merge import LANDMARK_META
+    from favormap.mapfile.writer import MapWriter
+    from favormap.ops.merge import write_frames_and_tracks, write_landmark_metadata
 
     header = {k: getattr(m, k) for k in MapWriter.HEADER_KEYS}
     header["provenance"] = m.provenance
     L = m.num_landmarks
     with MapWriter(path, header, L, m.num_frames) as w:
-        w.put("landmarks/ids", m.ids)
-        for k in LANDMARK_META:
-            w.put(f"landmarks/{k}", getattr(m, k))
-        for k, v in camera_arrays(m.cameras).items():
-            w.put(k, v)
-        w.put("frames/names", m.frame_names)
-        w.put("frames/camera_ids", m.frame_camera_ids)
-        w.put("frames/cam_from_world", m.cam_from_world)
-        w.put("tracks/landmark_index", m.track_landmark)
-        w.put("tracks/frame_index", m.track_frame)
-        w.put("tracks/xy", m.track_xy)
+        write_landmark_metadata(w, {k: getattr(m, k) for k in m.landmark_names()})
+        write_frames_and_tracks(w, m.cameras, m.frame_names, m.frame_camera_ids, m.cam_from_world,
+                                m.track_landmark, m.track_frame, m.track_xy)
         for k in ("voxels/descriptors", "voxels/density", "landmarks/mean_descriptor"):
             w.create(k)
         for a in range(0, L, chunk):

@@ -166,12 +166,13 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
     return diagnostics_from_matches(cam, gt, pos[rows], feats.keypoints, pos[rows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px)
 
 
-def evaluate(localizers: dict[str, Localizer], queries: Sequence, cfg: EvalConfig = EvalConfig(),
+def evaluate(localizers: dict[str, Localizer], queries: Sequence, cfg: EvalConfig | None = None,
              progress: Callable | None = None, on_query: Callable | None = None, diagnostics: bool = False) -> list[EvalReport]:
     """Localize every query frame from its prior with each named localizer (e.g. one per
     descriptor source on the same map)."""
     import time
 
+    cfg = EvalConfig() if cfg is None else cfg
     first = next(iter(localizers.values()))
     priors = make_priors(queries, first.map.cam_from_world, cfg)
     extent = scene_extent(first.map.positions)

@@ -256,15 +256,20 @@ class Localizer:
         pose = from_rigid3d(ans["cam_from_world"]) if ok else np.eye(4)
         return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
 
+    def _visible(self, q: "_Query", pose: np.ndarray, t: dict) -> np.ndarray:
+        """Rows of the landmarks visible from ``pose`` (timed into ``t["visibility"]``)."""
+        s = time.perf_counter()
+        rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
+                            self.config.view_limits)
+        t["visibility"] += time.perf_counter() - s
+        return rows
+
     def _refine(self, q: "_Query", start: np.ndarray, iters: list[IterationResult], t: dict) -> LocalizationResult:
         cfg = self.config
         pose = start
         last = None
         for _ in range(cfg.iterations):
-            s = time.perf_counter()
-            rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
-                                cfg.view_limits)
-            t["visibility"] += time.perf_counter() - s
+            rows = self._visible(q, pose, t)
             rend = self.source(rows, pose, t)
             s = time.perf_counter()
             m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
@@ -291,10 +296,7 @@ class Localizer:
         query keypoint within ``guided_radius_px`` of its projection (mutually, above the
         threshold), then PnP runs again with a tight threshold."""
         cfg = self.config
-        s = time.perf_counter()
-        rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
-                            cfg.view_limits)
-        t["visibility"] += time.perf_counter() - s
+        rows = self._visible(q, pose, t)
         rend = self.source(rows, pose, t)
         s = time.perf_counter()
         uv = project(q.cam.K, pose, self.map.positions[rows])

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import secrets
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..io import Camera
+from .fields import field_name, landmark_datasets
 
 
 def new_landmark_ids(n: int, avoid: np.ndarray | None = None) -> np.ndarray:
@@ -32,8 +34,23 @@ def median_landmark_reproj_error(reproj_error) -> float | None:
     return float(np.median(e)) if e.size else None
 
 
+class MapCounts:
+    """The sizes of a map, in memory (:class:`MapData`) or on disk (:class:`~favormap.mapfile.Map`)."""
+
+    @property
+    def num_landmarks(self) -> int:
+        return len(self.ids)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_names)
+
+
 @dataclass
-class MapData:
+class MapData(MapCounts):
+    """A whole map in memory. The per-landmark arrays are the schema's (see :mod:`.fields`): those
+    named below, and in ``extra`` any the schema adds without a field here (read as attributes)."""
+
     extractor: str
     channels: int
     grid_resolution: int
@@ -64,17 +81,24 @@ class MapData:
     track_frame: np.ndarray  # (O,) int32 row into the frame arrays
     track_xy: np.ndarray  # (O,2) float32 keypoint pixels (working resolution)
     provenance: dict = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # schema landmark arrays without a field above
 
-    @property
-    def num_landmarks(self) -> int:
-        return len(self.ids)
+    def __getattr__(self, name: str):
+        extra = self.__dict__.get("extra") or {}
+        if name in extra:
+            return extra[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
-    @property
-    def num_frames(self) -> int:
-        return len(self.frame_names)
+    @staticmethod
+    def split_landmark_arrays(arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
+        """Per-landmark arrays by name -> (keyword arguments of MapData's own fields, ``extra``)."""
+        own = set(MapData.__dataclass_fields__)
+        return {k: v for k, v in arrays.items() if k in own}, {k: v for k, v in arrays.items() if k not in own}
 
-    LANDMARK_FIELDS = ("ids", "positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine",
-                       "view_dir", "view_angle", "depth_range", "mean_descriptor", "descriptors", "density")
+    @staticmethod
+    def landmark_names() -> tuple[str, ...]:
+        """Names of the per-landmark arrays (from the schema)."""
+        return tuple(field_name(p) for p in landmark_datasets())
 
     def select_landmarks(self, idx: np.ndarray) -> "MapData":
         """A new map with the landmarks ``idx`` (order kept) and their observations."""
@@ -82,10 +106,8 @@ class MapData:
         remap = np.full(self.num_landmarks, -1, np.int64)
         remap[idx] = np.arange(len(idx))
         keep = remap[self.track_landmark] >= 0
-        kw = {k: getattr(self, k)[idx] for k in self.LANDMARK_FIELDS}
-        return MapData(
-            extractor=self.extractor, channels=self.channels, grid_resolution=self.grid_resolution,
-            patch_size=self.patch_size, render_samples=self.render_samples, max_side=self.max_side,
-            cameras=dict(self.cameras), frame_names=list(self.frame_names), frame_camera_ids=self.frame_camera_ids,
-            cam_from_world=self.cam_from_world, track_landmark=remap[self.track_landmark[keep]].astype(np.int32),
-            track_frame=self.track_frame[keep], track_xy=self.track_xy[keep], provenance=dict(self.provenance), **kw)
+        kw, extra = self.split_landmark_arrays({k: getattr(self, k)[idx] for k in self.landmark_names()})
+        return dataclasses.replace(
+            self, cameras=dict(self.cameras), frame_names=list(self.frame_names), provenance=dict(self.provenance),
+            track_landmark=remap[self.track_landmark[keep]].astype(np.int32), track_frame=self.track_frame[keep],
+            track_xy=self.track_xy[keep], extra=extra, **kw)

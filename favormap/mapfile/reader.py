@@ -12,13 +12,9 @@ import numpy as np
 
 from ..errors import FavormapError, MapFormatError, first_line
 from ..io import Camera
-from .model import MapData, median_landmark_reproj_error
+from .fields import bulk_datasets, field_name, metadata_datasets
+from .model import MapCounts, MapData, median_landmark_reproj_error
 from .schema import FORMAT, check_structure, check_values, open_view
-
-_LANDMARK_ARRAYS = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine",
-                    "view_dir", "view_angle", "depth_range")
-
-
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -55,7 +51,7 @@ def _strings(a) -> list[str]:
     return [s.decode("utf-8", "replace") if isinstance(s, bytes) else str(s) for s in np.asarray(a).ravel().tolist()]
 
 
-class Map:
+class Map(MapCounts):
     """A favormap map opened lazily. Landmark metadata is in memory; voxel grids are read for the
     landmarks asked for, in sorted chunk reads, through a small LRU cache.
 
@@ -90,15 +86,14 @@ class Map:
             self.favormap_version = str(a["favormap_version"])
             self.provenance = json.loads(a["provenance"])
             arrays = {}
-            for p in ("landmarks/ids", *(f"landmarks/{k}" for k in _LANDMARK_ARRAYS), "frames/names",
+            for p in (*metadata_datasets(), "frames/names",
                       "frames/camera_ids", "frames/cam_from_world", "cameras/ids", "cameras/models",
                       "cameras/sizes", "cameras/params"):
                 with _guard(self.path, repr(p)):
                     arrays[p] = self._ds(p)[()]
             self._check_values(arrays)
-            self.ids = arrays["landmarks/ids"]
-            for k in _LANDMARK_ARRAYS:
-                setattr(self, k, arrays[f"landmarks/{k}"])
+            for p in metadata_datasets():  # ids, positions, quality, view cone, ...
+                setattr(self, field_name(p), arrays[p])
             self.frame_names = _strings(arrays["frames/names"])
             self.frame_camera_ids = arrays["frames/camera_ids"]
             self.cam_from_world = arrays["frames/cam_from_world"]
@@ -149,14 +144,6 @@ class Map:
 
     def __len__(self) -> int:
         return len(self.ids)
-
-    @property
-    def num_landmarks(self) -> int:
-        return len(self.ids)
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.frame_names)
 
     @property
     def file_size(self) -> int:
@@ -246,14 +233,20 @@ class Map:
         return out_d, out_s
 
     def mean_descriptors(self, rows) -> np.ndarray:
+        return self.landmark_rows("landmarks/mean_descriptor", rows).astype(np.float32, copy=False)
+
+    def landmark_rows(self, path: str, rows) -> np.ndarray:
+        """Rows of one bulk per-landmark dataset (``landmarks/mean_descriptor``, or any the schema adds;
+        voxel grids: :meth:`voxels`), in the dataset's dtype."""
         rows = np.asarray(rows, np.int64).ravel()
         if len(rows) and (rows.min() < 0 or rows.max() >= len(self)):
             raise IndexError("landmark row out of range")
-        out = np.empty((len(rows), self.channels), np.float32)
+        ds = self._ds(path)
+        out = np.empty((len(rows),) + ds.shape[1:], ds.dtype)
         if len(rows):
             uniq, inv = np.unique(rows, return_inverse=True)  # h5py wants increasing, unique indices
-            with _guard(self.path, "'landmarks/mean_descriptor'"):
-                out[:] = self._ds("landmarks/mean_descriptor")[uniq][inv.ravel()]
+            with _guard(self.path, repr(path)):
+                out[:] = ds[uniq][inv.ravel()]
         return out
 
     def tracks(self):
@@ -267,18 +260,17 @@ class Map:
 
     def load(self) -> MapData:
         """Everything in memory (for merge/prune/export of small maps)."""
-        R = self.grid_resolution
-        with _guard(self.path, "voxel data"):
-            vd = self._ds("voxels/descriptors")[()].astype(np.float32)
-            vs = self._ds("voxels/density")[()].astype(np.float32)
-        with _guard(self.path, "'landmarks/mean_descriptor'"):
-            md = self._ds("landmarks/mean_descriptor")[()].astype(np.float32)
+        arrays = {}
+        for p in bulk_datasets():
+            with _guard(self.path, "voxel data" if p.startswith("voxels/") else repr(p)):
+                a = self._ds(p)[()]
+            arrays[field_name(p)] = a.astype(np.float32) if a.dtype.kind == "f" else a
+        arrays.update({field_name(p): getattr(self, field_name(p)) for p in metadata_datasets()})
+        kw, extra = MapData.split_landmark_arrays(arrays)
         tl, tf, txy = self.tracks()
         return MapData(
-            extractor=self.extractor, channels=self.channels, grid_resolution=R, patch_size=self.patch_size,
-            render_samples=self.render_samples, max_side=self.max_side, ids=self.ids, positions=self.positions,
-            voxel_size=self.voxel_size, track_length=self.track_length, reproj_error=self.reproj_error,
-            quality=self.quality, cosine=self.cosine, view_dir=self.view_dir, view_angle=self.view_angle,
-            depth_range=self.depth_range, mean_descriptor=md, descriptors=vd, density=vs, cameras=dict(self.cameras),
-            frame_names=list(self.frame_names), frame_camera_ids=self.frame_camera_ids, cam_from_world=self.cam_from_world,
-            track_landmark=tl, track_frame=tf, track_xy=txy, provenance=dict(self.provenance))
+            extractor=self.extractor, channels=self.channels, grid_resolution=self.grid_resolution,
+            patch_size=self.patch_size, render_samples=self.render_samples, max_side=self.max_side,
+            cameras=dict(self.cameras), frame_names=list(self.frame_names), frame_camera_ids=self.frame_camera_ids,
+            cam_from_world=self.cam_from_world, track_landmark=tl, track_frame=tf, track_xy=txy,
+            provenance=dict(self.provenance), extra=extra, **kw)

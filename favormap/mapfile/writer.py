@@ -16,6 +16,7 @@ import numpy as np
 from .. import __version__
 from ..errors import FavormapError, MapFormatError
 from ..io import Camera
+from .fields import field_name, landmark_datasets
 from .model import MapData
 from .schema import FORMAT, FORMAT_VERSION, check_arrays, check_attributes, check_file, check_values, load_schema, numpy_dtype
 
@@ -352,19 +353,7 @@ def map_header(m: MapData) -> dict:
 def map_arrays(m: MapData) -> dict:
     """Every schema dataset of an in-memory map, keyed by its path in the file."""
     return {
-        "landmarks/ids": m.ids,
-        "landmarks/positions": m.positions,
-        "landmarks/voxel_size": m.voxel_size,
-        "landmarks/track_length": m.track_length,
-        "landmarks/reproj_error": m.reproj_error,
-        "landmarks/quality": m.quality,
-        "landmarks/cosine": m.cosine,
-        "landmarks/view_dir": m.view_dir,
-        "landmarks/view_angle": m.view_angle,
-        "landmarks/depth_range": m.depth_range,
-        "landmarks/mean_descriptor": m.mean_descriptor,
-        "voxels/descriptors": m.descriptors,
-        "voxels/density": m.density,
+        **{p: getattr(m, field_name(p)) for p in landmark_datasets()},
         **camera_arrays(m.cameras),
         "frames/names": list(m.frame_names),
         "frames/camera_ids": m.frame_camera_ids,

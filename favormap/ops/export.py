@@ -17,14 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..colors import viridis
 from ..errors import InputError
 from ..mapfile import Map, atomic_path
 from ..mapfile.writer import check_output_path
 
 FORMATS = (".ply", ".obj", ".glb")
 COLOR_BY = ("quality", "track")
-
-_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
 
 # a unit cube around the origin: 8 corners, 12 outward-facing triangles
 _CUBE_V = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
@@ -34,15 +33,8 @@ _CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5
 
 def colormap(values: np.ndarray, lo: float | None = None, hi: float | None = None) -> tuple[np.ndarray, float, float]:
     """RGBA uint8 colours (viridis) of ``values``; returns (colours, lo, hi) of the ramp."""
-    v = np.asarray(values, np.float64)
-    if len(v) == 0:
-        return np.zeros((0, 4), np.uint8), 0.0, 0.0
-    lo = float(np.percentile(v, 2)) if lo is None else lo
-    hi = float(np.percentile(v, 98)) if hi is None else hi
-    t = np.clip((v - lo) / (hi - lo), 0, 1) if hi > lo else np.full(len(v), 0.5)
-    x = np.linspace(0, 1, len(_VIRIDIS))
-    rgb = np.stack([np.interp(t, x, _VIRIDIS[:, c]) for c in range(3)], 1)
-    return np.c_[np.round(rgb), np.full(len(v), 255)].astype(np.uint8), lo, hi
+    rgb, lo, hi = viridis(values, lo, hi)
+    return np.c_[rgb, np.full(len(rgb), 255, np.uint8)], lo, hi
 
 
 def box_mesh_arrays(positions: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -38,22 +38,42 @@ from .. import geometry
 from ..errors import IncompatibleMapsError, InputError
 from ..io import working_camera
 from ..mapfile import Map, new_landmark_ids
+from ..mapfile.fields import bulk_datasets, field_name, metadata_datasets
 from ..mapfile.writer import MapWriter, camera_arrays, check_output_path
 
 # attributes that must be equal for maps to be merged
 COMPAT_FIELDS = ("extractor", "channels", "grid_resolution", "patch_size")
 
-LANDMARK_META = ("positions", "voxel_size", "track_length", "reproj_error", "quality", "cosine", "view_dir",
-                 "view_angle", "depth_range")
+_VOXEL_GRIDS = ("voxels/descriptors", "voxels/density")  # streamed through Map.voxels (cached, resampled)
+
+
+def write_landmark_metadata(w: MapWriter, arrays: dict) -> None:
+    """Every per-landmark metadata dataset of the schema, from ``arrays`` keyed by field name."""
+    for p in metadata_datasets():
+        w.put(p, arrays[field_name(p)])
+
+
+def write_frames_and_tracks(w: MapWriter, cameras: dict, names, camera_ids, cam_from_world,
+                            track_landmark, track_frame, track_xy) -> None:
+    """The cameras/*, frames/* and tracks/* datasets."""
+    for name, arr in camera_arrays(cameras).items():
+        w.put(name, arr)
+    w.put("frames/names", names)
+    w.put("frames/camera_ids", camera_ids)
+    w.put("frames/cam_from_world", cam_from_world)
+    w.put("tracks/landmark_index", track_landmark)
+    w.put("tracks/frame_index", track_frame)
+    w.put("tracks/xy", track_xy)
 
 
 def copy_voxels(w: MapWriter, sources, chunk: int = 4096, resample: dict | None = None, progress=None) -> None:
-    """Stream voxel grids and mean descriptors into ``w``: ``sources`` is a list of (map, rows)
-    segments in output order; ``resample`` maps a segment index to an (R^3, R^3) node matrix."""
+    """Stream the bulk per-landmark datasets (voxel grids, mean descriptors, ...) into ``w``:
+    ``sources`` is a list of (map, rows) segments in output order; ``resample`` maps a segment index
+    to an (R^3, R^3) node matrix applied to the voxel grids."""
     resample = resample or {}
-    w.create("voxels/descriptors")
-    w.create("voxels/density")
-    w.create("landmarks/mean_descriptor")
+    others = [p for p in bulk_datasets() if p not in _VOXEL_GRIDS]
+    for p in (*_VOXEL_GRIDS, *others):
+        w.create(p)
     out = 0
     total = sum(len(r) for _, r in sources)
     for si, (m, rows) in enumerate(sources):
@@ -67,7 +87,8 @@ def copy_voxels(w: MapWriter, sources, chunk: int = 4096, resample: dict | None 
                 s = s @ W.T
             w.write_rows("voxels/descriptors", out, d)
             w.write_rows("voxels/density", out, s)
-            w.write_rows("landmarks/mean_descriptor", out, m.mean_descriptors(r))
+            for p in others:
+                w.write_rows(p, out, m.landmark_rows(p, r))
             out += len(r)
             if progress:
                 progress("voxels", out, total)
@@ -146,93 +167,110 @@ def merge_maps(paths, out, dedup_radius: float | None = None, transform: np.ndar
         return _merge(maps, Path(out), dedup_radius, transform, min_cosine, dedup, chunk, progress)
 
 
-def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progress) -> MergeResult:
+@dataclass
+class _Similarity:
+    """A transform b_to_a = s*R|t taken apart: ``W`` resamples rotated voxel grids (None: identity)."""
+
+    T: np.ndarray
+    scale: float
+    R: np.ndarray
+    W: np.ndarray | None
+
+
+def _similarity(transform, res: int, warnings: list) -> _Similarity | None:
+    if transform is None:
+        return None
+    T = np.asarray(transform, np.float64)
+    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    Rot = T[:3, :3] / scale
+    W = resample_matrix(Rot, res)
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(Rot) - 1) / 2, -1, 1))))
+    exact = W is None or np.allclose(W, np.round(W), atol=1e-6)
+    if not exact:
+        warnings.append(f"the transform rotates by {ang:.2f} deg: voxel grids of the transformed maps were "
+                        "resampled by trilinear interpolation (approximate)")
+    return _Similarity(T, scale, Rot, W)
+
+
+def _to_first_frame(m, sim: _Similarity | None) -> dict:
+    """The landmark metadata of one source by field name, moved by ``sim`` (None: unchanged)."""
+    d = {field_name(p): np.asarray(getattr(m, field_name(p))) for p in metadata_datasets()}
+    d["ids"] = np.asarray(m.ids, np.uint64)
+    if sim is not None:
+        d["positions"] = geometry.transform_points(sim.T, d["positions"])
+        d["view_dir"] = (d["view_dir"].astype(np.float64) @ sim.R.T).astype(np.float32)
+        d["voxel_size"] = (d["voxel_size"] * sim.scale).astype(np.float32)
+        d["depth_range"] = (d["depth_range"] * sim.scale).astype(np.float32)
+    return d
+
+
+def _duplicates(maps, meta, k: int, s_all, r_all, dedup_radius, min_cosine):
+    """Landmarks of map ``k`` that duplicate an entry (source ``s_all``, row ``r_all``) of the output
+    so far: (keep_new mask over map k's rows, output slots to replace, map k's rows replacing them)."""
     from .spatial import SpatialIndex
 
-    first = maps[0]
-    res = first.grid_resolution
-    warnings = []
-    scale, W = 1.0, None
-    if transform is not None:
-        T = np.asarray(transform, np.float64)
-        scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
-        Rot = T[:3, :3] / scale
-        W = resample_matrix(Rot, res)
-        ang = float(np.degrees(np.arccos(np.clip((np.trace(Rot) - 1) / 2, -1, 1))))
-        exact = W is None or np.allclose(W, np.round(W), atol=1e-6)
-        if not exact:
-            warnings.append(f"the transform rotates by {ang:.2f} deg: voxel grids of the transformed maps were "
-                            "resampled by trilinear interpolation (approximate)")
-    if len({m.render_samples for m in maps}) > 1:
-        warnings.append(f"maps differ in render_samples; using the first map's ({first.render_samples})")
+    mk, dk = maps[k], meta[k]
+    keep_new = np.ones(len(mk), bool)
+    none = np.zeros(0, np.int64)
+    ex_pos = np.concatenate([meta[s]["positions"][r_all[s_all == s]] for s in range(k)])
+    order = np.concatenate([np.flatnonzero(s_all == s) for s in range(k)])  # ex_pos rows -> slots
+    idx = SpatialIndex(ex_pos, backend="open3d")
+    nn, dist = idx.knn_batch(dk["positions"], 8)
+    valid = nn >= 0
+    slot = np.where(valid, order[np.maximum(nn, 0)], 0)
+    ex_src, ex_row = s_all[slot], r_all[slot]
+    ex_size = np.zeros(slot.shape, np.float64)
+    ex_q = np.zeros(slot.shape, np.float64)
+    for s in range(k):
+        sel = ex_src == s
+        ex_size[sel] = meta[s]["voxel_size"][ex_row[sel]]
+        ex_q[sel] = meta[s]["quality"][ex_row[sel]]
+    radius = ex_size if dedup_radius is None else np.full(slot.shape, dedup_radius)
+    close = valid & (dist <= radius)
+    cand_b, cand_j = np.nonzero(close)
+    cos = np.zeros(len(cand_b))
+    if len(cand_b):
+        db = _unit(mk.mean_descriptors(np.unique(cand_b)))
+        ub = np.unique(cand_b)
+        vb = db[np.searchsorted(ub, cand_b)]
+        va = np.zeros_like(vb)
+        cs, cr = ex_src[cand_b, cand_j], ex_row[cand_b, cand_j]
+        for s in range(k):
+            sel = cs == s
+            if sel.any():
+                ur, inv = np.unique(cr[sel], return_inverse=True)
+                va[sel] = _unit(maps[s].mean_descriptors(ur))[inv]
+        cos = np.sum(va * vb, 1)
+    similar = np.zeros(close.shape, bool)
+    similar[cand_b[cos > min_cosine], cand_j[cos > min_cosine]] = True
+    has = similar.any(1)
+    first_j = np.argmax(similar, 1)  # nearest similar existing landmark
+    b = np.flatnonzero(has)
+    a_slot = slot[b, first_j[b]]
+    qa, qb = ex_q[b, first_j[b]], dk["quality"][b].astype(np.float64)
+    keep_new[b] = False  # duplicates: worse (or equal) ones are dropped, better ones replace
+    better = qb > qa
+    bb, aa = b[better], a_slot[better]
+    if not len(bb):
+        return keep_new, none, none
+    o = np.lexsort((-dk["quality"][bb], aa))  # per slot, best contender first
+    bb, aa = bb[o], aa[o]
+    firsts = np.r_[True, aa[1:] != aa[:-1]]
+    return keep_new, aa[firsts], bb[firsts]
 
-    # per-source landmark metadata (transformed into the first map's frame)
-    meta = []
-    for i, m in enumerate(maps):
-        d = {k: np.asarray(getattr(m, k)) for k in LANDMARK_META}
-        d["ids"] = np.asarray(m.ids, np.uint64)
-        if i > 0 and transform is not None:
-            d["positions"] = geometry.transform_points(T, d["positions"])
-            d["view_dir"] = (d["view_dir"].astype(np.float64) @ Rot.T).astype(np.float32)
-            d["voxel_size"] = (d["voxel_size"] * scale).astype(np.float32)
-            d["depth_range"] = (d["depth_range"] * scale).astype(np.float32)
-        meta.append(d)
 
-    # deduplication: entries of the output as (source, row); later maps against what is there
+def _select_landmarks(maps, meta, dedup: bool, dedup_radius, min_cosine):
+    """Which (source, row) pairs make the output, in output order (by source, then row: sequential
+    voxel reads), and per-source counts. Later maps are deduplicated against what is there."""
     src = [np.zeros(len(maps[0]), np.int64)]
     row = [np.arange(len(maps[0]), dtype=np.int64)]
     stats = [dict(path=str(maps[0].path), landmarks=len(maps[0]), kept=len(maps[0]), dropped_duplicates=0, replaced=0)]
     for k in range(1, len(maps)):
-        mk, dk = maps[k], meta[k]
+        mk = maps[k]
         s_all, r_all = np.concatenate(src), np.concatenate(row)
-        keep_new = np.ones(len(mk), bool)
-        replace_slot = np.zeros(0, np.int64)
-        replace_by = np.zeros(0, np.int64)
+        keep_new, replace_slot, replace_by = np.ones(len(mk), bool), np.zeros(0, np.int64), np.zeros(0, np.int64)
         if dedup and len(s_all) and len(mk):
-            ex_pos = np.concatenate([meta[s]["positions"][r_all[s_all == s]] for s in range(k)])
-            order = np.concatenate([np.flatnonzero(s_all == s) for s in range(k)])  # ex_pos rows -> slots
-            idx = SpatialIndex(ex_pos, backend="open3d")
-            nn, dist = idx.knn_batch(dk["positions"], 8)
-            valid = nn >= 0
-            slot = np.where(valid, order[np.maximum(nn, 0)], 0)
-            ex_src, ex_row = s_all[slot], r_all[slot]
-            ex_size = np.zeros(slot.shape, np.float64)
-            ex_q = np.zeros(slot.shape, np.float64)
-            for s in range(k):
-                sel = ex_src == s
-                ex_size[sel] = meta[s]["voxel_size"][ex_row[sel]]
-                ex_q[sel] = meta[s]["quality"][ex_row[sel]]
-            radius = ex_size if dedup_radius is None else np.full(slot.shape, dedup_radius)
-            close = valid & (dist <= radius)
-            cand_b, cand_j = np.nonzero(close)
-            cos = np.zeros(len(cand_b))
-            if len(cand_b):
-                db = _unit(mk.mean_descriptors(np.unique(cand_b)))
-                ub = np.unique(cand_b)
-                vb = db[np.searchsorted(ub, cand_b)]
-                va = np.zeros_like(vb)
-                cs, cr = ex_src[cand_b, cand_j], ex_row[cand_b, cand_j]
-                for s in range(k):
-                    sel = cs == s
-                    if sel.any():
-                        ur, inv = np.unique(cr[sel], return_inverse=True)
-                        va[sel] = _unit(maps[s].mean_descriptors(ur))[inv]
-                cos = np.sum(va * vb, 1)
-            similar = np.zeros(close.shape, bool)
-            similar[cand_b[cos > min_cosine], cand_j[cos > min_cosine]] = True
-            has = similar.any(1)
-            first_j = np.argmax(similar, 1)  # nearest similar existing landmark
-            b = np.flatnonzero(has)
-            a_slot = slot[b, first_j[b]]
-            qa, qb = ex_q[b, first_j[b]], dk["quality"][b].astype(np.float64)
-            keep_new[b] = False  # duplicates: worse (or equal) ones are dropped, better ones replace
-            better = qb > qa
-            bb, aa = b[better], a_slot[better]
-            if len(bb):
-                o = np.lexsort((-dk["quality"][bb], aa))  # per slot, best contender first
-                bb, aa = bb[o], aa[o]
-                firsts = np.r_[True, aa[1:] != aa[:-1]]
-                replace_slot, replace_by = aa[firsts], bb[firsts]
+            keep_new, replace_slot, replace_by = _duplicates(maps, meta, k, s_all, r_all, dedup_radius, min_cosine)
         # apply replacements, append new landmarks
         s_all = s_all.copy()
         r_all = r_all.copy()
@@ -241,28 +279,34 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
         new_rows = np.flatnonzero(keep_new)
         src, row = [s_all, np.full(len(new_rows), k, np.int64)], [r_all, new_rows]
         stats.append(dict(path=str(mk.path), landmarks=len(mk), kept=int(len(new_rows) + len(replace_slot)),
-                          dropped_duplicates=int(len(mk) - len(new_rows) - len(replace_slot)), replaced=int(len(replace_slot))))
+                          dropped_duplicates=int(len(mk) - len(new_rows) - len(replace_slot)),
+                          replaced=int(len(replace_slot))))
     s_all, r_all = np.concatenate(src), np.concatenate(row)
-    o = np.lexsort((r_all, s_all))  # output order: by source, then row (sequential voxel reads)
+    o = np.lexsort((r_all, s_all))
     s_all, r_all = s_all[o], r_all[o]
     for k, st in enumerate(stats):  # final counts (a replacing landmark may itself be replaced later)
         st["in_output"] = int(np.sum(s_all == k))
-    L = len(s_all)
+    return s_all, r_all, stats
 
-    # landmark arrays
-    segs = [(k, r_all[s_all == k]) for k in range(len(maps))]
-    lm = {key: np.concatenate([meta[k][key][rr] for k, rr in segs]) for key in LANDMARK_META + ("ids",)}
+
+def _landmark_arrays(meta, segs) -> tuple[dict, int]:
+    """The output's landmark metadata by field name; colliding ids regenerated (and how many)."""
+    lm = {key: np.concatenate([meta[k][key][rr] for k, rr in segs]) for key in meta[0]}
     ids = lm["ids"]
     _, first_idx = np.unique(ids, return_index=True)
-    dup = np.ones(L, bool)
+    dup = np.ones(len(ids), bool)
     dup[first_idx] = False
     n_regen = int(dup.sum())
     if n_regen:
         ids = ids.copy()
         ids[dup] = new_landmark_ids(n_regen, avoid=ids[~dup])
     lm["ids"] = ids
+    return lm, n_regen
 
-    # cameras and frames
+
+def _frames(maps, sim: _Similarity | None):
+    """Concatenated cameras (renumbered), frame names (collisions prefixed), frame cameras, poses
+    (later maps moved by ``sim``) and the first frame row of each source."""
     cameras, names, frame_cam, cfw, frame_off = {}, [], [], [], []
     seen_names: set = set()
     for k, m in enumerate(maps):
@@ -273,19 +317,21 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
         fc = np.asarray(m.frame_camera_ids, np.int64)
         frame_cam.append((base + np.searchsorted(old_ids, fc)).astype(np.int32))
         T_k = np.asarray(m.cam_from_world, np.float64)
-        if k > 0 and transform is not None:
-            Tinv = np.linalg.inv(T)
-            T_k = T_k @ Tinv
-            T_k[:, :3, :] *= scale  # rotation block is R_b R^T / s: rescale the camera frame to stay rigid
+        if k > 0 and sim is not None:
+            T_k = T_k @ np.linalg.inv(sim.T)
+            T_k[:, :3, :] *= sim.scale  # rotation block is R_b R^T / s: rescale the camera frame to stay rigid
         cfw.append(T_k)
         frame_off.append(sum(len(n) for n in names))
         nm = [n if n not in seen_names else f"{k}/{n}" for n in m.frame_names]
         seen_names.update(nm)
         names.append(nm)
     all_names = [n for nm in names for n in nm]
-    M = len(all_names)
+    frame_cam = np.concatenate(frame_cam) if frame_cam else np.zeros(0, np.int32)
+    return cameras, all_names, frame_cam, np.concatenate(cfw).reshape(-1, 4, 4), frame_off
 
-    # tracks
+
+def _tracks(maps, s_all, r_all, frame_off, max_side: int):
+    """Observations of the kept landmarks, rows remapped, pixels scaled to ``max_side``."""
     tl_out, tf_out, txy_out = [], [], []
     for k, m in enumerate(maps):
         remap = np.full(len(m), -1, np.int64)
@@ -296,10 +342,25 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
         tl_out.append(remap[tl[keep]].astype(np.int32))
         tf_out.append((tf[keep].astype(np.int64) + frame_off[k]).astype(np.int32))
         xy = txy[keep].astype(np.float32)
-        fs = _frame_scale(m.cameras, np.asarray(m.frame_camera_ids), m.max_side, first.max_side)
+        fs = _frame_scale(m.cameras, np.asarray(m.frame_camera_ids), m.max_side, max_side)
         if fs is not None:
             xy = (xy * fs[tf[keep]]).astype(np.float32)
         txy_out.append(xy)
+    return np.concatenate(tl_out), np.concatenate(tf_out), np.concatenate(txy_out).reshape(-1, 2)
+
+
+def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progress) -> MergeResult:
+    first = maps[0]
+    warnings = []
+    sim = _similarity(transform, first.grid_resolution, warnings)
+    if len({m.render_samples for m in maps}) > 1:
+        warnings.append(f"maps differ in render_samples; using the first map's ({first.render_samples})")
+    meta = [_to_first_frame(m, sim if i > 0 else None) for i, m in enumerate(maps)]
+    s_all, r_all, stats = _select_landmarks(maps, meta, dedup, dedup_radius, min_cosine)
+    segs = [(k, r_all[s_all == k]) for k in range(len(maps))]
+    lm, n_regen = _landmark_arrays(meta, segs)
+    cameras, names, frame_cam, cfw, frame_off = _frames(maps, sim)
+    tracks = _tracks(maps, s_all, r_all, frame_off, first.max_side)
 
     provenance = {
         "operation": "merge",
@@ -312,19 +373,11 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
     }
     header = {k: getattr(first, k) for k in MapWriter.HEADER_KEYS}
     header["provenance"] = provenance
+    L, M = len(s_all), len(names)
     with MapWriter(out, header, L, M) as w:
-        w.put("landmarks/ids", lm["ids"])
-        for key in LANDMARK_META:
-            w.put(f"landmarks/{key}", lm[key])
-        for name, arr in camera_arrays(cameras).items():
-            w.put(name, arr)
-        w.put("frames/names", all_names)
-        w.put("frames/camera_ids", np.concatenate(frame_cam) if frame_cam else np.zeros(0, np.int32))
-        w.put("frames/cam_from_world", np.concatenate(cfw).reshape(-1, 4, 4))
-        w.put("tracks/landmark_index", np.concatenate(tl_out))
-        w.put("tracks/frame_index", np.concatenate(tf_out))
-        w.put("tracks/xy", np.concatenate(txy_out).reshape(-1, 2))
-        resample = {k: W for k in range(1, len(maps))} if W is not None else {}
+        write_landmark_metadata(w, lm)
+        write_frames_and_tracks(w, cameras, names, frame_cam, cfw, *tracks)
+        resample = {k: sim.W for k in range(1, len(maps))} if sim is not None and sim.W is not None else {}
         copy_voxels(w, [(maps[k], rr) for k, rr in segs], chunk=chunk, resample=resample, progress=progress)
     return MergeResult(out, L, M, len(cameras), stats, n_regen, warnings)
 

@@ -17,9 +17,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..mapfile import Map
-from ..mapfile.writer import check_output_path
-from ..mapfile.writer import MapWriter, camera_arrays
-from .merge import LANDMARK_META, copy_voxels
+from ..mapfile.fields import field_name, metadata_datasets
+from ..mapfile.writer import MapWriter, check_output_path
+from .merge import copy_voxels, write_frames_and_tracks, write_landmark_metadata
 
 REASONS = ("min_track", "min_quality", "bbox", "budget")
 
@@ -196,17 +196,9 @@ def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None
         header = {k: getattr(m, k) for k in MapWriter.HEADER_KEYS}
         header["provenance"] = prov
         with MapWriter(out, header, len(rows), m.num_frames) as w:
-            w.put("landmarks/ids", m.ids[rows])
-            for key in LANDMARK_META:
-                w.put(f"landmarks/{key}", getattr(m, key)[rows])
-            for name, arr in camera_arrays(m.cameras).items():
-                w.put(name, arr)
-            w.put("frames/names", m.frame_names)
-            w.put("frames/camera_ids", m.frame_camera_ids)
-            w.put("frames/cam_from_world", m.cam_from_world)
-            w.put("tracks/landmark_index", remap[tl[obs]].astype(np.int32))
-            w.put("tracks/frame_index", tf[obs])
-            w.put("tracks/xy", txy[obs])
+            write_landmark_metadata(w, {field_name(p): getattr(m, field_name(p))[rows] for p in metadata_datasets()})
+            write_frames_and_tracks(w, m.cameras, m.frame_names, m.frame_camera_ids, m.cam_from_world,
+                                    remap[tl[obs]].astype(np.int32), tf[obs], txy[obs])
             copy_voxels(w, [(m, rows)], chunk=chunk, progress=progress)
     res.path = Path(out)
     return res

@@ -59,12 +59,13 @@ class QueryResult:
 
 
 def query_pose(m, cam_from_world: np.ndarray, camera: Camera | None = None, mesh=None,
-               limits: ViewLimits = ViewLimits(), index: SpatialIndex | None = None) -> QueryResult:
+               limits: ViewLimits | None = None, index: SpatialIndex | None = None) -> QueryResult:
     """Landmarks of ``m`` (Map or MapData) visible from ``cam_from_world``: frustum, trained depth
     and viewing-angle ranges (``spatial.visible_rows``), and with a ``mesh`` not occluded by it."""
     cam = default_camera(m) if camera is None else working_camera(camera, m.max_side)
     index = map_index(m) if index is None else index
     c = camera_centers(np.asarray(cam_from_world, np.float64))
+    limits = ViewLimits() if limits is None else limits
     rows = visible_rows(index, cam, cam_from_world, m.view_dir, m.view_angle, m.depth_range, limits)
     reach = float(np.max(m.depth_range[:, 1])) * limits.depth_scale[1] if len(index) else 0.0
     in_frustum = len(index.frustum(cam, cam_from_world, reach)) if len(index) else 0  # within the largest reach

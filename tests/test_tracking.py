@@ -1,0 +1,164 @@
+"""Tracking on its own (synthetic keypoints with known correspondences) and cheirality in
+triangulation (points behind a camera)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from favormap.features import Features
+from favormap.geometry import look_at, project
+from favormap.io import Camera
+from favormap.tracking import Tracks, track_features
+from favormap.triangulation import TriangulationConfig, triangulate
+
+CAM = Camera("PINHOLE", 640, 480, [500.0, 500.0, 320.0, 240.0])
+
+
+def _rig(n_frames=8, n_points=120, seed=0):
+    """Cameras on a line looking at a cloud of points 5 units away; a unit descriptor per point."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([-1.5, -1.0, 4.0], [1.5, 1.0, 6.0], size=(n_points, 3))
+    T = np.stack([look_at([x, 0.0, 0.0], [0.0, 0.0, 5.0], up=(0, -1, 0)) for x in np.linspace(-1, 1, n_frames)])
+    D = rng.normal(size=(n_points, 32)).astype(np.float32)
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    return X, T, D, rng
+
+
+def _features(X, T, D, rng, noise_px=0.2, visible=None, extra=None):
+    """Per frame: the projections of the points visible in it (shuffled), descriptors with a
+    little noise; ``extra[i]`` appends (xy, descriptor) rows. Returns features and, per frame, the
+    point index of every keypoint (-1 for extra rows)."""
+    feats, owners = [], []
+    for i in range(len(T)):
+        pts = np.flatnonzero(visible[i]) if visible is not None else np.arange(len(X))
+        pts = rng.permutation(pts)
+        xy = project(CAM.K, T[i], X[pts]) + rng.normal(0, noise_px, (len(pts), 2))
+        d = D[pts] + rng.normal(0, 0.02, (len(pts), D.shape[1])).astype(np.float32)
+        own = pts.copy()
+        if extra is not None and i in extra:
+            exy, ed = extra[i]
+            xy, d, own = np.r_[xy, exy], np.r_[d, ed], np.r_[own, np.full(len(exy), -1)]
+        d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+        feats.append(Features(xy.astype(np.float32), np.ones(len(xy), np.float32), d, (CAM.width, CAM.height)))
+        owners.append(own)
+    return feats, owners
+
+
+def _owners_of(tracks: Tracks, owners) -> list[np.ndarray]:
+    return [np.array([owners[f][k] for f, k in zip(tracks.frame_idx[a:b], tracks.keypoint_idx[a:b])])
+            for a, b in zip(tracks.offsets[:-1], tracks.offsets[1:])]
+
+
+def test_tracks_join_the_keypoints_of_one_point_across_frames():
+    X, T, D, rng = _rig()
+    feats, owners = _features(X, T, D, rng)
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3)
+    assert len(tracks) >= 0.95 * len(X)
+    per_track = _owners_of(tracks, owners)
+    assert all(len(np.unique(o)) == 1 and o[0] >= 0 for o in per_track)  # one point per track
+    assert len({int(o[0]) for o in per_track}) == len(tracks)  # one track per point
+    assert np.all(tracks.lengths == len(T))  # seen everywhere, followed everywhere
+    for a, b in zip(tracks.offsets[:-1], tracks.offsets[1:]):  # one observation per frame, in order
+        assert np.all(np.diff(tracks.frame_idx[a:b]) > 0)
+    # the keypoint pixels are carried unchanged
+    f, k = tracks.frame_idx, tracks.keypoint_idx
+    np.testing.assert_array_equal(tracks.xy, np.stack([feats[i].keypoints[j] for i, j in zip(f, k)]))
+
+
+def test_tracking_drops_short_tracks_and_matches_that_break_the_epipolar_constraint():
+    X, T, D, rng = _rig(n_points=60)
+    visible = np.ones((len(T), len(X)), bool)
+    visible[:, :10] = False
+    visible[:3, :10] = True  # points 0..9 seen in 3 frames only: shorter than min_track
+    # a decoy in frame 4: the descriptor of point 20 at a pixel far from its epipolar line
+    decoy = (np.array([[50.0, 40.0]]), D[20:21])
+    feats, owners = _features(X, T, D, rng, visible=visible, extra={4: decoy})
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, max_epipolar_px=2.0)
+    per_track = _owners_of(tracks, owners)
+    found = {int(o[0]) for o in per_track}
+    assert not found & set(range(10))
+    assert all(np.all(o >= 0) and len(np.unique(o)) == 1 for o in per_track)  # the decoy joined nothing
+    assert found == set(range(10, 60))
+    # without the pose check the decoy wins its mutual match (it is the exact descriptor)
+    loose = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, max_epipolar_px=1e9)
+    assert any(np.any(o < 0) for o in _owners_of(loose, owners)) or len(loose) < len(tracks)
+
+
+def test_a_track_with_two_keypoints_in_one_frame_is_dropped():
+    """Point 7 has two keypoints in frame 2 (0.3 px apart, on its epipolar lines): one looks like
+    point 7 in frames 0-1 (descriptor A), the other like point 7 in frames 3-7 (descriptor B).
+    Matching joins both into one component: ambiguous, so the whole track goes."""
+    X, T, D, rng = _rig(n_points=30)
+    a, b = (D[7] + 0.05 * rng.normal(size=D.shape[1]) for _ in range(2))
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    xy7 = project(CAM.K, T[2], X[7:8]) + np.array([[0.0, 0.3]])
+    feats, owners = _features(X, T, D, rng, noise_px=0.0, extra={2: (xy7, b[None].astype(np.float32))})
+    for i in range(len(T)):
+        feats[i].descriptors[np.flatnonzero(owners[i] == 7)] = a if i <= 2 else b
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3)
+    found = {int(o[0]) for o in _owners_of(tracks, owners)}
+    assert 7 not in found
+    assert found == set(range(30)) - {7}
+    # without the second keypoint, point 7 is tracked
+    feats[2] = Features(feats[2].keypoints[:-1], feats[2].scores[:-1], feats[2].descriptors[:-1], feats[2].image_size)
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3)
+    assert 7 in {int(o[0]) for o in _owners_of(tracks, owners)}
+
+
+def test_no_matches_give_no_tracks():
+    X, T, D, rng = _rig(n_points=20)
+    feats, _ = _features(X, T, D, rng)
+    feats = [Features(f.keypoints, f.scores, np.roll(f.descriptors, i, axis=1), f.image_size) for i, f in enumerate(feats)]
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, min_similarity=0.9)
+    assert len(tracks) == 0 and len(tracks.frame_idx) == 0
+
+
+# -- cheirality --------------------------------------------------------------------------------------
+def _observe(X, T, noise_px=0.0, rng=None):
+    """Tracks of every point in every camera, through the pinhole formula (also for cameras the
+    point is behind: the pixel is where the formula puts it)."""
+    fi = np.repeat(np.arange(len(T))[None], len(X), 0).ravel()
+    tid = np.repeat(np.arange(len(X)), len(T))
+    xy = np.stack([project(CAM.K, T[f], X[t:t + 1])[0] for f, t in zip(fi, tid)])
+    if noise_px:
+        xy += rng.normal(0, noise_px, xy.shape)
+    return Tracks.from_obs(fi, np.arange(len(fi)), xy, tid)
+
+
+def test_observations_from_behind_a_camera_are_dropped():
+    """Six cameras see the points; two more face away from them, with the pixels the projection
+    formula gives for points behind them (consistent in the image, impossible in 3D)."""
+    X, T, _, rng = _rig(n_frames=6, n_points=40)
+    away = np.stack([look_at([x, 0.0, 0.0], [x, 0.0, -5.0], up=(0, -1, 0)) for x in (-0.5, 0.5)])
+    T_all = np.concatenate([T, away])
+    depth_in_away = X @ away[:, 2, :3].T + away[:, 2, 3]
+    assert np.all(depth_in_away < 0)  # the points really are behind the two cameras
+    tracks = _observe(X, T_all, 0.2, rng)
+    Ks = np.repeat(CAM.K[None], len(T_all), 0)
+    lms = triangulate(tracks, T_all, Ks, TriangulationConfig(max_reproj_px=3.0, min_track=5))
+    assert len(lms) == len(X)
+    assert np.all(lms.tracks.frame_idx < len(T))  # no observation from behind survives
+    assert np.all(lms.tracks.lengths == len(T))
+    assert np.median(np.linalg.norm(lms.positions - X, axis=1)) < 0.01
+
+
+@pytest.mark.parametrize("behind_all", [True, False])
+def test_points_behind_the_cameras_give_no_landmark(behind_all):
+    """Points mirrored behind the camera rig: their pixels are consistent (the projection formula
+    cannot tell), but the point is behind every camera, so nothing is triangulated. With half the
+    cameras turned around, each point is behind three of six cameras: too short a track remains."""
+    X, T, _, _ = _rig(n_frames=6, n_points=30)
+    X_behind = X * np.array([1.0, 1.0, -1.0])  # z in [-6, -4]: behind cameras at z = 0 looking +z
+    if behind_all:
+        T_use = T
+    else:
+        flip = np.diag([-1.0, 1.0, -1.0, 1.0])  # rotate 180 deg about the camera's y axis
+        T_use = np.stack([flip @ t if i % 2 else t for i, t in enumerate(T)])
+    tracks = _observe(X_behind, T_use)
+    Ks = np.repeat(CAM.K[None], len(T_use), 0)
+    lms = triangulate(tracks, T_use, Ks, TriangulationConfig(min_track=5))
+    assert len(lms) == 0
+    # the same tracks of points in front are triangulated (the rig is not degenerate)
+    if behind_all:
+        assert len(triangulate(_observe(X, T), T, Ks, TriangulationConfig(min_track=5))) == len(X)
