@@ -13,7 +13,7 @@ frame, constant (first mapping frame), none.
 
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
-  fox-extrap   the same sequence, map from the first half of the path, every 4th frame of the second half
+  fox-extrap   the same sequence, map from the first half of the path, every 2nd frame of the second half
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
   custom       --map SEQ --queries SEQ (any readable sequences)
@@ -83,7 +83,7 @@ def fox_splits(which: list[str]) -> list[Split]:
         out.append(Split("fox-holdout", seq.subset([i for i in range(n) if i % 5]), seq.subset(list(range(0, n, 5)))))
     if "fox-extrap" in which:
         half = n // 2
-        out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, 4)))))
+        out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, 2)))))
     for s in out:
         s.angle = nearest_view_angle(s.queries, s.mapping)
     return out
@@ -103,7 +103,7 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
 
     scene = make_room(0)
     poses = camera_path(n_map)
-    c = np.array([0.0, 0.55, 0.8])  # centre of the orbit (favormap.synthetic.scene._loop)
+    c = np.array([0.0, 0.55, 0.8])  # centre of the orbit (favormap.synthetic.paths._loop)
 
     def about(T, axis, deg):
         M = np.eye(4)

@@ -19,7 +19,8 @@ import torch
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", nargs="?", default=None)
-    ap.add_argument("--max-landmarks", type=int, default=1500)
+    ap.add_argument("--max-landmarks", type=int, default=None, help="default: the build default")
+    ap.add_argument("--min-track", type=int, default=None, help="default: the build default")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--extractor", default=None, help="default: the build default")
     ap.add_argument("--quality", default=None, help="voxel training preset (fast | reference)")
@@ -43,7 +44,10 @@ def main():
             seq_path = str(Path(tmp.name) / "room")
             write_sequence(seq_path, n_frames=30)
     seq = read_sequence(seq_path)
-    cfg = BuildConfig(max_landmarks=args.max_landmarks)
+    cfg = BuildConfig()
+    for k in ("max_landmarks", "min_track"):
+        if getattr(args, k) is not None:
+            setattr(cfg, k, getattr(args, k))
     if args.extractor:
         cfg.extractor = args.extractor
     if args.max_side is not None:
