@@ -58,6 +58,10 @@ VARIANTS = {
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
     "rendered guided-3px": ("rendered", {"guided_radius_px": 3.0, "guided_ransac_px": 3.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
+    # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
+    "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),
+    "rendered global-ratio-0.9": ("rendered", {"global_ratio": 0.9}),
+    "rendered global-ratio-1.0": ("rendered", {"global_ratio": 1.0}),
 }
 DEFAULT_VARIANTS = ("rendered", "mean", "nearest-view", "rendered 8px no-mutual (old default)", "rendered no-checks")
 
@@ -128,17 +132,18 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
     return Split("orbit", mapping, queries, nearest_view_angle(queries, mapping))
 
 
-def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool):
+def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = ""):
     from favormap.build import build_map
     from favormap.mapfile import write_map
 
-    path = workdir / f"{split.name}.h5"
+    path = workdir / f"{split.name}{tag}.h5"
     key = json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in split.mapping.frames])
     stamp = path.with_suffix(".config")
+    if reuse and path.exists() and stamp.exists() and stamp.read_text() == key:
+        return path, None
     t = time.perf_counter()
-    if not (reuse and path.exists() and stamp.exists() and stamp.read_text() == key):
-        write_map(build_map(split.mapping, build_cfg), path)
-        stamp.write_text(key)
+    write_map(build_map(split.mapping, build_cfg), path)
+    stamp.write_text(key)
     return path, time.perf_counter() - t
 
 
@@ -152,53 +157,46 @@ def localizer_config(overrides: dict):
     return LocalizeConfig(**over)
 
 
-def run_split(split: Split, args, build_cfg) -> list[dict]:
+def run_split(split: Split, args, build_cfgs) -> list[dict]:
+    """Rows of one split: favormap maps of each build config (one per extractor), then the baseline."""
+    rows, extent = [], None
+    for cfg in build_cfgs:
+        # a map of the build default keeps its old file name (so --reuse finds earlier maps)
+        tag = "" if cfg.extractor == args.default_extractor else f"-{cfg.extractor}"
+        prefix = f"{cfg.extractor} " if len(build_cfgs) > 1 else ""
+        r, extent = run_favormap(split, args, cfg, tag, prefix, extent)
+        rows += r
+    if args.baseline:
+        rows += run_baseline(split, args, build_cfgs[0], extent)
+    return rows
+
+
+def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: float | None):
+    """Rows of one favormap map, and the scene extent (the first map's landmarks, unless given:
+    one extent per split, so that every method's false successes are judged alike)."""
     import dataclasses as dc
 
     from favormap.localize import Localizer, make_source
     from favormap.localize.descriptors import observation_descriptors
-    from favormap.localize.evaluate import (
-        EvalConfig,
-        QueryOutcome,
-        diagnostics_from_matches,
-        make_priors,
-        match_diagnostics,
-        scene_extent,
-        summarize,
-    )
+    from favormap.localize.evaluate import EvalConfig, QueryOutcome, make_priors, match_diagnostics, scene_extent
     from favormap.mapfile import Map
 
     workdir = Path(args.workdir)
     rows = []
-    path, build_s = build_or_load(split, workdir, build_cfg, args.reuse)
+    path, build_s = build_or_load(split, workdir, build_cfg, args.reuse, tag)
     m = Map.open(path)
-    extent = scene_extent(m.positions)
-    print(f"[{split.name}] map {len(m)} landmarks from {len(split.mapping)} frames ({build_s:.0f} s), "
+    extent = extent or scene_extent(m.positions)
+    print(f"[{split.name}] {build_cfg.extractor} map {len(m)} landmarks from {len(split.mapping)} frames "
+          f"({'reused' if build_s is None else f'built in {build_s:.0f} s'}), "
           f"{len(split.queries)} queries, scene extent {extent:.3f} units", file=sys.stderr)
     obs_desc = None
     if any(VARIANTS[v][0] == "nearest" for v in args.variants):
         obs_desc = observation_descriptors(m, split.mapping)
 
-    def record(method, prior_mode, outcomes, iterations):
-        s = summarize(outcomes, iterations, ((0.01, 1.0),), extent)
-        s.update(split=split.name, method=method, prior=prior_mode, landmarks=len(m) if method != "pycolmap-SIFT" else None)
-        if split.angle is not None:
-            err = np.array([_terr(o) for o in outcomes])
-            succ = np.array([o.result.success for o in outcomes])
-            s["bins"] = {}
-            for lo, hi in ANGLE_BINS:
-                sel = (split.angle >= lo) & (split.angle < hi)
-                if sel.any():
-                    ok = sel & succ
-                    s["bins"][f"{lo}-{hi}"] = {"queries": int(sel.sum()), "localized": int(ok.sum()),
-                                               "median_translation": float(np.median(err[ok])) if ok.any() else None,
-                                               "precision": _mean([o.diagnostics.get("match_precision") for o, k in zip(outcomes, sel) if k])}
-        rows.append(s)
-        print(f"[{split.name}] {prior_mode:>8} | {method:<42} {fmt_row(s)}", file=sys.stderr)
-
     for prior_mode in args.priors:
         priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
-        variants = args.variants if prior_mode == "noise" else [v for v in args.variants if v == "rendered"]
+        variants = args.variants if prior_mode == "noise" else [
+            v for v in args.variants if v == "rendered" or "global_ratio" in VARIANTS[v][1]]
         for name in variants:
             source_name, over = VARIANTS[name]
             cfg = dc.replace(localizer_config(over), descriptors=source_name, device=args.device)
@@ -211,33 +209,57 @@ def run_split(split: Split, args, build_cfg) -> list[dict]:
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
                 outs.append(o)
-            record(name, prior_mode, outs, cfg.iterations)
+            rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
+            rows[-1].update(extractor=build_cfg.extractor, build_s=None if build_s is None else round(build_s, 1))
     m.close()
+    return rows, extent
 
-    if args.baseline:
-        from favormap.io import load_image
-        from favormap.localize.baseline import StructureBaseline
 
-        t = time.perf_counter()
-        base = StructureBaseline.build(split.mapping, workdir=workdir / f"{split.name}_baseline")
-        print(f"[{split.name}] baseline: {len(base.points3d)} points ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
-        budgets = [("pycolmap-SIFT", base)]
-        if args.baseline_budget:
-            budgets.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", base.subset(args.baseline_budget)))
-        for name, b in budgets:
-            outs = []
-            for fr in split.queries.frames:
-                cam = split.queries.cameras[fr.camera_id]
-                res = b.localize(fr.image_path, cam)
-                o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
-                _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
-                mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
-                o.diagnostics = diagnostics_from_matches(wcam, fr.cam_from_world, b.points3d, res.keypoints,
-                                                         b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]])
-                outs.append(o)
-            record(name, "none", outs, 1)
-            rows[-1]["landmarks"] = len(b.points3d)
+def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
+    from favormap.io import load_image
+    from favormap.localize.baseline import StructureBaseline
+    from favormap.localize.evaluate import QueryOutcome, diagnostics_from_matches
+
+    rows = []
+    t = time.perf_counter()
+    base = StructureBaseline.build(split.mapping, workdir=Path(args.workdir) / f"{split.name}_baseline")
+    print(f"[{split.name}] baseline: {len(base.points3d)} points ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
+    budgets = [("pycolmap-SIFT", base)]
+    if args.baseline_budget:
+        budgets.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", base.subset(args.baseline_budget)))
+    for name, b in budgets:
+        outs = []
+        for fr in split.queries.frames:
+            cam = split.queries.cameras[fr.camera_id]
+            res = b.localize(fr.image_path, cam)
+            o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
+            _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
+            mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
+            o.diagnostics = diagnostics_from_matches(wcam, fr.cam_from_world, b.points3d, res.keypoints,
+                                                     b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]])
+            outs.append(o)
+        rows.append(record(split, name, "none", outs, 1, extent, len(b.points3d)))
     return rows
+
+
+def record(split: Split, method: str, prior_mode: str, outcomes, iterations: int, extent: float, landmarks: int) -> dict:
+    from favormap.localize.evaluate import summarize
+
+    s = summarize(outcomes, iterations, ((0.01, 1.0),), extent)
+    s.update(split=split.name, method=method, prior=prior_mode, landmarks=landmarks)
+    if split.angle is not None:
+        err = np.array([_terr(o) for o in outcomes])
+        succ = np.array([o.result.success for o in outcomes])
+        s["bins"] = {}
+        for lo, hi in ANGLE_BINS:
+            sel = (split.angle >= lo) & (split.angle < hi)
+            if sel.any():
+                ok = sel & succ
+                s["bins"][f"{lo}-{hi}"] = {"queries": int(sel.sum()), "localized": int(ok.sum()),
+                                           "median_translation": float(np.median(err[ok])) if ok.any() else None,
+                                           "precision": _mean([o.diagnostics.get("match_precision") for o, k in zip(outcomes, sel) if k])}
+    print(f"[{split.name}] {prior_mode:>8} | {method:<42} {fmt_row(s)}", file=sys.stderr)
+    return s
 
 
 def _terr(o) -> float:
@@ -297,7 +319,9 @@ def main():
     ap.add_argument("--queries", help="custom split: query sequence")
     ap.add_argument("--priors", default="noise,nearest,constant,none")
     ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS))
-    ap.add_argument("--extractor", default=None, help="build with this extractor (default: the build default)")
+    ap.add_argument("--extractor", default=None,
+                    help="build with this extractor, or several (comma-separated: one map each, one table; "
+                         "default: the build default)")
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
@@ -317,19 +341,28 @@ def main():
     if unknown:
         ap.error(f"unknown variant(s) {unknown}; known: {list(VARIANTS)}")
 
+    from favormap import features
     from favormap.build import BuildConfig
 
-    build_cfg = BuildConfig()
-    if args.quality:
-        from favormap.voxels import VoxelConfig
+    args.default_extractor = BuildConfig().extractor
+    extractors = [e.strip() for e in (args.extractor or args.default_extractor).split(",") if e.strip()]
+    bad = [e for e in extractors if e not in features.available()]
+    if bad or not extractors:
+        ap.error(f"unknown extractor(s) {bad}; known: {features.available()}")
+    build_cfgs = []
+    for ex in extractors:
+        build_cfg = BuildConfig(extractor=ex)
+        if args.quality:
+            from favormap.voxels import VoxelConfig
 
-        build_cfg.voxel = VoxelConfig.preset(args.quality)
-    build_cfg.voxel.device = args.device
-    for k in ("extractor", "min_track", "max_landmarks"):
-        if getattr(args, k) is not None:
-            setattr(build_cfg, k, getattr(args, k))
-    if args.iterations:
-        build_cfg.voxel.iterations = args.iterations
+            build_cfg.voxel = VoxelConfig.preset(args.quality)
+        build_cfg.voxel.device = args.device
+        for k in ("min_track", "max_landmarks"):
+            if getattr(args, k) is not None:
+                setattr(build_cfg, k, getattr(args, k))
+        if args.iterations:
+            build_cfg.voxel.iterations = args.iterations
+        build_cfgs.append(build_cfg)
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -348,12 +381,14 @@ def main():
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
     rows = []
     for sp in splits:
-        rows += run_split(sp, args, build_cfg)
+        rows += run_split(sp, args, build_cfgs)
     print(markdown(rows))
-    print(f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {build_cfg.extractor}, "
+    builds = {(r["split"], r["extractor"]): r["build_s"] for r in rows if "extractor" in r}
+    print(f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {','.join(extractors)}, "
           f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
           f"{build_cfg.voxel.iterations} training iterations x {build_cfg.voxel.rays_per_landmark} rays, "
-          f"box factor {build_cfg.voxel.box_factor}, device {args.device}")
+          f"box factor {build_cfg.voxel.box_factor}, device {args.device}; map builds: "
+          + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items()))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
 
