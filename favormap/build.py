@@ -7,10 +7,10 @@ dataclass to the next; ``build_map`` runs them and records timings and statistic
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
-from typing import Callable
 
 import numpy as np
 import torch
@@ -32,7 +32,9 @@ from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
 
 @dataclass
 class BuildConfig:
-    extractor: str = "sift"  # tools/bench_accuracy.py: fox hold-out 0.0021 vs 0.0052 units (xfeat), extrapolation 0.0058 vs 0.054
+    extractor: str = (
+        "sift"  # tools/bench_accuracy.py: fox hold-out 0.0021 vs 0.0052 units (xfeat), extrapolation 0.0058 vs 0.054
+    )
     max_keypoints: int = 2048
     max_side: int = 640  # images are downscaled so that max(w, h) <= max_side (0: keep)
     min_track: int = 5
@@ -72,6 +74,7 @@ class BuildObserver:
     def on_landmarks(self, lms: Landmarks, ff: FrameFeatures) -> None: ...
     def on_train_step(self, iteration: int, loss: float, psnr: float) -> None: ...
     def on_map(self, m: MapData, timings: dict) -> None: ...
+
     wants_images: bool = False  # keep the working images for on_frames
 
 
@@ -158,18 +161,36 @@ def extract_frame(task: ExtractTask, device: str | None = None, report=None) -> 
     return ExtractedFrame(f, cam, img if task.keep_image else None)
 
 
-def extract_sequence(seq: Sequence, extractor: Extractor | ExtractorSpec, max_side: int, progress=None,
-                     keep_images: list | None = None, executor: Executor | None = None) -> FrameFeatures:
+def extract_sequence(
+    seq: Sequence,
+    extractor: Extractor | ExtractorSpec,
+    max_side: int,
+    progress=None,
+    keep_images: list | None = None,
+    executor: Executor | None = None,
+) -> FrameFeatures:
     """Features of every frame (one task per frame; the image bytes are read here, lazily)."""
-    tasks = (ExtractTask(str(fr.image_path), read_image_bytes(fr.image_path), seq.cameras[fr.camera_id], max_side,
-                         extractor, keep_images is not None) for fr in seq.frames)
+    tasks = (
+        ExtractTask(
+            str(fr.image_path),
+            read_image_bytes(fr.image_path),
+            seq.cameras[fr.camera_id],
+            max_side,
+            extractor,
+            keep_images is not None,
+        )
+        for fr in seq.frames
+    )
     n = len(seq.frames)
     gpu = isinstance(extractor, ExtractorSpec) and extractor.uses_device
-    out = (executor or LocalExecutor()).map(extract_frame, tasks, n, gpu=gpu,
-                                            progress=(lambda d: progress("extract", int(d), n)) if progress else None)
+    out = (executor or LocalExecutor()).map(
+        extract_frame, tasks, n, gpu=gpu, progress=(lambda d: progress("extract", int(d), n)) if progress else None
+    )
     if keep_images is not None:
         keep_images.extend(r.image for r in out)
-    return FrameFeatures([r.features for r in out], [r.camera for r in out], np.stack([f.cam_from_world for f in seq.frames]))
+    return FrameFeatures(
+        [r.features for r in out], [r.camera for r in out], np.stack([f.cam_from_world for f in seq.frames])
+    )
 
 
 def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
@@ -190,11 +211,20 @@ class PatchTask:
 
 
 def sample_patches(task: PatchTask, device: str | None = None, report=None) -> np.ndarray:
-    return _extractor(task.extractor, "cpu" if isinstance(task.extractor, ExtractorSpec) else None).sample(task.features, task.points)
+    return _extractor(task.extractor, "cpu" if isinstance(task.extractor, ExtractorSpec) else None).sample(
+        task.features, task.points
+    )
 
 
-def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor | ExtractorSpec, patch_size: int,
-                  box_factor: float | None = None, executor: Executor | None = None, progress=None) -> TrainingRays:
+def training_rays(
+    lms: Landmarks,
+    ff: FrameFeatures,
+    extractor: Extractor | ExtractorSpec,
+    patch_size: int,
+    box_factor: float | None = None,
+    executor: Executor | None = None,
+    progress=None,
+) -> TrainingRays:
     """Descriptor patches S x S around the projection of each landmark in each of its frames, and
     the viewing rays of their pixels. One ``extractor.sample`` task per frame.
 
@@ -213,13 +243,14 @@ def training_rays(lms: Landmarks, ff: FrameFeatures, extractor: Extractor | Extr
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
     frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
-    tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f]:bounds[f + 1]]].reshape(-1, 2)) for f in frames)
+    tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames)
     n = len(frames)
-    samples = (executor or LocalExecutor()).map(sample_patches, tasks, n,
-                                                progress=(lambda d: progress("patches", int(d), n)) if progress else None)
+    samples = (executor or LocalExecutor()).map(
+        sample_patches, tasks, n, progress=(lambda d: progress("patches", int(d), n)) if progress else None
+    )
     targets = np.zeros((len(tid), P, samples[0].shape[-1] if samples else 0), np.float32)
     for f, s in zip(frames, samples):
-        sel = order[bounds[f]:bounds[f + 1]]
+        sel = order[bounds[f] : bounds[f + 1]]
         targets[sel] = s.reshape(len(sel), P, -1)
     # ray directions in world
     d_cam = unproject(Ks[fi][:, None], pix)
@@ -257,26 +288,51 @@ def batch_bounds(n_landmarks: int, batch: int) -> np.ndarray:
 def rays_subset(rays: TrainingRays, lo: int, hi: int) -> TrainingRays:
     """The training data of landmarks lo..hi-1 (landmark indices renumbered from 0)."""
     sel = (rays.obs_landmark >= lo) & (rays.obs_landmark < hi)
-    return TrainingRays(rays.centers[lo:hi], rays.sizes[lo:hi], rays.obs_landmark[sel] - lo, rays.obs_origin[sel],
-                        rays.ray_dirs[sel], rays.targets[sel])
+    return TrainingRays(
+        rays.centers[lo:hi],
+        rays.sizes[lo:hi],
+        rays.obs_landmark[sel] - lo,
+        rays.obs_origin[sel],
+        rays.ray_dirs[sel],
+        rays.targets[sel],
+    )
 
 
-def train_batches(rays: TrainingRays, cfg: VoxelConfig, batch: int, executor: Executor | None = None,
-                  progress=None) -> VoxelGrids:
+def train_batches(
+    rays: TrainingRays, cfg: VoxelConfig, batch: int, executor: Executor | None = None, progress=None
+) -> VoxelGrids:
     """All landmarks' voxels, trained in batches of ``batch`` landmarks (batch b seeded ``cfg.seed + b``;
     one batch is exactly ``train_voxels(rays, cfg)``). History: landmark-weighted mean over the batches."""
     bounds = batch_bounds(len(rays.centers), batch)
-    tasks = (TrainTask(rays_subset(rays, lo, hi), replace(cfg, seed=cfg.seed + b))
-             for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:])))
+    tasks = (
+        TrainTask(rays_subset(rays, lo, hi), replace(cfg, seed=cfg.seed + b))
+        for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
+    )
     nb = len(bounds) - 1
     total = nb * cfg.iterations
-    parts = (executor or LocalExecutor()).map(train_batch, tasks, nb, gpu=True,
-                                              progress=(lambda d: progress("train", int(d * cfg.iterations), total)) if progress else None)
+    parts = (executor or LocalExecutor()).map(
+        train_batch,
+        tasks,
+        nb,
+        gpu=True,
+        progress=(lambda d: progress("train", int(d * cfg.iterations), total)) if progress else None,
+    )
     w = np.diff(bounds) / bounds[-1]
-    history = [(it, float(sum(wi * p.history[k][1] for wi, p in zip(w, parts))),
-                float(sum(wi * p.history[k][2] for wi, p in zip(w, parts)))) for k, (it, _, _) in enumerate(parts[0].history)]
-    return VoxelGrids(torch.cat([p.descriptors for p in parts]), torch.cat([p.density for p in parts]),
-                      np.concatenate([p.psnr for p in parts]), np.concatenate([p.cosine for p in parts]), history)
+    history = [
+        (
+            it,
+            float(sum(wi * p.history[k][1] for wi, p in zip(w, parts))),
+            float(sum(wi * p.history[k][2] for wi, p in zip(w, parts))),
+        )
+        for k, (it, _, _) in enumerate(parts[0].history)
+    ]
+    return VoxelGrids(
+        torch.cat([p.descriptors for p in parts]),
+        torch.cat([p.density for p in parts]),
+        np.concatenate([p.psnr for p in parts]),
+        np.concatenate([p.cosine for p in parts]),
+        history,
+    )
 
 
 def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
@@ -301,15 +357,27 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
 
     if not seq.frames:
         raise SequenceError(f"sequence {seq.root} has no frames")
-    problems = check_frames(seq.cameras, [f.name for f in seq.frames], [f.camera_id for f in seq.frames],
-                            np.stack([f.cam_from_world for f in seq.frames]))
+    problems = check_frames(
+        seq.cameras,
+        [f.name for f in seq.frames],
+        [f.camera_id for f in seq.frames],
+        np.stack([f.cam_from_world for f in seq.frames]),
+    )
     if problems:
-        raise SequenceError(f"sequence {seq.root} cannot become a map: {problems[0]}"
-                            + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+        raise SequenceError(
+            f"sequence {seq.root} cannot become a map: {problems[0]}"
+            + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else "")
+        )
 
 
-def build_map(seq: Sequence, config: BuildConfig | None = None, progress: Callable | None = None,
-              observer: BuildObserver | None = None, executor: Executor | None = None, ray: str | None = None) -> MapData:
+def build_map(
+    seq: Sequence,
+    config: BuildConfig | None = None,
+    progress: Callable | None = None,
+    observer: BuildObserver | None = None,
+    executor: Executor | None = None,
+    ray: str | None = None,
+) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
     reports progress; ``observer`` sees every stage's result (visualisation, debugging).
 
@@ -331,19 +399,34 @@ def build_map(seq: Sequence, config: BuildConfig | None = None, progress: Callab
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)
-        config = replace(config, voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)))
+        config = replace(
+            config,
+            voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)),
+        )
     images = [] if obs.wants_images else None
-    extractor = ExtractorSpec(config.extractor, config.max_keypoints, config.voxel.device if config.voxel.device != "cpu" else None)
+    extractor = ExtractorSpec(
+        config.extractor, config.max_keypoints, config.voxel.device if config.voxel.device != "cpu" else None
+    )
     with pr.stage("extract"):
         ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor)
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
-        tracks = track_features(ff.features, ff.cam_from_world, ff.cameras, config.min_track, config.match_window,
-                                config.max_epipolar_px, config.min_similarity)
+        tracks = track_features(
+            ff.features,
+            ff.cam_from_world,
+            ff.cameras,
+            config.min_track,
+            config.match_window,
+            config.max_epipolar_px,
+            config.min_similarity,
+        )
         pr.callback("track", 1, 1)
     obs.on_tracks(tracks, ff)
     if len(tracks) == 0:
-        raise FavormapError(f"no feature tracks of length >= {config.min_track} in {seq.root}: too few frames, too little overlap, or wrong poses")
+        raise FavormapError(
+            f"no feature tracks of length >= {config.min_track} in {seq.root}: too few frames, too little overlap, "
+            "or wrong poses"
+        )
     with pr.stage("triangulate"):
         tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
         Ks = np.stack([c.K for c in ff.cameras])
@@ -354,7 +437,9 @@ def build_map(seq: Sequence, config: BuildConfig | None = None, progress: Callab
     if len(lms) == 0:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     with pr.stage("patches"):
-        rays = training_rays(lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor, executor, pr.callback)
+        rays = training_rays(
+            lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor, executor, pr.callback
+        )
     with pr.stage("train"):
         grids = train_batches(rays, config.voxel, config.train_batch, executor, pr.callback)
     for it, loss, psnr in grids.history:  # the (landmark-weighted) training curve
@@ -404,8 +489,15 @@ def build_map(seq: Sequence, config: BuildConfig | None = None, progress: Callab
         track_landmark=lms.tracks.track_of_obs.astype(np.int32),
         track_frame=lms.tracks.frame_idx.astype(np.int32),
         track_xy=lms.tracks.xy.astype(np.float32),
-        provenance={"source": str(seq.root), "source_format": seq.format, "config": config.to_dict(),
-                    "timings": pr.timings, "stats": stats, "training_history": grids.history, "executor": executor.describe()},
+        provenance={
+            "source": str(seq.root),
+            "source_format": seq.format,
+            "config": config.to_dict(),
+            "timings": pr.timings,
+            "stats": stats,
+            "training_history": grids.history,
+            "executor": executor.describe(),
+        },
     )
     obs.on_map(m, pr.timings)
     return m

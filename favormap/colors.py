@@ -5,8 +5,20 @@ from __future__ import annotations
 import numpy as np
 
 # viridis, 9 samples (0, 1/8, ..., 1)
-VIRIDIS = np.array([[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
-                    [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]], np.float64)
+VIRIDIS = np.array(
+    [
+        [68, 1, 84],
+        [71, 44, 122],
+        [59, 81, 139],
+        [44, 113, 142],
+        [33, 144, 141],
+        [39, 173, 129],
+        [92, 200, 99],
+        [170, 220, 50],
+        [253, 231, 37],
+    ],
+    np.float64,
+)
 
 
 def viridis(values, lo: float | None = None, hi: float | None = None) -> tuple[np.ndarray, float, float]:

@@ -74,8 +74,10 @@ def _run(fn, task, use_gpu: bool, fingerprint: str):
     import ray
 
     if code_fingerprint() != fingerprint:
-        raise FavormapError(f"a Ray worker on {socket.gethostname()} runs other favormap code ({_PACKAGE_DIR}) than "
-                            "this driver: install the same favormap version on every machine")
+        raise FavormapError(
+            f"a Ray worker on {socket.gethostname()} runs other favormap code ({_PACKAGE_DIR}) than "
+            "this driver: install the same favormap version on every machine"
+        )
     res = ray.get_runtime_context().get_assigned_resources()
     _set_threads(int(res.get("CPU", 1)))
     device = "cuda" if use_gpu and ray.get_gpu_ids() else "cpu"
@@ -92,8 +94,15 @@ class RayExecutor(Executor):
 
     name = "ray"
 
-    def __init__(self, address: str = "auto", cpus_per_task: float = 1, gpus: bool = True, max_retries: int = 3,
-                 max_in_flight: int | None = None, num_cpus: int | None = None):
+    def __init__(
+        self,
+        address: str = "auto",
+        cpus_per_task: float = 1,
+        gpus: bool = True,
+        max_retries: int = 3,
+        max_in_flight: int | None = None,
+        num_cpus: int | None = None,
+    ):
         if cpus_per_task <= 0:
             raise InputError(f"cpus per Ray task must be > 0, not {cpus_per_task}")
         if max_retries < 0:
@@ -105,8 +114,12 @@ class RayExecutor(Executor):
         if self._owns:
             # the driver's favormap code goes to the workers with the job (Ray caches it by content),
             # so worker machines need favormap's dependencies, not favormap itself
-            kw = dict(include_dashboard=False, logging_level="WARNING", log_to_driver=False,
-                      runtime_env={"py_modules": [_PACKAGE_DIR], "excludes": ["__pycache__/"]})
+            kw = dict(
+                include_dashboard=False,
+                logging_level="WARNING",
+                log_to_driver=False,
+                runtime_env={"py_modules": [_PACKAGE_DIR], "excludes": ["__pycache__/"]},
+            )
             if address not in ("auto", "local"):
                 kw.pop("include_dashboard")  # a setting of the cluster, not of a driver joining it
             elif num_cpus is not None:
@@ -122,14 +135,21 @@ class RayExecutor(Executor):
             if err is not None:
                 hint = ""
                 if "InvalidAuthToken" in log.text:
-                    hint = " (the cluster refused this machine's token: set RAY_AUTH_MODE=token and the cluster's RAY_AUTH_TOKEN)"
-                what = "start a local Ray instance" if address == "local" else f"connect to the Ray cluster at {address!r}"
+                    hint = (
+                        " (the cluster refused this machine's token: set RAY_AUTH_MODE=token and the cluster's"
+                        " RAY_AUTH_TOKEN)"
+                    )
+                what = (
+                    "start a local Ray instance" if address == "local" else f"connect to the Ray cluster at {address!r}"
+                )
                 raise FavormapError(f"cannot {what}: {first_line(err)}{hint}") from None
         res = ray.cluster_resources()
         self.cluster_cpus = float(res.get("CPU", 0))
         self.cluster_gpus = float(res.get("GPU", 0))
         if self.cluster_cpus < cpus_per_task:
-            raise FavormapError(f"the Ray cluster has {self.cluster_cpus:g} CPUs, fewer than one task needs ({cpus_per_task:g})")
+            raise FavormapError(
+                f"the Ray cluster has {self.cluster_cpus:g} CPUs, fewer than one task needs ({cpus_per_task:g})"
+            )
         self.cpus_per_task = cpus_per_task
         self.use_gpus = bool(gpus) and self.cluster_gpus >= 1
         self.max_retries = int(max_retries)
@@ -138,16 +158,26 @@ class RayExecutor(Executor):
         self._remote = ray.remote(_run)
 
     def describe(self) -> dict:
-        return {"name": self.name, "address": self.address, "nodes": len([n for n in self.ray.nodes() if n.get("Alive")]),
-                "cpus": self.cluster_cpus, "gpus": self.cluster_gpus, "cpus_per_task": self.cpus_per_task,
-                "gpu_tasks": self.use_gpus}
+        return {
+            "name": self.name,
+            "address": self.address,
+            "nodes": len([n for n in self.ray.nodes() if n.get("Alive")]),
+            "cpus": self.cluster_cpus,
+            "gpus": self.cluster_gpus,
+            "cpus_per_task": self.cpus_per_task,
+            "gpu_tasks": self.use_gpus,
+        }
 
     def map(self, fn, tasks, total, gpu=False, progress=None):
         ray = self.ray
         use_gpu = gpu and self.use_gpus
-        remote = self._remote.options(num_cpus=self.cpus_per_task, num_gpus=1 if use_gpu else 0,
-                                      max_retries=self.max_retries, retry_exceptions=False,
-                                      name=f"favormap.{fn.__name__}")
+        remote = self._remote.options(
+            num_cpus=self.cpus_per_task,
+            num_gpus=1 if use_gpu else 0,
+            max_retries=self.max_retries,
+            retry_exceptions=False,
+            name=f"favormap.{fn.__name__}",
+        )
         refs, index = [], {}
         pending: deque = deque()
         results: list = [None] * total
@@ -222,8 +252,9 @@ def _translate(e: BaseException, what: str, retries: int) -> BaseException:
             return cause
         return FavormapError(f"Ray task {what} failed: {first_line(cause) if cause else first_line(e)}")
     if isinstance(e, (rex.WorkerCrashedError, rex.NodeDiedError, rex.ObjectLostError, rex.OwnerDiedError)):
-        return FavormapError(f"a Ray worker running {what} died and the task failed after {retries} retries "
-                             f"({type(e).__name__})")
+        return FavormapError(
+            f"a Ray worker running {what} died and the task failed after {retries} retries ({type(e).__name__})"
+        )
     if isinstance(e, rex.RayError):
         return FavormapError(f"Ray failed running {what}: {first_line(e)}")
     return e

@@ -15,7 +15,7 @@ GPU; ``report(fraction)`` reports progress inside one task (a no-op where nobody
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 TaskFn = Callable[..., object]
 
@@ -25,8 +25,14 @@ class Executor:
 
     name = "executor"
 
-    def map(self, fn: TaskFn, tasks: Iterable, total: int, gpu: bool = False,
-            progress: Callable[[float], None] | None = None) -> list:
+    def map(
+        self,
+        fn: TaskFn,
+        tasks: Iterable,
+        total: int,
+        gpu: bool = False,
+        progress: Callable[[float], None] | None = None,
+    ) -> list:
         """``[fn(t) for t in tasks]`` (``total`` of them), in order. ``gpu``: the task can use a
         GPU. ``progress(done)`` is called with the number of tasks done (fractional while one runs)."""
         raise NotImplementedError

@@ -186,8 +186,9 @@ def unproject(K: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
 
 
-def direction_cones(directions: np.ndarray, group: np.ndarray, n_groups: int,
-                    valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def direction_cones(
+    directions: np.ndarray, group: np.ndarray, n_groups: int, valid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Per group of unit directions: the mean direction (unit, (G,3)) and the largest angle in degrees
     of one of its directions from that mean ((G,)). ``valid`` masks directions out of both."""
     d = np.asarray(directions, np.float64)

@@ -143,7 +143,7 @@ def _busy_seconds(cpus: set[int] | None) -> float | None:
     return total / hz if found else None
 
 
-def others_busy(since: "_Sample", now: "_Sample") -> float | None:
+def others_busy(since: _Sample, now: _Sample) -> float | None:
     """CPUs (of this process's affinity) that other processes kept busy between two samples."""
     dt = now.t - since.t
     if since.busy is None or now.busy is None or dt <= 0:
@@ -157,7 +157,7 @@ _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
 
-def _free_cpus(since: "_Sample") -> tuple[int, _Sample]:
+def _free_cpus(since: _Sample) -> tuple[int, _Sample]:
     if time.monotonic() - since.t > MAX_WINDOW_S:  # the load long ago says little about now
         since = _Sample()
     wait = MIN_WINDOW_S - (time.monotonic() - since.t)
@@ -210,7 +210,6 @@ def configure_threads(threads: int | None = None) -> int:
     with _lock:
         if threads is None and _applied is not None:
             return _applied
-        import torch  # imported before measuring: its import time is part of the window
 
         n, auto, now = _resolve(threads)
         _set_pools(n, first=_applied is None)
@@ -269,6 +268,11 @@ def _positive_int(s: str) -> int:
 
 def add_threads_arg(parser) -> None:
     """``--threads N`` for a heavy CLI command."""
-    parser.add_argument("--threads", type=_positive_int, metavar="N", default=None,
-                        help="CPU threads for torch/OpenCV (default: OMP_NUM_THREADS when set, else the CPUs this "
-                             "process may use (affinity, cgroup quota) that other processes leave free)")
+    parser.add_argument(
+        "--threads",
+        type=_positive_int,
+        metavar="N",
+        default=None,
+        help="CPU threads for torch/OpenCV (default: OMP_NUM_THREADS when set, else the CPUs this "
+        "process may use (affinity, cgroup quota) that other processes leave free)",
+    )

@@ -40,7 +40,7 @@ class Tracks:
     def track_of_obs(self) -> np.ndarray:
         return np.repeat(np.arange(len(self)), self.lengths)
 
-    def select(self, keep_obs: np.ndarray, min_len: int = 1) -> "Tracks":
+    def select(self, keep_obs: np.ndarray, min_len: int = 1) -> Tracks:
         """Keep the observations where ``keep_obs`` is True, then the tracks with >= min_len."""
         tid = self.track_of_obs
         counts = np.bincount(tid[keep_obs], minlength=len(self))
@@ -48,13 +48,18 @@ class Tracks:
         return Tracks.from_obs(self.frame_idx[keep], self.keypoint_idx[keep], self.xy[keep], tid[keep])
 
     @classmethod
-    def from_obs(cls, frame_idx, keypoint_idx, xy, track_id) -> "Tracks":
+    def from_obs(cls, frame_idx, keypoint_idx, xy, track_id) -> Tracks:
         order = np.lexsort((frame_idx, track_id))
         track_id = track_id[order]
         _, new_id = np.unique(track_id, return_inverse=True)
         counts = np.bincount(new_id) if len(new_id) else np.zeros(0, int)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        return cls(frame_idx[order].astype(np.int32), keypoint_idx[order].astype(np.int32), xy[order].astype(np.float64), offsets)
+        return cls(
+            frame_idx[order].astype(np.int32),
+            keypoint_idx[order].astype(np.int32),
+            xy[order].astype(np.float64),
+            offsets,
+        )
 
 
 def fundamental(cam_from_world_a, K_a, cam_from_world_b, K_b) -> np.ndarray:
@@ -73,7 +78,10 @@ def epipolar_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarr
     la = ha @ F.T  # lines in b
     lb = hb @ F  # lines in a
     num = np.abs(np.sum(hb * la, 1))
-    return 0.5 * (num / np.maximum(np.linalg.norm(la[:, :2], axis=1), 1e-12) + num / np.maximum(np.linalg.norm(lb[:, :2], axis=1), 1e-12))
+    return 0.5 * (
+        num / np.maximum(np.linalg.norm(la[:, :2], axis=1), 1e-12)
+        + num / np.maximum(np.linalg.norm(lb[:, :2], axis=1), 1e-12)
+    )
 
 
 def mutual_nn(da: torch.Tensor, db: torch.Tensor, min_sim: float) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +107,9 @@ def track_features(
     counts = np.array([len(f) for f in features])
     base = np.concatenate([[0], np.cumsum(counts)])
     # (a copy where the array is read-only, e.g. zero-copy from Ray's object store)
-    desc = [torch.from_numpy(f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()) for f in features]
+    desc = [
+        torch.from_numpy(f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()) for f in features
+    ]
     rows, cols = [], []
     for a in range(n):
         for b in range(a + 1, min(n, a + 1 + window)):

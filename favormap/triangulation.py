@@ -42,7 +42,7 @@ class Landmarks:
         tid = self.tracks.track_of_obs
         return np.bincount(tid, self.reproj_errors, len(self)) / np.maximum(self.tracks.lengths, 1)
 
-    def select(self, idx: np.ndarray) -> "Landmarks":
+    def select(self, idx: np.ndarray) -> Landmarks:
         idx = np.asarray(idx)
         keep_obs = np.isin(self.tracks.track_of_obs, idx)
         tr = self.tracks.select(keep_obs)
@@ -76,7 +76,9 @@ def dlt(P: np.ndarray, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
 
 
-def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig | None = None) -> Landmarks:
+def triangulate(
+    tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig | None = None
+) -> Landmarks:
     """Triangulate every track. ``cam_from_world``: (M,4,4) per frame; ``Ks``: (M,3,3) pinhole."""
     config = TriangulationConfig() if config is None else config
     if len(tracks) == 0:
@@ -102,7 +104,7 @@ def triangulate(tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, conf
     A = Rcw @ R_wa[tid]  # (O,3,3)
     b = np.einsum("oij,oj->oi", Rcw, c_a[tid]) + tcw  # (O,3)
     fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
-    c2 = config.robust_c_px ** 2
+    c2 = config.robust_c_px**2
     lam = np.full(len(tracks), 1e-3)
 
     def residuals(th):

@@ -95,7 +95,9 @@ class SpatialIndex:
         return rows, dist
 
     # -- frustum ------------------------------------------------------------------------------
-    def frustum(self, camera: Camera, cam_from_world: np.ndarray, max_depth: float, min_depth: float = 0.0) -> np.ndarray:
+    def frustum(
+        self, camera: Camera, cam_from_world: np.ndarray, max_depth: float, min_depth: float = 0.0
+    ) -> np.ndarray:
         """Rows (sorted) of landmarks inside the pinhole camera's frustum between ``min_depth`` and
         ``max_depth`` (z in the camera frame): a KD-tree radius query around a sphere enclosing the
         frustum, then an exact projection test on the candidates."""
@@ -109,8 +111,13 @@ class SpatialIndex:
         return cand[project_inside(self.positions[cand], camera, cam_from_world, min_depth, max_depth)]
 
     # -- visibility tiers ------------------------------------------------------------------------
-    def prepare_visibility(self, depth_range: np.ndarray, depth_scale: float = ViewLimits.depth_scale[1],
-                           view_dir: np.ndarray | None = None, view_angle: np.ndarray | None = None):
+    def prepare_visibility(
+        self,
+        depth_range: np.ndarray,
+        depth_scale: float = ViewLimits.depth_scale[1],
+        view_dir: np.ndarray | None = None,
+        view_angle: np.ndarray | None = None,
+    ):
         """Build (or reuse) the reach tiers used by :func:`visible_rows` for these arrays (the same
         objects) and scale. Called by visible_rows on first use; call it to pay the cost up front."""
         t = self._tiers
@@ -159,8 +166,10 @@ class _Open3DTree:
             self._nns.knn_index()
         points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
         idx, d2 = self._nns.knn_search(o3d.core.Tensor(points), k)
-        return (idx.numpy().astype(np.int64).reshape(len(points), k),
-                np.sqrt(np.maximum(d2.numpy().reshape(len(points), k), 0)))
+        return (
+            idx.numpy().astype(np.int64).reshape(len(points), k),
+            np.sqrt(np.maximum(d2.numpy().reshape(len(points), k), 0)),
+        )
 
 
 KD_BACKENDS = {"scipy": _ScipyTree, "open3d": _Open3DTree}
@@ -211,7 +220,11 @@ class _Tiers:
             t = dict(depth=b, rows=rows, P=np.ascontiguousarray(index.positions[rows]), reach=reach[rows])
             t["tree"] = KD_BACKENDS[index.backend](t["P"]) if np.isfinite(b) else None
             if view_dir is not None and view_angle is not None:
-                t.update(vd=np.ascontiguousarray(view_dir[rows]), va=view_angle[rows], dr=np.ascontiguousarray(depth_range[rows]))
+                t.update(
+                    vd=np.ascontiguousarray(view_dir[rows]),
+                    va=view_angle[rows],
+                    dr=np.ascontiguousarray(depth_range[rows]),
+                )
             if t["tree"] is None:
                 self.num_direct = len(rows)
             self.tiers.append(t)
@@ -281,7 +294,9 @@ def _corners(camera: Camera) -> np.ndarray:
     return np.array([[0, 0], [camera.width, 0], [0, camera.height], [camera.width, camera.height]], float)
 
 
-def frustum_sphere(camera: Camera, cam_from_world: np.ndarray, max_depth: float, min_depth: float = 0.0) -> tuple[np.ndarray, float]:
+def frustum_sphere(
+    camera: Camera, cam_from_world: np.ndarray, max_depth: float, min_depth: float = 0.0
+) -> tuple[np.ndarray, float]:
     """A small sphere (centre, radius) enclosing the frustum between ``min_depth`` and ``max_depth``.
 
     The frustum is the convex hull of its near and far corners (the near ones collapse to the
@@ -319,7 +334,9 @@ def reach_sphere(camera: Camera, cam_from_world: np.ndarray, reach: float) -> tu
     return _min_radius(pts, c, wfc_R @ (reach * u) + c)
 
 
-def project_inside(points: np.ndarray, camera: Camera, cam_from_world: np.ndarray, min_depth=0.0, max_depth=np.inf, margin_px=0.0) -> np.ndarray:
+def project_inside(
+    points: np.ndarray, camera: Camera, cam_from_world: np.ndarray, min_depth=0.0, max_depth=np.inf, margin_px=0.0
+) -> np.ndarray:
     """Mask of points in front of a pinhole camera, inside its image and depth range."""
     uv, z = project(camera.K, cam_from_world, points, with_depth=True)
     u, v = uv[:, 0], uv[:, 1]
@@ -327,8 +344,15 @@ def project_inside(points: np.ndarray, camera: Camera, cam_from_world: np.ndarra
     return ok & (u >= margin_px) & (u <= camera.width - margin_px) & (v >= margin_px) & (v <= camera.height - margin_px)
 
 
-def visible_mask(positions: np.ndarray, camera: Camera, cam_from_world: np.ndarray, view_dir: np.ndarray,
-                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits | None = None) -> np.ndarray:
+def visible_mask(
+    positions: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    view_dir: np.ndarray,
+    view_angle: np.ndarray,
+    depth_range: np.ndarray,
+    limits: ViewLimits | None = None,
+) -> np.ndarray:
     """The exact visibility test of :func:`visible_rows` on explicit arrays (no index): in front of
     the camera, inside the image (with the margin), within the distance range and the viewing-angle
     range each landmark was trained for."""
@@ -346,8 +370,15 @@ def visible_mask(positions: np.ndarray, camera: Camera, cam_from_world: np.ndarr
     return ok
 
 
-def visible_rows(index: SpatialIndex, camera: Camera, cam_from_world: np.ndarray, view_dir: np.ndarray,
-                 view_angle: np.ndarray, depth_range: np.ndarray, limits: ViewLimits | None = None) -> np.ndarray:
+def visible_rows(
+    index: SpatialIndex,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    view_dir: np.ndarray,
+    view_angle: np.ndarray,
+    depth_range: np.ndarray,
+    limits: ViewLimits | None = None,
+) -> np.ndarray:
     """Landmarks visible from a pose: in the frustum, within the distance range and the viewing
     angle range they were trained for (paper sec. 3.3). Returns sorted rows; equal to
     ``flatnonzero(visible_mask(all positions, ...))``, but only landmarks near the frustum are

@@ -35,8 +35,9 @@ PARTIAL = re.compile(r"^\.(?P<name>.+)\.[A-Za-z0-9_]+\.partial$")
 
 
 def favormap(*args, timeout=120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "favormap", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, env=ENV)
+    return subprocess.run(
+        [sys.executable, "-m", "favormap", *map(str, args)], capture_output=True, text=True, timeout=timeout, env=ENV
+    )
 
 
 def leftovers(folder: Path, target: Path) -> list[Path]:
@@ -145,8 +146,12 @@ def kill_sequence(tmp_path_factory):
 def build_and_kill(seq: Path, out: Path, at: float | None = None, on_partial: bool = False, delay: float = 0.0):
     """Run ``favormap build``; SIGKILL it ``at`` seconds after the start, or ``delay`` seconds after
     its temporary map file appears. Returns the exit code (-9: killed)."""
-    proc = subprocess.Popen([sys.executable, "-m", "favormap", "build", str(seq), "-o", str(out), *BUILD_ARGS],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "favormap", "build", str(seq), "-o", str(out), *BUILD_ARGS],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=ENV,
+    )
     t0 = time.monotonic()
     try:
         while proc.poll() is None:
@@ -202,9 +207,12 @@ def test_killed_build_never_leaves_a_partial_map(kill_sequence, tmp_path):
     old = old_map.read_bytes()
     cases = []
     # (kill time or None, kill when the temporary map appears, delay after it appears, pre-existing map)
-    runs = [(rng.uniform(0.3, 2.0), False, 0.0, False), (rng.uniform(2.0, 6.0), False, 0.0, True),
-            (None, True, rng.uniform(0.0, 0.02), True),  # while the map is being written
-            (None, False, 0.0, True)]  # runs to completion and replaces the old map
+    runs = [
+        (rng.uniform(0.3, 2.0), False, 0.0, False),
+        (rng.uniform(2.0, 6.0), False, 0.0, True),
+        (None, True, rng.uniform(0.0, 0.02), True),  # while the map is being written
+        (None, False, 0.0, True),
+    ]  # runs to completion and replaces the old map
     for i, (at, on_partial, delay, pre) in enumerate(runs):
         folder = tmp_path / f"run{i}"
         folder.mkdir()
@@ -247,8 +255,16 @@ def _digest(path) -> str:
 
 
 def _readers(path, allowed, n=4, seconds=1.5):
-    return [subprocess.Popen([sys.executable, "-c", READER, str(path), str(seconds), ",".join(allowed), str(i)],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV) for i in range(n)]
+    return [
+        subprocess.Popen(
+            [sys.executable, "-c", READER, str(path), str(seconds), ",".join(allowed), str(i)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        for i in range(n)
+    ]
 
 
 def _finish(procs):

@@ -26,21 +26,25 @@ def scene():
 def sequence(tmp_path_factory, scene):
     from favormap.synthetic import write_sequence
 
-    return write_sequence(tmp_path_factory.mktemp("seq_baseline"), n_frames=12, width=320, height=240, fov_deg=60.0,
-                          seed=0, scene=scene)
+    return write_sequence(
+        tmp_path_factory.mktemp("seq_baseline"), n_frames=12, width=320, height=240, fov_deg=60.0, seed=0, scene=scene
+    )
 
 
 @pytest.fixture(scope="module")
 def baseline(sequence, tmp_path_factory):
-    return StructureBaseline.build(sequence, StructureBaselineConfig(max_side=640), workdir=tmp_path_factory.mktemp("bl"))
+    return StructureBaseline.build(
+        sequence, StructureBaselineConfig(max_side=640), workdir=tmp_path_factory.mktemp("bl")
+    )
 
 
 @pytest.fixture(scope="module")
 def queries(sequence, scene):
     from favormap.synthetic import random_views_near, render
 
-    views = random_views_near([f.cam_from_world for f in sequence.frames], 4, seed=7, max_trans=0.1, max_rot_deg=5.0,
-                              scene=scene)
+    views = random_views_near(
+        [f.cam_from_world for f in sequence.frames], 4, seed=7, max_trans=0.1, max_rot_deg=5.0, scene=scene
+    )
     return [(render(scene, sequence.cameras[0], T)[0], T) for T in views]
 
 
@@ -62,7 +66,9 @@ def test_points_reproject_into_the_known_poses(baseline, sequence, scene):
         errs.append(np.linalg.norm(uv - xy, axis=1))
     errs = np.concatenate(errs)
     assert len(errs) == b.track_lengths.sum()
-    assert np.median(errs) < 0.5 and np.percentile(errs, 95) < 1.5, np.percentile(errs, [50, 95])  # measured 0.11 / 0.7 px
+    assert np.median(errs) < 0.5 and np.percentile(errs, 95) < 1.5, np.percentile(
+        errs, [50, 95]
+    )  # measured 0.11 / 0.7 px
     assert np.median(surface_distance(scene, b.points3d)) < 0.02  # on the true surface (measured 0.005)
 
 

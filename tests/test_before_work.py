@@ -48,8 +48,10 @@ def _err(capsys) -> str:
     return err
 
 
-@pytest.mark.parametrize("where, message", [("missing/map.h5", "output folder does not exist"),
-                                            (READ_ONLY + "/map.h5", "output folder is not writable")])
+@pytest.mark.parametrize(
+    "where, message",
+    [("missing/map.h5", "output folder does not exist"), (READ_ONLY + "/map.h5", "output folder is not writable")],
+)
 def test_build_output_folder_checked_first(tiny_seq, tmp_path, capsys, no_image_reads, where, message):
     out = where if where.startswith("/") else str(tmp_path / where)
     assert main(["build", str(tiny_seq), "-o", out, "-q"]) == 1
@@ -82,7 +84,10 @@ def test_localize_output_checked_before_the_map_is_opened(tiny_seq, tmp_path, ca
     for same in (query, fake_map):
         assert main(["localize", str(fake_map), str(query), "--output", str(same)]) == 1
         assert "is also an input" in _err(capsys)
-    assert main(["localize", str(fake_map), str(tiny_seq / "images"), "--output", str(tiny_seq / "images" / "est.png")]) == 1
+    assert (
+        main(["localize", str(fake_map), str(tiny_seq / "images"), "--output", str(tiny_seq / "images" / "est.png")])
+        == 1
+    )
     assert "query image" in _err(capsys)
 
 
@@ -91,8 +96,11 @@ def test_map_operations_refuse_writing_over_an_input(tmp_path, capsys, cmd):
     a, b = tmp_path / "a.h5", tmp_path / "b.h5"
     a.write_bytes(b"x")
     b.write_bytes(b"y")
-    argv = {"prune": ["prune", str(a), "-o", str(a)], "merge": ["merge", str(a), str(b), "-o", str(b)],
-            "export": ["export", str(a), "-o", str(tmp_path / "a.ply")]}[cmd]
+    argv = {
+        "prune": ["prune", str(a), "-o", str(a)],
+        "merge": ["merge", str(a), str(b), "-o", str(b)],
+        "export": ["export", str(a), "-o", str(tmp_path / "a.ply")],
+    }[cmd]
     if cmd == "export":  # an export target that is the map itself cannot end in .ply: refuse via the suffix rule
         a_ply = tmp_path / "a.ply"
         a_ply.write_bytes(b"x")
@@ -136,8 +144,13 @@ def test_build_with_a_truncated_image_names_the_file(tiny_seq, tmp_path):
     data = json.loads((tiny_seq / "sequence.json").read_text())
     data["frames"][1]["image"] = "images/1.jpg"
     (tiny_seq / "sequence.json").write_text(json.dumps(data))
-    r = subprocess.run([sys.executable, "-m", "favormap", "build", str(tiny_seq), "-o", str(tmp_path / "m.h5"), "-q"],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "RERUN_ANALYTICS": "false"})
+    r = subprocess.run(
+        [sys.executable, "-m", "favormap", "build", str(tiny_seq), "-o", str(tmp_path / "m.h5"), "-q"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "RERUN_ANALYTICS": "false"},
+    )
     assert r.returncode == 1, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and str(img) in lines[0] and "truncated JPEG" in lines[0], r.stderr

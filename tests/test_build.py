@@ -50,10 +50,18 @@ def test_map_file_matches_schema_and_roundtrips(small_map):
         np.testing.assert_allclose(mm.positions, m.positions)
         d, s = mm.voxels([3, 1, 3])
         R = m.grid_resolution
-        np.testing.assert_allclose(d[1], m.descriptors[1].reshape(R ** 3, -1), atol=2e-3)  # float16 on disk
+        np.testing.assert_allclose(d[1], m.descriptors[1].reshape(R**3, -1), atol=2e-3)  # float16 on disk
         np.testing.assert_allclose(s[0], m.density[3].reshape(-1), rtol=1e-6)
         info = mm.info()
-        for k in ("num_landmarks", "num_frames", "extractor", "channels", "grid_resolution", "patch_size", "format_version"):
+        for k in (
+            "num_landmarks",
+            "num_frames",
+            "extractor",
+            "channels",
+            "grid_resolution",
+            "patch_size",
+            "format_version",
+        ):
             assert k in info
         assert len(np.unique(mm.ids)) == mm.num_landmarks
 
@@ -77,7 +85,7 @@ def test_novel_views_render_close_to_extracted_descriptors(small_map, small_sequ
     ex = features.create(m.extractor)
     poses = [f.cam_from_world for f in small_sequence.frames]
     views = random_views_near(poses, 4, seed=3, max_trans=0.03, max_rot_deg=2.0, scene=scene)
-    R3 = m.grid_resolution ** 3
+    R3 = m.grid_resolution**3
     desc = torch.as_tensor(m.descriptors.reshape(m.num_landmarks, R3, -1))
     dens = torch.as_tensor(m.density.reshape(m.num_landmarks, R3))
     rendered_sim, mean_sim = [], []
@@ -88,9 +96,14 @@ def test_novel_views_render_close_to_extracted_descriptors(small_map, small_sequ
         Xc = m.positions[vis] @ T[:3, :3].T + T[:3, 3]
         uv = Xc[:, :2] / Xc[:, 2:] * [cam.K[0, 0], cam.K[1, 1]] + cam.K[:2, 2]
         truth = ex.sample(qf, uv)
-        rendered = render_from_camera(desc[vis], dens[vis], torch.as_tensor(m.positions[vis]).float(),
-                                      torch.as_tensor(m.voxel_size[vis]), torch.as_tensor(camera_centers(T)).float(),
-                                      m.render_samples).numpy()
+        rendered = render_from_camera(
+            desc[vis],
+            dens[vis],
+            torch.as_tensor(m.positions[vis]).float(),
+            torch.as_tensor(m.voxel_size[vis]),
+            torch.as_tensor(camera_centers(T)).float(),
+            m.render_samples,
+        ).numpy()
         rendered_sim.append(np.sum(rendered * truth, 1))
         mean_sim.append(np.sum(m.mean_descriptor[vis] * truth, 1))
     rendered_sim, mean_sim = np.concatenate(rendered_sim), np.concatenate(mean_sim)

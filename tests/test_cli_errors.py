@@ -99,7 +99,9 @@ def sequences(tmp_path_factory):
     (s["broken transforms.json"] / "transforms.json").write_text('{"camera_angle_x": 0.8, "frames": [')
     s["broken sequence.json"] = root / "fm_broken"
     shutil.copytree(good, s["broken sequence.json"])
-    (s["broken sequence.json"] / "sequence.json").write_text('{"format": "favormap-sequence", "cameras": {"0": {"model": "PINHOLE"}}, "frames": []}')
+    (s["broken sequence.json"] / "sequence.json").write_text(
+        '{"format": "favormap-sequence", "cameras": {"0": {"model": "PINHOLE"}}, "frames": []}'
+    )
     return s
 
 
@@ -112,8 +114,15 @@ def run_case(args: list, work: Path) -> list[str]:
     """Run ``favormap ARGS`` in the empty folder ``work``; the contract violations (empty: OK)."""
     work.mkdir(parents=True, exist_ok=True)
     try:
-        r = subprocess.run([sys.executable, "-m", "favormap", *map(str, args)], cwd=work, capture_output=True,
-                           text=True, timeout=240, env=ENV, stdin=subprocess.DEVNULL)
+        r = subprocess.run(
+            [sys.executable, "-m", "favormap", *map(str, args)],
+            cwd=work,
+            capture_output=True,
+            text=True,
+            timeout=240,
+            env=ENV,
+            stdin=subprocess.DEVNULL,
+        )
     except subprocess.TimeoutExpired:
         return [f"timed out: favormap {' '.join(map(str, args))}"]
     bad = []
@@ -141,7 +150,9 @@ def run_cases(cases: dict[str, list], base: Path) -> list[str]:
         return [v for vs in ex.map(one, enumerate(cases.items())) for v in vs]
 
 
-def generic_cases(name: str, sp: argparse.ArgumentParser, inputs: dict[str, Path], out: str = "out.h5") -> dict[str, list]:
+def generic_cases(
+    name: str, sp: argparse.ArgumentParser, inputs: dict[str, Path], out: str = "out.h5"
+) -> dict[str, list]:
     """Bad paths for every positional (and required option), and non-numbers for numeric options."""
     positionals = [a for a in sp._actions if not a.option_strings]
     required = [a for a in sp._actions if a.option_strings and a.required]
@@ -156,19 +167,28 @@ def generic_cases(name: str, sp: argparse.ArgumentParser, inputs: dict[str, Path
             args += [a.option_strings[-1], out if is_out else path]
         for g in groups:
             a = next((a for a in g._group_actions if a.nargs is None and a.type is None), g._group_actions[0])
-            args += [a.option_strings[-1]] + ([path] if a.nargs is None else ["1"] * (a.nargs if isinstance(a.nargs, int) else 1))
+            args += [a.option_strings[-1]] + (
+                [path] if a.nargs is None else ["1"] * (a.nargs if isinstance(a.nargs, int) else 1)
+            )
         return args
 
     cases = {}
     if positionals:
         # every bad map variant reaches Map.open the same way: the full set for the cheap map
         # commands, three for the others (they import torch/open3d: seconds per run)
-        kinds = list(inputs) if name in ("info", "validate", "prune", "merge") else ["missing file", "empty folder", "truncated map"]
+        kinds = (
+            list(inputs)
+            if name in ("info", "validate", "prune", "merge")
+            else ["missing file", "empty folder", "truncated map"]
+        )
         for what in kinds:
             cases[what] = args_with(inputs[what])
     numeric = [a for a in sp._actions if a.option_strings and a.type in (int, float) and a.nargs is None]
     for a in numeric[:2]:
-        cases[f"{a.option_strings[-1]} not a number"] = args_with(inputs["truncated map"]) + [a.option_strings[-1], "abc"]
+        cases[f"{a.option_strings[-1]} not a number"] = args_with(inputs["truncated map"]) + [
+            a.option_strings[-1],
+            "abc",
+        ]
     return cases
 
 
@@ -190,8 +210,14 @@ def test_known_commands_are_registered():
 
 
 def test_unknown_command_and_option(tmp_path):
-    problems = run_cases({"unknown command": ["frobnicate"], "unknown option": ["info", "--frobnicate", "x.h5"],
-                          "missing argument": ["info"]}, tmp_path)
+    problems = run_cases(
+        {
+            "unknown command": ["frobnicate"],
+            "unknown option": ["info", "--frobnicate", "x.h5"],
+            "missing argument": ["info"],
+        },
+        tmp_path,
+    )
     assert not problems, "\n".join(problems)
 
 
@@ -199,31 +225,53 @@ def test_build_bad_sequences_and_arguments(sequences, tmp_path):
     s = sequences
     out = "out.h5"
     q = ["--resize", "0", "--iterations", "2", "-q"]
-    cases = {name: ["build", s[name], "-o", out, *q] for name in
-             ("images missing", "unreadable image", "broken transforms.json", "broken sequence.json")}
-    cases.update({
-        "unknown --format": ["build", s["good"], "-o", out, "--format", "bogus", *q],
-        "negative iterations": ["build", s["good"], "-o", out, "--iterations", "-3", "-q"],
-        "grid 1": ["build", s["good"], "-o", out, "--grid", "1", "-q"],
-        "negative resize": ["build", s["good"], "-o", out, "--resize", "-1", "-q"],
-        "non-numeric patch": ["build", s["good"], "-o", out, "--patch", "seven", "-q"],
-        "missing -o": ["build", s["good"], *q],
-    })
+    cases = {
+        name: ["build", s[name], "-o", out, *q]
+        for name in ("images missing", "unreadable image", "broken transforms.json", "broken sequence.json")
+    }
+    cases.update(
+        {
+            "unknown --format": ["build", s["good"], "-o", out, "--format", "bogus", *q],
+            "negative iterations": ["build", s["good"], "-o", out, "--iterations", "-3", "-q"],
+            "grid 1": ["build", s["good"], "-o", out, "--grid", "1", "-q"],
+            "negative resize": ["build", s["good"], "-o", out, "--resize", "-1", "-q"],
+            "non-numeric patch": ["build", s["good"], "-o", out, "--patch", "seven", "-q"],
+            "missing -o": ["build", s["good"], *q],
+        }
+    )
     problems = run_cases(cases, tmp_path)
     assert not problems, "\n".join(problems)
 
 
 def test_validate_and_info_name_the_problem(inputs, tmp_path):
     _, paths = inputs
-    expect = {"missing file": "not found", "empty folder": "directory", "text file": "not", "truncated map": "truncated",
-              "foreign hdf5": "not a favormap map", "newer map version": "upgrade favormap"}
+    expect = {
+        "missing file": "not found",
+        "empty folder": "directory",
+        "text file": "not",
+        "truncated map": "truncated",
+        "foreign hdf5": "not a favormap map",
+        "newer map version": "upgrade favormap",
+    }
     for command in ("info", "validate"):
         for what, word in expect.items():
-            r = subprocess.run([sys.executable, "-m", "favormap", command, str(paths[what])], capture_output=True, text=True,
-                               env=ENV, timeout=120, cwd=tmp_path)
+            r = subprocess.run(
+                [sys.executable, "-m", "favormap", command, str(paths[what])],
+                capture_output=True,
+                text=True,
+                env=ENV,
+                timeout=120,
+                cwd=tmp_path,
+            )
             assert r.returncode != 0 and word in r.stderr, (command, what, r.stderr)
-    r = subprocess.run([sys.executable, "-m", "favormap", "validate", "--json", str(paths["truncated map"])], capture_output=True,
-                       text=True, env=ENV, timeout=120, cwd=tmp_path)
+    r = subprocess.run(
+        [sys.executable, "-m", "favormap", "validate", "--json", str(paths["truncated map"])],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+        cwd=tmp_path,
+    )
     rep = json.loads(r.stdout)
     assert r.returncode != 0 and rep["valid"] is False and rep["problems"] and len(r.stderr.strip().splitlines()) == 1
 
@@ -231,23 +279,60 @@ def test_validate_and_info_name_the_problem(inputs, tmp_path):
 def test_validate_valid_map_exit_0(tmp_path):
     p = tmp_path / "ok.h5"
     write_map(random_map(3), p)
-    r = subprocess.run([sys.executable, "-m", "favormap", "validate", str(p)], capture_output=True, text=True, env=ENV, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "favormap", "validate", str(p)], capture_output=True, text=True, env=ENV, timeout=120
+    )
     assert r.returncode == 0 and ": valid" in r.stdout and r.stderr == ""
-    r = subprocess.run([sys.executable, "-m", "favormap", "validate", "--json", str(p)], capture_output=True, text=True, env=ENV, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "favormap", "validate", "--json", str(p)],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+    )
     rep = json.loads(r.stdout)
     assert r.returncode == 0 and rep["valid"] is True and rep["problems"] == [] and rep["format_version"] == 1
 
 
 # -- pending changes outside this file's owner (see the report of issue 6) ---------------------------
 def test_build_progress_bars_do_not_precede_an_error(sequences, tmp_path):
-    problems = run_cases({"unreadable image, no -q": ["build", sequences["unreadable image"], "-o", "out.h5", "--resize", "0",
-                                                      "--iterations", "2"]}, tmp_path)
+    problems = run_cases(
+        {
+            "unreadable image, no -q": [
+                "build",
+                sequences["unreadable image"],
+                "-o",
+                "out.h5",
+                "--resize",
+                "0",
+                "--iterations",
+                "2",
+            ]
+        },
+        tmp_path,
+    )
     assert not problems, "\n".join(problems)
 
 
 def test_build_checks_the_output_before_working(sequences, tmp_path):
     """With an impossible output AND unreadable images, the output must be the error: it is checked first."""
-    r = subprocess.run([sys.executable, "-m", "favormap", "build", str(sequences["all images unreadable"]), "-o",
-                        "no_such_folder/out.h5", "--resize", "0", "-q"], capture_output=True, text=True, env=ENV, timeout=240,
-                       cwd=tmp_path)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "favormap",
+            "build",
+            str(sequences["all images unreadable"]),
+            "-o",
+            "no_such_folder/out.h5",
+            "--resize",
+            "0",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=240,
+        cwd=tmp_path,
+    )
     assert r.returncode != 0 and "output folder does not exist" in r.stderr, r.stderr

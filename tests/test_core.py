@@ -61,7 +61,9 @@ def test_trilinear_stencil_interpolates_linear_functions_exactly():
     R = 3
     pts = torch.rand(500, 3)
     st = trilinear_stencil(pts, R)
-    nodes = torch.stack(torch.meshgrid(*[torch.arange(R, dtype=torch.float32)] * 3, indexing="ij"), -1).reshape(-1, 3) / (R - 1)
+    nodes = torch.stack(torch.meshgrid(*[torch.arange(R, dtype=torch.float32)] * 3, indexing="ij"), -1).reshape(
+        -1, 3
+    ) / (R - 1)
     assert torch.allclose(st.sum(-1), torch.ones(500))
     assert torch.allclose(st @ nodes, pts, atol=1e-6)
 
@@ -77,8 +79,8 @@ def test_box_intersections():
 def test_rendering_a_constant_grid_returns_the_constant():
     L, R, C = 5, 3, 8
     d = torch.nn.functional.normalize(torch.randn(L, C), dim=-1)
-    desc = d[:, None, :].expand(L, R ** 3, C).contiguous()
-    dens = torch.full((L, R ** 3), 3.0)
+    desc = d[:, None, :].expand(L, R**3, C).contiguous()
+    dens = torch.full((L, R**3), 3.0)
     centers = torch.randn(L, 3) + torch.tensor([0, 0, 5.0])
     sizes = torch.full((L,), 0.1)
     out = render_from_camera(desc, dens, centers, sizes, torch.zeros(3), 12)
@@ -96,7 +98,7 @@ def test_rendering_depends_on_the_viewing_direction():
     desc[0, 2, :, :, 0] = 1.0  # x = +side nodes: channel 0
     desc[0, 0, :, :, 1] = 1.0  # x = -side nodes: channel 1
     desc[0, 1, :, :, 2] = 1.0
-    dens = torch.full((1, R ** 3), 20.0)
+    dens = torch.full((1, R**3), 20.0)
     c, s = torch.zeros(1, 3), torch.ones(1)
     plus = render_from_camera(desc.view(1, -1, C), dens, c, s, torch.tensor([5.0, 0, 0]), 16)
     minus = render_from_camera(desc.view(1, -1, C), dens, c, s, torch.tensor([-5.0, 0, 0]), 16)
@@ -105,8 +107,8 @@ def test_rendering_depends_on_the_viewing_direction():
 
 def test_voxel_training_fits_patches():
     """End to end on synthetic rays: grids trained jointly reproduce per-landmark targets."""
-    from favormap.voxels import TrainingRays, VoxelConfig, train_voxels
     from favormap.features import patch_offsets
+    from favormap.voxels import TrainingRays, VoxelConfig, train_voxels
 
     rng = np.random.default_rng(0)
     L, C, S = 6, 8, 5
@@ -125,7 +127,14 @@ def test_voxel_training_fits_patches():
             t = base[j] + 0.1 * rng.normal(size=(len(offs), C))
             targets.append(t / np.linalg.norm(t, axis=1, keepdims=True))
     dist = np.linalg.norm(X[:, None] - camera_centers(T)[None], axis=2).min(1)
-    data = TrainingRays(X, S * dist / 500.0, np.array(obs_lm), np.array(origins), np.array(dirs, np.float32), np.array(targets, np.float32))
+    data = TrainingRays(
+        X,
+        S * dist / 500.0,
+        np.array(obs_lm),
+        np.array(origins),
+        np.array(dirs, np.float32),
+        np.array(targets, np.float32),
+    )
     grids = train_voxels(data, VoxelConfig(resolution=3, patch_size=S, iterations=150, rays_per_landmark=32))
     assert grids.descriptors.shape == (L, 27, C)
     assert np.all(grids.cosine > 0.9) and np.all(grids.psnr > 20)

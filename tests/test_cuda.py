@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from conftest import small_build_config
 
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")]
@@ -45,10 +44,16 @@ def test_render_on_cuda_equals_cpu(maps):
     c = camera_centers(m.cam_from_world[0])
     out = {}
     for dev in ("cpu", "cuda"):
-        t = lambda x, dt=torch.float32: torch.as_tensor(np.asarray(x), dtype=dt, device=dev)  # noqa: E731
+        t = lambda x, dt=torch.float32, dev=dev: torch.as_tensor(np.asarray(x), dtype=dt, device=dev)  # noqa: E731
         L, C = len(m.positions), m.channels
-        out[dev] = render_from_camera(t(m.descriptors).reshape(L, -1, C), t(m.density).reshape(L, -1), t(m.positions), t(m.voxel_size),
-                                      t(c), m.render_samples).cpu()
+        out[dev] = render_from_camera(
+            t(m.descriptors).reshape(L, -1, C),
+            t(m.density).reshape(L, -1),
+            t(m.positions),
+            t(m.voxel_size),
+            t(c),
+            m.render_samples,
+        ).cpu()
     assert torch.allclose(out["cuda"], out["cpu"], atol=1e-4)
 
 
@@ -61,8 +66,12 @@ def test_localize_on_cuda_equals_cpu(maps, small_sequence, tmp_path):
     write_map(maps["cpu"], path)
     fr = small_sequence.frames[3]
     prior = perturb_pose(fr.cam_from_world, 0.1, 5, np.random.default_rng(0))
-    res = {dev: Localizer(path, LocalizeConfig(device=dev)).localize(fr.image_path, prior, small_sequence.cameras[fr.camera_id])
-           for dev in ("cpu", "cuda")}
+    res = {
+        dev: Localizer(path, LocalizeConfig(device=dev)).localize(
+            fr.image_path, prior, small_sequence.cameras[fr.camera_id]
+        )
+        for dev in ("cpu", "cuda")
+    }
     assert res["cpu"].success and res["cuda"].success
     t, r = pose_error(res["cuda"].cam_from_world, res["cpu"].cam_from_world)
     assert t < 1e-3 and r < 0.05, (t, r)

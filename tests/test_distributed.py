@@ -11,11 +11,12 @@ import time
 
 import numpy as np
 import pytest
-
 from conftest import small_build_config
 
 os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'favormap[distributed]'): distributed build tests skipped")
+ray = pytest.importorskip(
+    "ray", reason="Ray is not installed (pip install 'favormap[distributed]'): distributed build tests skipped"
+)
 
 CFG = dict(iterations=30, max_landmarks=150, train_batch=50)  # 3 training batches
 
@@ -86,6 +87,7 @@ class _Killer:
     def _busy(self, pid: str) -> bool:
         """Still running the task: it used CPU within the last 50 ms and still has the task's title
         (a worker that has just finished may keep the title for a moment)."""
+
         def cpu():
             with open(f"/proc/{pid}/stat") as f:
                 v = f.read().rsplit(")", 1)[1].split()
@@ -136,8 +138,27 @@ def test_ray_build_with_a_dead_worker_and_no_retries_writes_no_map(ray_two_worke
     from favormap.cli import main
 
     out = tmp_path / "map.h5"
-    args = ["build", str(small_sequence.root), "-o", str(out), "--resize", "0", "--max-keypoints", "1024",
-            "--max-landmarks", "150", "--iterations", "150", "--train-batch", "50", "--ray", "auto", "--ray-retries", "0", "-q"]
+    args = [
+        "build",
+        str(small_sequence.root),
+        "-o",
+        str(out),
+        "--resize",
+        "0",
+        "--max-keypoints",
+        "1024",
+        "--max-landmarks",
+        "150",
+        "--iterations",
+        "150",
+        "--train-batch",
+        "50",
+        "--ray",
+        "auto",
+        "--ray-retries",
+        "0",
+        "-q",
+    ]
     with _Killer("train_batch") as killer:
         rc = main(args)
     assert len(killer.killed) == 1

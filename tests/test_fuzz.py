@@ -29,10 +29,19 @@ from favormap.errors import FavormapError, MapFormatError
 from favormap.mapfile import Map, load_schema, write_map
 from favormap.mapfile.validate import validate
 
-_common = dict(deadline=None, max_examples=int(os.environ.get("FAVORMAP_FUZZ_EXAMPLES", "30")), suppress_health_check=[HealthCheck.too_slow], database=None)
+_common = dict(
+    deadline=None,
+    max_examples=int(os.environ.get("FAVORMAP_FUZZ_EXAMPLES", "30")),
+    suppress_health_check=[HealthCheck.too_slow],
+    database=None,
+)
 settings.register_profile("fuzz-ci", derandomize=True, **_common)
 settings.register_profile("fuzz-random", **_common)
-FUZZ = settings.get_profile(os.environ.get("HYPOTHESIS_PROFILE", "fuzz-ci") if os.environ.get("HYPOTHESIS_PROFILE", "").startswith("fuzz") else "fuzz-ci")
+FUZZ = settings.get_profile(
+    os.environ.get("HYPOTHESIS_PROFILE", "fuzz-ci")
+    if os.environ.get("HYPOTHESIS_PROFILE", "").startswith("fuzz")
+    else "fuzz-ci"
+)
 
 DATASETS = list(load_schema()["datasets"])
 ATTRIBUTES = list(load_schema()["attributes"])
@@ -139,9 +148,14 @@ def test_truncation_is_always_refused(n):
 
 
 _values = st.one_of(
-    st.integers(-(2**63), 2**63 - 1), st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=20),
-    st.binary(max_size=20), st.booleans(), st.lists(st.integers(-5, 5), min_size=0, max_size=4).map(np.array),
-    st.sampled_from(["{}", "[]", "{\"stats\": 3}", "null", "not json", "favormap-map", "2024-01-01T00:00:00+00:00"]))
+    st.integers(-(2**63), 2**63 - 1),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=20),
+    st.binary(max_size=20),
+    st.booleans(),
+    st.lists(st.integers(-5, 5), min_size=0, max_size=4).map(np.array),
+    st.sampled_from(["{}", "[]", '{"stats": 3}', "null", "not json", "favormap-map", "2024-01-01T00:00:00+00:00"]),
+)
 
 _dtypes = st.sampled_from(["int8", "uint16", "int32", "int64", "uint64", "float16", "float32", "float64", "S4", "bool"])
 
@@ -158,9 +172,17 @@ def _shape_variant(shape, choice: int):
 
 
 @FUZZ
-@given(op=st.sampled_from(["del_dataset", "dtype", "shape", "group", "del_attr", "set_attr", "del_group", "extra", "scalar"]),
-       dataset=st.sampled_from(DATASETS), attr=st.sampled_from(ATTRIBUTES), value=_values, dtype=_dtypes,
-       shape_choice=st.integers(0, 3), checksum=st.booleans())
+@given(
+    op=st.sampled_from(
+        ["del_dataset", "dtype", "shape", "group", "del_attr", "set_attr", "del_group", "extra", "scalar"]
+    ),
+    dataset=st.sampled_from(DATASETS),
+    attr=st.sampled_from(ATTRIBUTES),
+    value=_values,
+    dtype=_dtypes,
+    shape_choice=st.integers(0, 3),
+    checksum=st.booleans(),
+)
 def test_structural_edits(op, dataset, attr, value, dtype, shape_choice, checksum):
     p = fresh()
     must_fail = True
@@ -201,9 +223,11 @@ def test_structural_edits(op, dataset, attr, value, dtype, shape_choice, checksu
 
 
 @FUZZ
-@given(dataset=st.sampled_from([d for d in DATASETS if load_schema()["datasets"][d]["dtype"] != "str"]),
-       value=st.one_of(st.sampled_from([np.nan, np.inf, -np.inf, 0, -1, 1e30, 2**31 - 1]), st.floats(-1e6, 1e6)),
-       frac=st.floats(0, 1, exclude_max=True))
+@given(
+    dataset=st.sampled_from([d for d in DATASETS if load_schema()["datasets"][d]["dtype"] != "str"]),
+    value=st.one_of(st.sampled_from([np.nan, np.inf, -np.inf, 0, -1, 1e30, 2**31 - 1]), st.floats(-1e6, 1e6)),
+    frac=st.floats(0, 1, exclude_max=True),
+)
 def test_value_edits(dataset, value, frac):
     """Values that break the contract (NaN, out-of-range indices, duplicated ids, ...) are either
     harmless or refused; never a crash."""

@@ -55,7 +55,7 @@ def test_localizing_reads_only_visible_voxels(small_map, queries):
     img, T = queries[0]
     res = loc.localize(img, T)
     assert res.success
-    per_landmark = m.grid_resolution ** 3 * (m.channels * 2 + 4)  # float16 descriptors + float32 density
+    per_landmark = m.grid_resolution**3 * (m.channels * 2 + 4)  # float16 descriptors + float32 density
     visible = res.iterations[0].num_visible
     assert visible < m.num_landmarks
     assert loc.map.bytes_read == visible * per_landmark  # exactly the visible landmarks' grids
@@ -98,12 +98,15 @@ def test_localizes_without_a_prior(small_map, queries):
     assert np.median(errs[:, 0]) <= 0.005 and np.median(errs[:, 1]) <= 0.2, errs
 
 
-@pytest.mark.parametrize("checks, reason", [
-    ({"min_inliers": 100000}, "too few inliers"),
-    ({"min_inlier_ratio": 1.01}, "low inlier ratio"),
-    ({"max_iteration_change": (1e-9, 1e-9)}, "iterations disagree"),
-    ({"min_visible_inliers": 1.01}, "inlier landmarks are visible"),
-])
+@pytest.mark.parametrize(
+    "checks, reason",
+    [
+        ({"min_inliers": 100000}, "too few inliers"),
+        ({"min_inlier_ratio": 1.01}, "low inlier ratio"),
+        ({"max_iteration_change": (1e-9, 1e-9)}, "iterations disagree"),
+        ({"min_visible_inliers": 1.01}, "inlier landmarks are visible"),
+    ],
+)
 def test_each_success_check_refuses_a_pose(small_map, queries, checks, reason):
     from favormap.localize import SuccessChecks
 
@@ -227,7 +230,9 @@ def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tm
         truth[fr.image_path.name] = fr.cam_from_world
     (tmp_path / "priors.txt").write_text("\n".join(lines) + "\n")
     out = tmp_path / "est.txt"
-    assert main(["localize", str(path), str(folder), "--priors", str(tmp_path / "priors.txt"), "--output", str(out)]) == 0
+    assert (
+        main(["localize", str(path), str(folder), "--priors", str(tmp_path / "priors.txt"), "--output", str(out)]) == 0
+    )
     out_lines = capsys.readouterr().out.splitlines()
     assert sum(line.endswith(": localized") for line in out_lines) == len(truth), out_lines
     assert not any("NOT localized" in line for line in out_lines)

@@ -41,29 +41,52 @@ def random_map(seed: int = 0, L: int = 20, C: int = 8, R: int = 3, M: int = 5, o
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         w, x, y, z = q
-        T[i, :3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+        T[i, :3, :3] = [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
         T[i, :3, 3] = rng.normal(size=3)
     k = min(obs_per_landmark, M)
     tl = np.repeat(np.arange(L), k).astype(np.int32)
-    tf = np.concatenate([rng.choice(M, size=k, replace=False) for _ in range(L)]).astype(np.int32) if L else np.zeros(0, np.int32)
-    cams = {0: Camera("PINHOLE", 320, 240, np.array([300.0, 300.0, 160.0, 120.0])),
-            3: Camera("OPENCV", 640, 480, np.array([500.0, 500.0, 320.0, 240.0, 0.01, -0.02, 0.0, 0.0]))}
+    tf = (
+        np.concatenate([rng.choice(M, size=k, replace=False) for _ in range(L)]).astype(np.int32)
+        if L
+        else np.zeros(0, np.int32)
+    )
+    cams = {
+        0: Camera("PINHOLE", 320, 240, np.array([300.0, 300.0, 160.0, 120.0])),
+        3: Camera("OPENCV", 640, 480, np.array([500.0, 500.0, 320.0, 240.0, 0.01, -0.02, 0.0, 0.0])),
+    }
     return MapData(
-        extractor="sift", channels=C, grid_resolution=R, patch_size=7, render_samples=12, max_side=0,
-        ids=ids, positions=rng.normal(size=(L, 3)), voxel_size=rng.uniform(0.01, 0.1, L).astype(np.float32),
-        track_length=np.full(L, k, np.int32), reproj_error=rng.uniform(0, 2, L).astype(np.float32),
-        quality=rng.uniform(20, 40, L).astype(np.float32), cosine=rng.uniform(0.5, 1, L).astype(np.float32),
-        view_dir=vd.astype(np.float32), view_angle=rng.uniform(0, 30, L).astype(np.float32),
+        extractor="sift",
+        channels=C,
+        grid_resolution=R,
+        patch_size=7,
+        render_samples=12,
+        max_side=0,
+        ids=ids,
+        positions=rng.normal(size=(L, 3)),
+        voxel_size=rng.uniform(0.01, 0.1, L).astype(np.float32),
+        track_length=np.full(L, k, np.int32),
+        reproj_error=rng.uniform(0, 2, L).astype(np.float32),
+        quality=rng.uniform(20, 40, L).astype(np.float32),
+        cosine=rng.uniform(0.5, 1, L).astype(np.float32),
+        view_dir=vd.astype(np.float32),
+        view_angle=rng.uniform(0, 30, L).astype(np.float32),
         depth_range=np.stack([dmin, dmin + rng.uniform(0, 1, L)], 1).astype(np.float32),
         mean_descriptor=rng.normal(size=(L, C)).astype(np.float32),
         descriptors=rng.normal(size=(L, R, R, R, C)).astype(np.float32),
         density=rng.normal(size=(L, R, R, R)).astype(np.float32),
-        cameras=cams, frame_names=[f"images/{i:06d}.png" for i in range(M)],
-        frame_camera_ids=np.array([0, 3] * (M // 2) + [0] * (M % 2), np.int32), cam_from_world=T,
-        track_landmark=tl, track_frame=tf, track_xy=rng.uniform(0, 300, (len(tl), 2)).astype(np.float32),
-        provenance={"source": "random", "seed": seed, "stats": {"landmarks": L}})
+        cameras=cams,
+        frame_names=[f"images/{i:06d}.png" for i in range(M)],
+        frame_camera_ids=np.array([0, 3] * (M // 2) + [0] * (M % 2), np.int32),
+        cam_from_world=T,
+        track_landmark=tl,
+        track_frame=tf,
+        track_xy=rng.uniform(0, 300, (len(tl), 2)).astype(np.float32),
+        provenance={"source": "random", "seed": seed, "stats": {"landmarks": L}},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -98,11 +121,38 @@ def test_schema_is_consistent_with_the_code():
     assert s["datasets"]["cameras/models"]["values"]["enum"] == list(SUPPORTED_MODELS)
     # every per-landmark dataset of this version is a field of MapData (none ride in MapData.extra)
     assert set(MapData.landmark_names()) <= set(MapData.__dataclass_fields__)
-    assert set(s["datasets"]) == set(f"landmarks/{k}" for k in MapData.landmark_names() if k not in ("descriptors", "density")) | {
-        "voxels/descriptors", "voxels/density", "cameras/ids", "cameras/models", "cameras/sizes", "cameras/params",
-        "frames/names", "frames/camera_ids", "frames/cam_from_world", "tracks/landmark_index", "tracks/frame_index", "tracks/xy"}
-    known = {"finite", "not_nan", "min", "max", "exclusive_min", "unique", "nonzero", "range", "in", "enum", "unit_norm",
-             "rigid", "ordered", "consistent_with"}
+    assert set(s["datasets"]) == set(
+        f"landmarks/{k}" for k in MapData.landmark_names() if k not in ("descriptors", "density")
+    ) | {
+        "voxels/descriptors",
+        "voxels/density",
+        "cameras/ids",
+        "cameras/models",
+        "cameras/sizes",
+        "cameras/params",
+        "frames/names",
+        "frames/camera_ids",
+        "frames/cam_from_world",
+        "tracks/landmark_index",
+        "tracks/frame_index",
+        "tracks/xy",
+    }
+    known = {
+        "finite",
+        "not_nan",
+        "min",
+        "max",
+        "exclusive_min",
+        "unique",
+        "nonzero",
+        "range",
+        "in",
+        "enum",
+        "unit_norm",
+        "rigid",
+        "ordered",
+        "consistent_with",
+    }
     for p, spec in s["datasets"].items():
         assert set(spec.get("values", {})) <= known, p
     assert set(schema_mod.MIGRATIONS) == {int(k) for k in s["migrations"] if not k.startswith("$")}
@@ -231,8 +281,13 @@ def test_foreign_files_are_refused(tmp_path):
     text.write_text("hello\n")
     empty = tmp_path / "empty.h5"
     empty.write_bytes(b"")
-    for p, expect in ((foreign, "not a favormap map"), (text, "not a favormap map"), (empty, "not a favormap map"),
-                      (tmp_path / "missing.h5", "not found"), (tmp_path, "directory")):
+    for p, expect in (
+        (foreign, "not a favormap map"),
+        (text, "not a favormap map"),
+        (empty, "not a favormap map"),
+        (tmp_path / "missing.h5", "not found"),
+        (tmp_path, "directory"),
+    ):
         with pytest.raises(MapFormatError, match=expect):
             Map.open(p)
         r = validate(p)
@@ -260,9 +315,15 @@ def test_validate_reports_every_problem(rmap, tmp_path):
         f.create_dataset("frames/cam_from_world", data=np.zeros((5, 4, 4)))  # no checksum, not rigid
     r = validate(p)
     text = "\n".join(r.problems)
-    for expect in ("missing dataset 'landmarks/cosine'", "missing root attribute 'created'", "'channels' should be an integer",
-                   "'landmarks/ids': 1 duplicated", "'tracks/landmark_index': 1 value outside [0, 20)",
-                   "'frames/cam_from_world' has no Fletcher-32", "'frames/cam_from_world': 5 values not a rigid"):
+    for expect in (
+        "missing dataset 'landmarks/cosine'",
+        "missing root attribute 'created'",
+        "'channels' should be an integer",
+        "'landmarks/ids': 1 duplicated",
+        "'tracks/landmark_index': 1 value outside [0, 20)",
+        "'frames/cam_from_world' has no Fletcher-32",
+        "'frames/cam_from_world': 5 values not a rigid",
+    ):
         assert expect in text, (expect, text)
     assert any("frames/camera_ids_new" in w for w in r.warnings)
     with pytest.raises(MapFormatError, match="not a valid favormap map"):
@@ -271,10 +332,12 @@ def test_validate_reports_every_problem(rmap, tmp_path):
 
 def test_value_problems_are_refused_at_open(rmap, tmp_path):
     _, path = rmap
-    for dataset, row, value, expect in (("landmarks/positions", (1, 0), np.inf, "not finite"),
-                                        ("landmarks/voxel_size", 2, -1.0, "not above 0"),
-                                        ("landmarks/ids", 0, 0, "zero"),
-                                        ("frames/camera_ids", 1, 42, "not in")):
+    for dataset, row, value, expect in (
+        ("landmarks/positions", (1, 0), np.inf, "not finite"),
+        ("landmarks/voxel_size", 2, -1.0, "not above 0"),
+        ("landmarks/ids", 0, 0, "zero"),
+        ("frames/camera_ids", 1, 42, "not in"),
+    ):
         p = copy(path, tmp_path)
         with h5py.File(p, "r+") as f:
             a = f[dataset][()]
@@ -302,7 +365,10 @@ def test_newer_format_version_is_refused_with_a_clear_message(rmap, tmp_path):
     with pytest.raises(MapFormatError) as e:
         Map.open(p)
     msg = str(e.value)
-    assert f"has map format version {FORMAT_VERSION + 1}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap" in msg
+    assert (
+        f"has map format version {FORMAT_VERSION + 1}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap"
+        in msg
+    )
     r = validate(p)
     assert r.problems == [msg]  # one problem: a future layout is not checked against this schema
     with h5py.File(p, "r+") as f:
@@ -357,8 +423,12 @@ def test_a_landmark_field_added_to_the_schema_is_carried_everywhere(tmp_path, mo
     from favormap.ops.prune import prune_map
 
     v1 = json.loads(json.dumps(load_schema(1)))
-    v1["datasets"]["landmarks/sharpness"] = {"dtype": "float32", "shape": ["L"], "values": {"finite": True, "min": 0},
-                                            "description": "a field added by the test"}
+    v1["datasets"]["landmarks/sharpness"] = {
+        "dtype": "float32",
+        "shape": ["L"],
+        "values": {"finite": True, "min": 0},
+        "description": "a field added by the test",
+    }
     sdir = tmp_path / "schemas"
     sdir.mkdir()
     (sdir / "favormap-map.v1.json").write_text(json.dumps(v1))
@@ -433,7 +503,9 @@ def test_no_code_execution_from_data():
         tree = ast.parse(path.read_text(), str(path))
         for node in ast.walk(tree):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
-                mods = [a.name for a in node.names] + ([node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+                mods = [a.name for a in node.names] + (
+                    [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+                )
                 for mod in mods:
                     if mod.split(".")[0] in ("pickle", "cPickle", "dill", "marshal", "shelve", "cloudpickle", "joblib"):
                         bad.append(f"{path}:{node.lineno} imports {mod}")

@@ -53,13 +53,20 @@ def moved_copy(m, T_b_to_a):
     cfw[:, :3, :] /= s
     res = m.grid_resolution
     W = resample_matrix(R.T, res)
-    W = np.eye(res ** 3) if W is None else W
+    W = np.eye(res**3) if W is None else W
     L, C = m.num_landmarks, m.channels
-    desc = np.einsum("nr,brc->bnc", W, m.descriptors.reshape(L, res ** 3, C)).reshape(m.descriptors.shape)
+    desc = np.einsum("nr,brc->bnc", W, m.descriptors.reshape(L, res**3, C)).reshape(m.descriptors.shape)
     dens = (m.density.reshape(L, -1) @ W.T).reshape(m.density.shape)
-    return dataclasses.replace(m, positions=pos, view_dir=(m.view_dir @ R).astype(np.float32),
-                               voxel_size=(m.voxel_size / s).astype(np.float32), depth_range=(m.depth_range / s).astype(np.float32),
-                               cam_from_world=cfw, descriptors=desc.astype(np.float32), density=dens.astype(np.float32))
+    return dataclasses.replace(
+        m,
+        positions=pos,
+        view_dir=(m.view_dir @ R).astype(np.float32),
+        voxel_size=(m.voxel_size / s).astype(np.float32),
+        depth_range=(m.depth_range / s).astype(np.float32),
+        cam_from_world=cfw,
+        descriptors=desc.astype(np.float32),
+        density=dens.astype(np.float32),
+    )
 
 
 def voxels_of(path, rows=None):
@@ -78,17 +85,25 @@ def write_streaming(m, path, chunk=37, nan_at=None):
     L = m.num_landmarks
     with MapWriter(path, header, L, m.num_frames) as w:
         write_landmark_metadata(w, {k: getattr(m, k) for k in m.landmark_names()})
-        write_frames_and_tracks(w, m.cameras, m.frame_names, m.frame_camera_ids, m.cam_from_world,
-                                m.track_landmark, m.track_frame, m.track_xy)
+        write_frames_and_tracks(
+            w,
+            m.cameras,
+            m.frame_names,
+            m.frame_camera_ids,
+            m.cam_from_world,
+            m.track_landmark,
+            m.track_frame,
+            m.track_xy,
+        )
         for k in ("voxels/descriptors", "voxels/density", "landmarks/mean_descriptor"):
             w.create(k)
         for a in range(0, L, chunk):
-            d = m.descriptors[a:a + chunk].copy()
+            d = m.descriptors[a : a + chunk].copy()
             if nan_at is not None and a <= nan_at < a + chunk:
                 d[nan_at - a] = np.nan
             w.write_rows("voxels/descriptors", a, d)
-            w.write_rows("voxels/density", a, m.density[a:a + chunk])
-            w.write_rows("landmarks/mean_descriptor", a, m.mean_descriptor[a:a + chunk])
+            w.write_rows("voxels/density", a, m.density[a : a + chunk])
+            w.write_rows("landmarks/mean_descriptor", a, m.mean_descriptor[a : a + chunk])
 
 
 def test_streaming_writer_matches_write_map_and_refuses_bad_values(small_map, tmp_path):
@@ -123,7 +138,7 @@ def test_merging_a_map_with_itself_keeps_its_landmarks(small_map, tmp_path):
     assert res.sources[1]["dropped_duplicates"] == m.num_landmarks
     assert d.num_frames == 2 * m.num_frames and len(d.cameras) == 2
     assert len(set(d.frame_names)) == d.num_frames  # colliding names were prefixed
-    np.testing.assert_array_equal(d.frame_camera_ids[m.num_frames:], 1)
+    np.testing.assert_array_equal(d.frame_camera_ids[m.num_frames :], 1)
     np.testing.assert_array_equal(d.track_landmark, m.track_landmark)
     np.testing.assert_allclose(d.descriptors, m.descriptors, atol=2e-3)
     np.testing.assert_array_equal(d.density, m.density)
@@ -186,21 +201,49 @@ def test_merge_with_a_transform_file_maps_the_second_map_back(small_map, tmp_pat
     write_map(m.select_landmarks(np.arange(L // 2)), tmp_path / "a.h5")
     write_map(moved_copy(m.select_landmarks(half), T), tmp_path / "b.h5")
     # (nearby landmarks of one map may look like duplicates: no dedup, to compare everything)
-    assert main(["merge", str(tmp_path / "a.h5"), str(tmp_path / "b.h5"), "-o", str(tmp_path / "m.h5"),
-                 "--transform", str(tmp_path / "b_to_a.txt"), "--json", "-q", "--no-dedup"]) == 0
+    assert (
+        main(
+            [
+                "merge",
+                str(tmp_path / "a.h5"),
+                str(tmp_path / "b.h5"),
+                "-o",
+                str(tmp_path / "m.h5"),
+                "--transform",
+                str(tmp_path / "b_to_a.txt"),
+                "--json",
+                "-q",
+                "--no-dedup",
+            ]
+        )
+        == 0
+    )
     d = check_written_map(tmp_path / "m.h5")
     assert d.num_landmarks == L
     np.testing.assert_allclose(d.positions, m.positions, atol=1e-9)
     np.testing.assert_allclose(d.view_dir, m.view_dir, atol=1e-6)
     np.testing.assert_allclose(d.voxel_size, m.voxel_size, rtol=1e-6)
     np.testing.assert_allclose(d.depth_range, m.depth_range, rtol=1e-6)
-    np.testing.assert_allclose(d.cam_from_world[m.num_frames:], m.cam_from_world, atol=1e-9)
+    np.testing.assert_allclose(d.cam_from_world[m.num_frames :], m.cam_from_world, atol=1e-9)
     np.testing.assert_allclose(d.descriptors, m.descriptors, atol=2e-3)  # 90 deg: exact node permutation
     np.testing.assert_allclose(d.density, m.density, rtol=1e-6)
     # the whole map in frame b merged onto itself in frame a: every landmark is found as a duplicate
     write_map(moved_copy(m, T), tmp_path / "b_all.h5")
-    assert main(["merge", str(path), str(tmp_path / "b_all.h5"), "-o", str(tmp_path / "m2.h5"),
-                 "--transform", str(tmp_path / "b_to_a.txt"), "-q"]) == 0
+    assert (
+        main(
+            [
+                "merge",
+                str(path),
+                str(tmp_path / "b_all.h5"),
+                "-o",
+                str(tmp_path / "m2.h5"),
+                "--transform",
+                str(tmp_path / "b_to_a.txt"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     d = check_written_map(tmp_path / "m2.h5")
     assert d.num_landmarks == L
     np.testing.assert_array_equal(d.ids, m.ids)
@@ -222,7 +265,7 @@ def test_grid_resampling_reproduces_linear_fields():
         W = resample_matrix(R, res)
         np.testing.assert_allclose(W @ field_b, nodes @ R @ a, atol=1e-6)  # f_a(p) = f_b(R^T p)
     W = resample_matrix(rotation_about([1, 1, 0], 0.3), res)
-    assert W[res ** 3 // 2, res ** 3 // 2] == pytest.approx(1.0)
+    assert W[res**3 // 2, res**3 // 2] == pytest.approx(1.0)
     np.testing.assert_allclose(W.sum(1), 1.0, atol=1e-6)
     assert resample_matrix(np.eye(3), res) is None
 
@@ -231,8 +274,13 @@ def test_merge_refuses_incompatible_maps(small_map, tmp_path):
     from favormap.ops.merge import merge_maps
 
     m, path = small_map
-    c32 = write_variant(m, tmp_path / "c32.h5", channels=32, descriptors=m.descriptors[..., :32],
-                        mean_descriptor=m.mean_descriptor[:, :32])
+    c32 = write_variant(
+        m,
+        tmp_path / "c32.h5",
+        channels=32,
+        descriptors=m.descriptors[..., :32],
+        mean_descriptor=m.mean_descriptor[:, :32],
+    )
     with pytest.raises(IncompatibleMapsError) as e:
         merge_maps([path, c32], tmp_path / "x.h5")
     assert "channels" in str(e.value) and str(m.channels) in str(e.value) and "32" in str(e.value)
@@ -282,7 +330,7 @@ def test_spatially_even_selection_keeps_sparse_regions():
     rows = spatially_even(P, q, 200)
     assert len(rows) == 200 and len(np.unique(rows)) == 200
     assert np.sum(rows >= 5000) >= 80  # most of the sparse region survives
-    assert len(spatially_even(P, q, 10 ** 6)) == len(P)
+    assert len(spatially_even(P, q, 10**6)) == len(P)
 
 
 def test_prune_filters_by_track_quality_and_bbox(small_map, tmp_path, capsys):
@@ -294,7 +342,24 @@ def test_prune_filters_by_track_quality_and_bbox(small_map, tmp_path, capsys):
     mid = (lo + hi) / 2
     bbox = ",".join(f"{v:.6f}" for v in np.r_[lo - 1, mid[0], hi[1:] + 1])
     out = tmp_path / "f.h5"
-    assert main(["prune", str(path), "-o", str(out), "--min-track", str(k), "--min-quality", str(q), "--bbox", bbox, "--json"]) == 0
+    assert (
+        main(
+            [
+                "prune",
+                str(path),
+                "-o",
+                str(out),
+                "--min-track",
+                str(k),
+                "--min-quality",
+                str(q),
+                "--bbox",
+                bbox,
+                "--json",
+            ]
+        )
+        == 0
+    )
     s = json.loads(capsys.readouterr().out)
     d = check_written_map(out)
     P = m.positions
@@ -383,7 +448,11 @@ def brute_visible_ids(m, cam, T, angle_margin=15.0, depth_scale=(0.5, 2.0)):
     dist = np.linalg.norm(c - P, axis=1)
     ang = np.degrees(np.arccos(np.clip(np.sum((c - P) * m.view_dir, 1) / dist, -1, 1)))
     ok = (z > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
-    ok &= (ang <= m.view_angle + angle_margin) & (dist >= m.depth_range[:, 0] * depth_scale[0]) & (dist <= m.depth_range[:, 1] * depth_scale[1])
+    ok &= (
+        (ang <= m.view_angle + angle_margin)
+        & (dist >= m.depth_range[:, 0] * depth_scale[0])
+        & (dist <= m.depth_range[:, 1] * depth_scale[1])
+    )
     return m.ids[ok]
 
 
@@ -446,7 +515,10 @@ def test_query_cli_with_a_mesh(small_map, tmp_path, capsys):
     trimesh.Trimesh(room.vertices, room.triangles, process=False).export(tmp_path / "room.ply")
     assert main(["query", str(path), "--pose", str(tmp_path / "pose.txt"), "--json"]) == 0
     free = json.loads(capsys.readouterr().out)
-    assert main(["query", str(path), "--pose", str(tmp_path / "pose.txt"), "--mesh", str(tmp_path / "room.ply"), "--json"]) == 0
+    assert (
+        main(["query", str(path), "--pose", str(tmp_path / "pose.txt"), "--mesh", str(tmp_path / "room.ply"), "--json"])
+        == 0
+    )
     meshed = json.loads(capsys.readouterr().out)
     assert set(meshed["visible_ids"]) <= set(free["visible_ids"])
     # landmarks lie on the room's surfaces: few are hidden by the surface they lie on
@@ -454,9 +526,14 @@ def test_query_cli_with_a_mesh(small_map, tmp_path, capsys):
     assert meshed["num_visible"] + meshed["num_occluded"] == free["num_visible"]
     # a wall right in front of the camera hides everything: exit status 1
     wall = trimesh.creation.box(extents=[50, 50, 0.01])
-    wall.apply_transform(inverse(T) @ np.diag([1, 1, 1, 1.0]) @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1.0]]))
+    wall.apply_transform(
+        inverse(T) @ np.diag([1, 1, 1, 1.0]) @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1.0]])
+    )
     wall.export(tmp_path / "wall.obj")
-    assert main(["query", str(path), "--pose", str(tmp_path / "pose.txt"), "--mesh", str(tmp_path / "wall.obj"), "--json"]) == 1
+    assert (
+        main(["query", str(path), "--pose", str(tmp_path / "pose.txt"), "--mesh", str(tmp_path / "wall.obj"), "--json"])
+        == 1
+    )
     cap = capsys.readouterr()
     assert json.loads(cap.out)["num_visible"] == 0 and "no landmark is visible" in cap.err
 
@@ -486,8 +563,13 @@ def test_cli_bad_inputs_fail_with_one_line(small_map, tmp_path, capsys):
     (tmp_path / "shear.txt").write_text("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (tmp_path / "notamap.h5").write_text("hello")
     (tmp_path / "pose.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
-    c32 = write_variant(m, tmp_path / "c32.h5", channels=32, descriptors=m.descriptors[..., :32],
-                        mean_descriptor=m.mean_descriptor[:, :32])
+    c32 = write_variant(
+        m,
+        tmp_path / "c32.h5",
+        channels=32,
+        descriptors=m.descriptors[..., :32],
+        mean_descriptor=m.mean_descriptor[:, :32],
+    )
     cases = [
         (["query", str(tmp_path / "missing.h5"), "--pose", str(tmp_path / "pose.txt")], "not found"),
         (["query", str(tmp_path / "notamap.h5"), "--near", "0", "0", "0", "--knn", "3"], "not a favormap map"),
@@ -536,14 +618,18 @@ def test_merged_halves_localize_as_well_as_the_whole_map(small_sequence, small_m
     rng = np.random.default_rng(11)
     queries = []
     for i, h in enumerate(halves):
-        views = random_views_near([f.cam_from_world for f in h.frames], 3, seed=20 + i, max_trans=0.08, max_rot_deg=4.0, scene=scene)
+        views = random_views_near(
+            [f.cam_from_world for f in h.frames], 3, seed=20 + i, max_trans=0.08, max_rot_deg=4.0, scene=scene
+        )
         queries += [(render(scene, cam, T)[0], T, perturb_pose(T, 0.1, 5.0, rng)) for T in views]
     results = {}
     for name, p in (("whole", whole), ("merged", merged)):
         loc = localize.Localizer(p, localize.LocalizeConfig(iterations=3))
         res = [loc.localize(img, prior) for img, _, prior in queries]
         loc.close()
-        errs = np.array([pose_error(r.cam_from_world, T) if r.success else (np.inf, np.inf) for r, (_, T, _) in zip(res, queries)])
+        errs = np.array(
+            [pose_error(r.cam_from_world, T) if r.success else (np.inf, np.inf) for r, (_, T, _) in zip(res, queries)]
+        )
         results[name] = (np.array([r.success for r in res]), errs)
     ok_w, err_w = results["whole"]
     ok_m, err_m = results["merged"]

@@ -24,15 +24,24 @@ def _sources(tmp_path) -> dict:
     qx, qy, qz, qw = rotmat_to_quat(T[:3, :3])  # COLMAP: cam_from_world, QW first
     tx, ty, tz = T[:3, 3]
     wq = rotmat_to_quat(WFC[:3, :3])  # TUM: world_from_cam, qx qy qz qw
-    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [
-        {"file_path": "./images/a.png", "transform_matrix": np.eye(4).tolist()},
-        {"file_path": "./images/b.png", "transform_matrix": world_from_cam_opencv_to_opengl(WFC).tolist()}]}))
+    (tmp_path / "transforms.json").write_text(
+        json.dumps(
+            {
+                "frames": [
+                    {"file_path": "./images/a.png", "transform_matrix": np.eye(4).tolist()},
+                    {"file_path": "./images/b.png", "transform_matrix": world_from_cam_opencv_to_opengl(WFC).tolist()},
+                ]
+            }
+        )
+    )
     (tmp_path / "images.txt").write_text(
         "# Image list with two lines of data per image:\n"
-        f"1 1 0 0 0 0 0 0 1 a.png\n\n2 {qw} {qx} {qy} {qz} {tx} {ty} {tz} 1 b.png\n100 200 -1\n")
+        f"1 1 0 0 0 0 0 0 1 a.png\n\n2 {qw} {qx} {qy} {qz} {tx} {ty} {tz} 1 b.png\n100 200 -1\n"
+    )
     (tmp_path / "groundtruth.txt").write_text(
         "# timestamp tx ty tz qx qy qz qw\n1305031102.1000 0 0 0 0 0 0 1\n"
-        f"1305031102.2100 {' '.join(f'{v:.9f}' for v in (*WFC[:3, 3], *wq))}\n1305031102.3100 0 0 0 0 0 0 1\n")
+        f"1305031102.2100 {' '.join(f'{v:.9f}' for v in (*WFC[:3, 3], *wq))}\n1305031102.3100 0 0 0 0 0 0 1\n"
+    )
     (tmp_path / "frame-000000.pose.txt").write_text(_mat(WFC).replace(" ", "\t"))
     return {
         ("world_from_cam", _mat(WFC), None),
@@ -65,12 +74,15 @@ def test_cli_writes_a_prior_that_localize_reads(tmp_path, capsys):
     assert np.allclose(printed, WFC, atol=1e-9)
 
 
-@pytest.mark.parametrize("kind, source, name, msg", [
-    ("nerf", "transforms.json", "zzz.png", "no frame"),
-    ("colmap", "1 2 3", None, "QW QX QY QZ"),
-    ("opengl", "1 0 0 0 0 2 0 0 0 0 1 0 0 0 0 1", None, "not a rotation"),
-    ("tum", "0 0 0 0 0 0 3", None, "unit quaternion"),
-])
+@pytest.mark.parametrize(
+    "kind, source, name, msg",
+    [
+        ("nerf", "transforms.json", "zzz.png", "no frame"),
+        ("colmap", "1 2 3", None, "QW QX QY QZ"),
+        ("opengl", "1 0 0 0 0 2 0 0 0 0 1 0 0 0 0 1", None, "not a rotation"),
+        ("tum", "0 0 0 0 0 0 3", None, "unit quaternion"),
+    ],
+)
 def test_bad_sources_are_one_clear_error(tmp_path, kind, source, name, msg):
     _sources(tmp_path)
     if source.endswith(".json"):

@@ -35,7 +35,9 @@ def test_sevenscenes_style_matrix_with_tabs_and_rounding(tmp_path, pose):
 
 def test_3x4_matrix_and_comments(tmp_path, pose):
     wfc = inverse(pose)
-    (tmp_path / "p.txt").write_text("# world_from_cam\n" + "\n".join(" ".join(repr(float(v)) for v in r) for r in wfc[:3]) + "  # 3x4\n")
+    (tmp_path / "p.txt").write_text(
+        "# world_from_cam\n" + "\n".join(" ".join(repr(float(v)) for v in r) for r in wfc[:3]) + "  # 3x4\n"
+    )
     np.testing.assert_allclose(read_pose(tmp_path / "p.txt"), pose, atol=1e-10)
 
 
@@ -50,19 +52,22 @@ def test_tum_line_with_and_without_timestamp(tmp_path, pose):
     np.testing.assert_allclose(read_pose(tmp_path / "c.txt"), pose, atol=1e-7)
 
 
-@pytest.mark.parametrize("content,needle", [
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "found 12"),  # would be fine... replaced below
-    ("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not a rotation"),  # scaled
-    ("1 0 0 0\n0 1 0 0\n0 0 -1 0\n0 0 0 1\n", "not a rotation"),  # reflection
-    ("1 0 0 0\n0 1 0 0\n0 0 1 nan\n0 0 0 1\n", "non-finite"),
-    ("1 0 0 0\n0 1 0 0\n0 0 1 inf\n0 0 0 1\n", "non-finite"),
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0\n", "found 15"),
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n1 0 0 1\n", "last row"),
-    ("1 2 3 0 0 0 2\n", "unit quaternion"),
-    ("1 2 3\n0 0 0 1\n", "found 7 number(s) on 2 line(s)"),
-    ("", "found 0"),
-    ("1 0 0 0 x\n", "not a number"),
-])
+@pytest.mark.parametrize(
+    "content,needle",
+    [
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "found 12"),  # would be fine... replaced below
+        ("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not a rotation"),  # scaled
+        ("1 0 0 0\n0 1 0 0\n0 0 -1 0\n0 0 0 1\n", "not a rotation"),  # reflection
+        ("1 0 0 0\n0 1 0 0\n0 0 1 nan\n0 0 0 1\n", "non-finite"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 inf\n0 0 0 1\n", "non-finite"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0\n", "found 15"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n1 0 0 1\n", "last row"),
+        ("1 2 3 0 0 0 2\n", "unit quaternion"),
+        ("1 2 3\n0 0 0 1\n", "found 7 number(s) on 2 line(s)"),
+        ("", "found 0"),
+        ("1 0 0 0 x\n", "not a number"),
+    ],
+)
 def test_bad_pose_files_name_the_file(tmp_path, content, needle):
     if needle == "found 12":  # a valid 3x4 file: check it parses
         (tmp_path / "ok.txt").write_text(content)
@@ -129,12 +134,19 @@ def test_camera_specs(tmp_path):
     assert c.model == "OPENCV" and c.height == 80 and len(c.params) == 8
     (tmp_path / "cam.json").write_text(json.dumps(js))
     assert read_camera(str(tmp_path / "cam.json")).width == 100
-    (tmp_path / "cameras.txt").write_text("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-                                          "# Number of cameras: 1\n3 SIMPLE_PINHOLE 64 48 50 32 24\n")
+    (tmp_path / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+        "# Number of cameras: 1\n3 SIMPLE_PINHOLE 64 48 50 32 24\n"
+    )
     c = read_camera(str(tmp_path / "cameras.txt"))
     assert c.model == "SIMPLE_PINHOLE" and c.width == 64
-    for bad, needle in [("FISHEYE 64 48 1 2 3", "unsupported"), ("PINHOLE 64 48 1 2 3", "needs 4"),
-                        ("PINHOLE 64.5 48 1 2 3 4", "integers"), ('{"model": "PINHOLE"}', "keys"),
-                        ("{not json", "invalid JSON"), (str(tmp_path / "missing.txt"), "not found")]:
+    for bad, needle in [
+        ("FISHEYE 64 48 1 2 3", "unsupported"),
+        ("PINHOLE 64 48 1 2 3", "needs 4"),
+        ("PINHOLE 64.5 48 1 2 3 4", "integers"),
+        ('{"model": "PINHOLE"}', "keys"),
+        ("{not json", "invalid JSON"),
+        (str(tmp_path / "missing.txt"), "not found"),
+    ]:
         with pytest.raises(InputError, match=needle):
             read_camera(bad)

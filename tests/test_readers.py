@@ -79,9 +79,17 @@ def fmt(x) -> str:
 def test_nerf_axes_handmade(tmp_path):
     """An OpenGL camera at (0, 0, 5) with identity rotation looks down -z at the origin, +y up."""
     write_image(tmp_path / "images" / "a.png")
-    data = {"fl_x": 50.0, "fl_y": 51.0, "cx": 30.0, "cy": 25.0, "w": W, "h": H,
-            "frames": [{"file_path": "images/a.png",
-                        "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5], [0, 0, 0, 1]]}]}
+    data = {
+        "fl_x": 50.0,
+        "fl_y": 51.0,
+        "cx": 30.0,
+        "cy": 25.0,
+        "w": W,
+        "h": H,
+        "frames": [
+            {"file_path": "images/a.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5], [0, 0, 0, 1]]}
+        ],
+    }
     (tmp_path / "transforms.json").write_text(json.dumps(data))
     seq = read_sequence(tmp_path)
     assert seq.format == "nerf" and len(seq) == 1
@@ -124,9 +132,15 @@ def test_nerf_blender_style(tmp_path):
         write_image(tmp_path / ("train" if i < 2 else "test") / f"r_{i}.png")
     gl = [(inverse(T) @ np.diag([1, -1, -1, 1.0])).tolist() for T in poses]
     angle = 2 * math.atan(W / 2 / 40.0)
-    train = {"camera_angle_x": angle, "k1": 0.1, "k3": 0.05,
-             "frames": [{"file_path": "./train/r_0", "transform_matrix": gl[0]},
-                        {"file_path": "./train/r_1", "transform_matrix": gl[1], "fl_x": 60.0, "cx": 30.0}]}
+    train = {
+        "camera_angle_x": angle,
+        "k1": 0.1,
+        "k3": 0.05,
+        "frames": [
+            {"file_path": "./train/r_0", "transform_matrix": gl[0]},
+            {"file_path": "./train/r_1", "transform_matrix": gl[1], "fl_x": 60.0, "cx": 30.0},
+        ],
+    }
     test = {"camera_angle_x": angle, "frames": [{"file_path": "./test/r_2", "transform_matrix": gl[2]}]}
     (tmp_path / "transforms_train.json").write_text(json.dumps(train))
     (tmp_path / "transforms_test.json").write_text(json.dumps(test))
@@ -149,8 +163,23 @@ def _nerf_file(tmp_path, frames, **top):
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50, "w": W, "h": H, **top, "frames": frames}))
 
 
-@pytest.mark.parametrize("case", ["broken", "empty", "no_matrix", "nan", "inf_focal", "not_rigid", "bad_shape",
-                                  "no_file_path", "frames_not_list", "fisheye", "no_focal", "string_focal"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "broken",
+        "empty",
+        "no_matrix",
+        "nan",
+        "inf_focal",
+        "not_rigid",
+        "bad_shape",
+        "no_file_path",
+        "frames_not_list",
+        "fisheye",
+        "no_focal",
+        "string_focal",
+    ],
+)
 def test_nerf_malformed(tmp_path, case):
     good = np.eye(4).tolist()
     if case == "broken":
@@ -178,7 +207,9 @@ def test_nerf_malformed(tmp_path, case):
         _nerf_file(tmp_path, [{"file_path": "a.png", "transform_matrix": good}], camera_model="OPENCV_FISHEYE")
     elif case == "no_focal":
         write_image(tmp_path / "a.png")
-        (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "a.png", "transform_matrix": good}]}))
+        (tmp_path / "transforms.json").write_text(
+            json.dumps({"frames": [{"file_path": "a.png", "transform_matrix": good}]})
+        )
     elif case == "string_focal":
         _nerf_file(tmp_path, [{"file_path": "a.png", "transform_matrix": good}], fl_x="fifty")
     with pytest.raises(SequenceError) as e:
@@ -188,8 +219,13 @@ def test_nerf_malformed(tmp_path, case):
 
 def test_nerf_missing_image(tmp_path):
     write_image(tmp_path / "a.png")
-    _nerf_file(tmp_path, [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()},
-                          {"file_path": "b.png", "transform_matrix": np.eye(4).tolist()}])
+    _nerf_file(
+        tmp_path,
+        [
+            {"file_path": "a.png", "transform_matrix": np.eye(4).tolist()},
+            {"file_path": "b.png", "transform_matrix": np.eye(4).tolist()},
+        ],
+    )
     with pytest.raises(SequenceError, match="missing"):
         read_sequence(tmp_path)
 
@@ -201,7 +237,8 @@ def _write_7scenes(root: Path, poses_by_seq: dict[int, list[np.ndarray]]) -> Non
             write_image(root / f"seq-{s:02d}" / f"frame-{i:06d}.color.png")
             wfc = inverse(T)  # the pose file is camera-to-world
             (root / f"seq-{s:02d}" / f"frame-{i:06d}.pose.txt").write_text(
-                "".join("\t".join(fmt(v) for v in row) + "\n" for row in wfc))
+                "".join("\t".join(fmt(v) for v in row) + "\n" for row in wfc)
+            )
 
 
 def test_7scenes_axes_and_defaults(tmp_path):
@@ -240,7 +277,10 @@ def test_7scenes_roundtrip_writer_split(tmp_path):
     assert_looks_at_origin(seq)
     # a single seq-XX folder as the root
     one = read_sequence(tmp_path / "seq-02")
-    assert one.format == "7scenes" and [f.name for f in one.frames] == ["frame-000000.color.png", "frame-000001.color.png"]
+    assert one.format == "7scenes" and [f.name for f in one.frames] == [
+        "frame-000000.color.png",
+        "frame-000001.color.png",
+    ]
     assert_same_poses(one, poses[2:])
 
 
@@ -250,7 +290,9 @@ def test_7scenes_distorted_camera_file(tmp_path):
     for n in names:
         write_image(tmp_path / n)
     cam = Camera("OPENCV", W, H, [50.0, 51.0, 31.0, 23.0, 0.1, 0.01, 0.001, 0.0])
-    sevenscenes.write(Sequence(tmp_path, "x", {0: cam}, [Frame(n, tmp_path / n, 0, T) for n, T in zip(names, poses)]), tmp_path)
+    sevenscenes.write(
+        Sequence(tmp_path, "x", {0: cam}, [Frame(n, tmp_path / n, 0, T) for n, T in zip(names, poses)]), tmp_path
+    )
     seq = read_sequence(tmp_path)
     assert seq.cameras[0].model == "OPENCV"
     np.testing.assert_array_equal(seq.cameras[0].params, cam.params)
@@ -269,7 +311,9 @@ def test_7scenes_nonfinite_pose_is_skipped(tmp_path):
         read_sequence(tmp_path)
 
 
-@pytest.mark.parametrize("case", ["missing_pose", "missing_image", "short_pose", "text_pose", "bad_K", "not_rigid", "bad_split"])
+@pytest.mark.parametrize(
+    "case", ["missing_pose", "missing_image", "short_pose", "text_pose", "bad_K", "not_rigid", "bad_split"]
+)
 def test_7scenes_malformed(tmp_path, case):
     _write_7scenes(tmp_path, {1: orbit_poses(2)})
     d = tmp_path / "seq-01"
@@ -308,11 +352,15 @@ def _colmap_model(tmp_path: Path, model_dir: str, binary: bool, model="OPENCV", 
     params = params or [50.0, 52.0, 31.5, 24.5, 0.01, -0.02, 0.001, 0.002]
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=3))
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[40, 40, 32, 24], camera_id=7))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[40, 40, 32, 24], camera_id=7)
+    )
     names = ["b.png", "sub/a.png", "c.png"]
     for i, (n, T) in enumerate(zip(names, poses)):
         write_image(tmp_path / image_dir / n)
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=3 if i < 2 else 7, image_id=i + 1), to_rigid3d(T))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=n, camera_id=3 if i < 2 else 7, image_id=i + 1), to_rigid3d(T)
+        )
     # an unregistered image is not a frame
     rec.add_image_with_trivial_frame(pycolmap.Image(name="unreg.png", camera_id=3, image_id=10))
     out = tmp_path / model_dir
@@ -361,7 +409,9 @@ def test_colmap_no_registered_images(tmp_path):
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[40, 40, 32, 24], camera_id=1))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[40, 40, 32, 24], camera_id=1)
+    )
     rec.add_image_with_trivial_frame(pycolmap.Image(name="a.png", camera_id=1, image_id=1))
     write_image(tmp_path / "images" / "a.png")
     (tmp_path / "sparse").mkdir()
@@ -403,7 +453,9 @@ def test_cambridge_roundtrip_split_camera_file(tmp_path):
     names = [f"seq{1 + i // 2}/frame{i:05d}.png" for i in range(4)]
     for n in names:
         write_image(tmp_path / n)
-    (tmp_path / "dataset_train.txt").write_text(HEADER + "".join(_cambridge_line(n, T) for n, T in zip(names[:3], poses)))
+    (tmp_path / "dataset_train.txt").write_text(
+        HEADER + "".join(_cambridge_line(n, T) for n, T in zip(names[:3], poses))
+    )
     (tmp_path / "dataset_test.txt").write_text(HEADER + _cambridge_line(names[3], poses[3]))
     assert detect_format(tmp_path) == "cambridge"
     seq = read_sequence(tmp_path)
@@ -422,8 +474,13 @@ def test_cambridge_roundtrip_split_camera_file(tmp_path):
 def test_cambridge_malformed(tmp_path, case):
     write_image(tmp_path / "seq1" / "a.png")
     line = _cambridge_line("seq1/a.png", orbit_poses(1)[0])
-    body = {"nan": "seq1/a.png 1 2 nan 1 0 0 0\n", "short": "seq1/a.png 1 2 3\n", "text": "seq1/a.png 1 2 x 1 0 0 0\n",
-            "zero_quat": "seq1/a.png 1 2 3 0 0 0 0\n", "duplicate": line + line}.get(case, line)
+    body = {
+        "nan": "seq1/a.png 1 2 nan 1 0 0 0\n",
+        "short": "seq1/a.png 1 2 3\n",
+        "text": "seq1/a.png 1 2 x 1 0 0 0\n",
+        "zero_quat": "seq1/a.png 1 2 3 0 0 0 0\n",
+        "duplicate": line + line,
+    }.get(case, line)
     (tmp_path / "dataset_train.txt").write_text(HEADER + body)
     if case == "two_cameras":
         (tmp_path / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n2 PINHOLE 64 48 50 50 32 24\n")
@@ -598,7 +655,12 @@ def _build(fmt_name: str, root: Path) -> list[Path]:
     if fmt_name == "nerf":
         imgs = [write_image(root / "images" / f"{i}.png") for i in range(3)]
         cam = Camera("PINHOLE", W, H, [50.0, 50, 32, 24])
-        nerf.write(Sequence(root, "x", {0: cam}, [Frame(f"images/{i}.png", p, 0, T) for i, (p, T) in enumerate(zip(imgs, poses))]), root)
+        nerf.write(
+            Sequence(
+                root, "x", {0: cam}, [Frame(f"images/{i}.png", p, 0, T) for i, (p, T) in enumerate(zip(imgs, poses))]
+            ),
+            root,
+        )
     elif fmt_name == "7scenes":
         _write_7scenes(root, {1: poses})
         imgs = [root / "seq-01" / f"frame-{i:06d}.color.png" for i in range(3)]
@@ -607,7 +669,9 @@ def _build(fmt_name: str, root: Path) -> list[Path]:
         imgs = [root / "images" / n for n in sorted(expected)]
     elif fmt_name == "cambridge":
         imgs = [write_image(root / "seq1" / f"{i}.png") for i in range(3)]
-        (root / "dataset_train.txt").write_text(HEADER + "".join(_cambridge_line(f"seq1/{i}.png", T) for i, T in enumerate(poses)))
+        (root / "dataset_train.txt").write_text(
+            HEADER + "".join(_cambridge_line(f"seq1/{i}.png", T) for i, T in enumerate(poses))
+        )
     elif fmt_name == "tum":
         _write_tum(root, poses)
         imgs = sorted((root / "rgb").iterdir())

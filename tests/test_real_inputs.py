@@ -81,9 +81,27 @@ def _seq_nerf(root, poses, dev):
         write_image(root / "images" / f"{i:04d}.jpg")
         gl = skew_pose(world_from_cam_opencv_to_opengl(inverse(T)), dev)
         frames.append({"file_path": f"./images/{i:04d}.jpg", "sharpness": 31.5, "transform_matrix": gl.tolist()})
-    (root / "transforms.json").write_text(json.dumps({
-        "camera_angle_x": 1.1, "camera_angle_y": 0.9, "fl_x": 50.0, "fl_y": 50.0, "k1": 0.01, "k2": -0.002,
-        "p1": 0.0, "p2": 0.0, "cx": 32.0, "cy": 24.0, "w": W, "h": H, "aabb_scale": 4, "frames": frames}, indent=2))
+    (root / "transforms.json").write_text(
+        json.dumps(
+            {
+                "camera_angle_x": 1.1,
+                "camera_angle_y": 0.9,
+                "fl_x": 50.0,
+                "fl_y": 50.0,
+                "k1": 0.01,
+                "k2": -0.002,
+                "p1": 0.0,
+                "p2": 0.0,
+                "cx": 32.0,
+                "cy": 24.0,
+                "w": W,
+                "h": H,
+                "aabb_scale": 4,
+                "frames": frames,
+            },
+            indent=2,
+        )
+    )
 
 
 def _llff_row(T, hwf, bounds=(1.5, 12.0), dev=0.0):
@@ -103,7 +121,9 @@ def _seq_llff(root, poses, dev):
 def _seq_favormap(root, poses, dev):
     from favormap.io.readers import favormap_layout
 
-    frames = [Frame(f"images/{i:06d}.png", write_image(root / "images" / f"{i:06d}.png"), 0, T) for i, T in enumerate(poses)]
+    frames = [
+        Frame(f"images/{i:06d}.png", write_image(root / "images" / f"{i:06d}.png"), 0, T) for i, T in enumerate(poses)
+    ]
     favormap_layout.write(Sequence(root, "favormap", {0: Camera("PINHOLE", W, H, [50, 50, 32, 24])}, frames), root)
     import json
 
@@ -123,7 +143,7 @@ def _seq_tum(root, poses, dev):
     gt = ["# ground truth trajectory", "# file: 'rgbd_dataset_freiburg1_xyz.bag'", "# timestamp tx ty tz qx qy qz qw"]
     rgb = ["# color images", "# file: 'rgbd_dataset_freiburg1_xyz.bag'", "# timestamp filename"]
     t0 = 1305031098.6659
-    for i, T in enumerate(poses):
+    for i, _T in enumerate(poses):
         t_img = t0 + 0.4 + i / 30 + 0.0013
         write_image(root / "rgb" / f"{t_img:.6f}.png")
         rgb.append(f"{t_img:.6f} rgb/{t_img:.6f}.png")
@@ -136,7 +156,9 @@ def _seq_tum(root, poses, dev):
     (root / "rgb.txt").write_text("\n".join(rgb) + "\n")
     (root / "groundtruth.txt").write_text("\n".join(gt) + "\n")
     (root / "depth.txt").write_text("# depth maps\n# file: 'rgbd_dataset_freiburg1_xyz.bag'\n# timestamp filename\n")
-    (root / "accelerometer.txt").write_text("# accelerometer data\n# timestamp ax ay az\n1305031098.6659 -0.0 9.8 0.0\n")
+    (root / "accelerometer.txt").write_text(
+        "# accelerometer data\n# timestamp ax ay az\n1305031098.6659 -0.0 9.8 0.0\n"
+    )
 
 
 def _seq_cambridge(root, poses, dev):
@@ -157,21 +179,36 @@ def _seq_colmap(root, poses, dev):
         write_image(root / "images" / f"{i}.jpg")
         cams.append(f"{i + 1} SIMPLE_RADIAL {W} {H} 50 32 24 0.01")
         x, y, z, w = _scaled_quat(rotmat_to_quat(T[:3, :3]), dev)
-        ims += [f"{i + 1} {w:.4f} {x:.4f} {y:.4f} {z:.4f} " + " ".join(f"{v:.6f}" for v in T[:3, 3]) + f" {i + 1} {i}.jpg", ""]
+        ims += [
+            f"{i + 1} {w:.4f} {x:.4f} {y:.4f} {z:.4f} " + " ".join(f"{v:.6f}" for v in T[:3, 3]) + f" {i + 1} {i}.jpg",
+            "",
+        ]
     (root / "sparse/0/cameras.txt").write_text("\n".join(cams) + "\n")
     (root / "sparse/0/images.txt").write_text("\n".join(ims) + "\n")
     (root / "sparse/0/points3D.txt").write_text("# 3D point list\n")
 
 
-WRITERS = {"7scenes": _seq_7scenes, "nerf": _seq_nerf, "llff": _seq_llff, "favormap": _seq_favormap,
-           "tum": _seq_tum, "cambridge": _seq_cambridge, "colmap": _seq_colmap}
+WRITERS = {
+    "7scenes": _seq_7scenes,
+    "nerf": _seq_nerf,
+    "llff": _seq_llff,
+    "favormap": _seq_favormap,
+    "tum": _seq_tum,
+    "cambridge": _seq_cambridge,
+    "colmap": _seq_colmap,
+}
 
 
 def _assert_map_ready(seq: Sequence) -> None:
     for f in seq.frames:
         assert rotation_deviation(f.cam_from_world[:3, :3]) < 1e-12
     names = [f.name for f in seq.frames]
-    assert check_frames(seq.cameras, names, [f.camera_id for f in seq.frames], np.stack([f.cam_from_world for f in seq.frames])) == []
+    assert (
+        check_frames(
+            seq.cameras, names, [f.camera_id for f in seq.frames], np.stack([f.cam_from_world for f in seq.frames])
+        )
+        == []
+    )
 
 
 @pytest.mark.parametrize("fmt", sorted(WRITERS))
@@ -208,9 +245,12 @@ def test_colmap_binary_model_one_camera_per_image(tmp_path):
     rec = pycolmap.Reconstruction()
     for i, T in enumerate(poses):
         write_image(tmp_path / "images" / f"IMG_{i}.JPG")
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=W, height=H, params=[50 + i, 32, 24, 0.01],
-                                                        camera_id=i + 1))
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"IMG_{i}.JPG", camera_id=i + 1, image_id=i + 1), to_rigid3d(T))
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(model="SIMPLE_RADIAL", width=W, height=H, params=[50 + i, 32, 24, 0.01], camera_id=i + 1)
+        )
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"IMG_{i}.JPG", camera_id=i + 1, image_id=i + 1), to_rigid3d(T)
+        )
     (tmp_path / "sparse" / "0").mkdir(parents=True)
     rec.write_binary(str(tmp_path / "sparse" / "0"))
     assert {p.name for p in (tmp_path / "sparse" / "0").iterdir()} >= {"cameras.bin", "images.bin", "points3D.bin"}
@@ -234,8 +274,10 @@ def test_tum_unmatched_timestamps_take_the_nearest_pose(tmp_path):
 def test_7scenes_file_as_shipped_reads_exactly(tmp_path):
     poses = orbit(3)
     _seq_7scenes(tmp_path, poses, 0.0)
-    assert "e-001\t" in (tmp_path / "seq-01" / "frame-000000.pose.txt").read_text() or "e+000\t" in (
-        tmp_path / "seq-01" / "frame-000000.pose.txt").read_text()
+    assert (
+        "e-001\t" in (tmp_path / "seq-01" / "frame-000000.pose.txt").read_text()
+        or "e+000\t" in (tmp_path / "seq-01" / "frame-000000.pose.txt").read_text()
+    )
     seq = read_sequence(tmp_path)
     assert seq.extra["split"] == ["train"] * 3
     for f, T in zip(seq.frames, poses):
@@ -280,8 +322,27 @@ def test_near_rigid_7scenes_sequence_builds(small_sequence, tmp_path, capsys):
     for i, f in enumerate(src):  # rewrite the pose files as the dataset ships them
         write_7scenes_pose(root / "seq-01" / f"frame-{i:06d}.pose.txt", skew_pose(inverse(f.cam_from_world), NEAR))
     out = tmp_path / "map.h5"
-    rc = main(["build", str(root), "-o", str(out), "--resize", "0", "--iterations", "10", "--max-landmarks", "40",
-               "--min-track", "3", "--max-keypoints", "600", "-q", "--device", "cpu"])
+    rc = main(
+        [
+            "build",
+            str(root),
+            "-o",
+            str(out),
+            "--resize",
+            "0",
+            "--iterations",
+            "10",
+            "--max-landmarks",
+            "40",
+            "--min-track",
+            "3",
+            "--max-keypoints",
+            "600",
+            "-q",
+            "--device",
+            "cpu",
+        ]
+    )
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     assert "projected onto SO(3)" in cap.err and "largest deviation" in cap.err

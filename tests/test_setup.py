@@ -38,8 +38,16 @@ def _run_setup_dry(python: str, env_extra=None) -> str:
 
 
 def _externally_managed(python: str) -> bool:
-    r = subprocess.run([python, "-c", "import os, sysconfig; print(os.path.isfile(os.path.join("
-                        "sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED')))"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            python,
+            "-c",
+            "import os, sysconfig; print(os.path.isfile(os.path.join("
+            "sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED')))",
+        ],
+        capture_output=True,
+        text=True,
+    )
     return r.stdout.strip() == "True"
 
 
@@ -66,12 +74,17 @@ def test_tools_test_runs_in_the_project_venv(tmp_path):
     (fake / "tools").mkdir(parents=True)
     (fake / "tests").mkdir()
     shutil.copy(REPO / "tools" / "test", fake / "tools" / "test")
-    (fake / "tests" / "test_where.py").write_text(
-        "import sys\n\ndef test_where():\n    print('PREFIX', sys.prefix)\n")
+    (fake / "tests" / "test_where.py").write_text("import sys\n\ndef test_where():\n    print('PREFIX', sys.prefix)\n")
     venv.create(fake / ".venv", with_pip=False, system_site_packages=True)  # pytest from this Python's site
     env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHON")}
-    r = subprocess.run(["bash", str(fake / "tools" / "test"), "-s", "-q", "-p", "no:cacheprovider"], env=env,
-                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    r = subprocess.run(
+        ["bash", str(fake / "tools" / "test"), "-s", "-q", "-p", "no:cacheprovider"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"PREFIX {fake / '.venv'}" in r.stdout
     assert re.search(r"^1 passed", r.stdout, re.M), r.stdout
@@ -80,9 +93,25 @@ def test_tools_test_runs_in_the_project_venv(tmp_path):
 def test_quiet_runs_still_print_the_summary_line(tmp_path):
     """With the project's pytest configuration, `-q` (as developers add it) keeps "N passed"."""
     (tmp_path / "test_one.py").write_text("def test_one():\n    pass\n")
-    r = subprocess.run([sys.executable, "-m", "pytest", "-c", str(REPO / "pyproject.toml"), "--rootdir", str(tmp_path),
-                        "-q", "-p", "no:cacheprovider", str(tmp_path / "test_one.py")],
-                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-c",
+            str(REPO / "pyproject.toml"),
+            "--rootdir",
+            str(tmp_path),
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            str(tmp_path / "test_one.py"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert re.search(r"^1 passed", r.stdout, re.M), r.stdout
 
@@ -95,19 +124,35 @@ def test_wheel_install_finds_its_schema(tmp_path, small_map):
         shutil.copytree(REPO / name, src / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(REPO / name, src / name)
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-q",
-                        "-w", str(wheels)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-q", "-w", str(wheels)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     (whl,) = wheels.glob("favormap-*.whl")
-    r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(whl)],
-                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(whl)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     assert (target / "favormap" / "schemas" / "favormap-map.v1.json").is_file()
     assert not (target / "favormap" / "schemas").is_symlink()
     env = {**os.environ, "PYTHONPATH": str(target), "RERUN_ANALYTICS": "false"}
     code = "import sys, favormap; from favormap.cli import main; print(favormap.__file__); sys.exit(main(sys.argv[1:]))"
-    r = subprocess.run([sys.executable, "-c", code, "validate", str(map_path)], capture_output=True, text=True,
-                       timeout=120, cwd=tmp_path, env=env)
+    r = subprocess.run(
+        [sys.executable, "-c", code, "validate", str(map_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env=env,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert r.stdout.splitlines()[0].startswith(str(target))
     assert "valid" in r.stdout.lower()

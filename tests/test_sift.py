@@ -40,7 +40,9 @@ def test_descriptors_survive_an_in_plane_rotation(room_image):
     sim = a.descriptors @ b.descriptors.T
     best = sim.argmax(1)
     top2 = -np.sort(-sim, 1)[:, :2]
-    ok = (sim.argmax(0)[best] == np.arange(len(a))) & (np.sqrt(np.maximum(2 - 2 * top2[:, 0], 0)) < 0.8 * np.sqrt(2 - 2 * top2[:, 1]))
+    ok = (sim.argmax(0)[best] == np.arange(len(a))) & (
+        np.sqrt(np.maximum(2 - 2 * top2[:, 0], 0)) < 0.8 * np.sqrt(2 - 2 * top2[:, 1])
+    )
     # where the keypoint must land (OpenCV pixel convention = COLMAP's minus 0.5)
     pa = np.c_[a.keypoints - 0.5, np.ones(len(a))] @ M.T + 0.5
     err = np.linalg.norm(pa[ok] - b.keypoints[best[ok]], axis=1)

@@ -8,7 +8,15 @@ import pytest
 from favormap.geometry import camera_centers, look_at, perturb_pose
 from favormap.io import Camera
 from favormap.ops.spatial import occluded
-from favormap.visibility import KD_BACKENDS, SpatialIndex, ViewLimits, frustum_sphere, reach_sphere, visible_mask, visible_rows
+from favormap.visibility import (
+    KD_BACKENDS,
+    SpatialIndex,
+    ViewLimits,
+    frustum_sphere,
+    reach_sphere,
+    visible_mask,
+    visible_rows,
+)
 
 BACKENDS = pytest.mark.parametrize("backend", sorted(KD_BACKENDS))
 
@@ -22,8 +30,14 @@ def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
     with np.errstate(divide="ignore", invalid="ignore"):
         u = fx * Xc[:, 0] / z + cx
         v = fy * Xc[:, 1] / z + cy
-    return (z > max(min_depth, 1e-9)) & (z <= max_depth) & (u >= margin) & (u <= cam.width - margin) \
-        & (v >= margin) & (v <= cam.height - margin)
+    return (
+        (z > max(min_depth, 1e-9))
+        & (z <= max_depth)
+        & (u >= margin)
+        & (u <= cam.width - margin)
+        & (v >= margin)
+        & (v <= cam.height - margin)
+    )
 
 
 def brute_visible(P, vd, va, dr, cam, T, lim: ViewLimits):
@@ -76,9 +90,11 @@ def test_frustum_equals_brute_force_projection_on_random_points(backend):
     rng = np.random.default_rng(1)
     P = rng.uniform(-10, 10, (40000, 3))
     idx = SpatialIndex(P, backend=backend)
-    cams = [Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
-            Camera("PINHOLE", 320, 240, [150, 160, 40, 200]),  # wide, off-centre principal point
-            Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200])]  # narrow
+    cams = [
+        Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
+        Camera("PINHOLE", 320, 240, [150, 160, 40, 200]),  # wide, off-centre principal point
+        Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200]),
+    ]  # narrow
     n_nonempty = 0
     for i in range(40):
         cam = cams[i % len(cams)]
@@ -111,9 +127,14 @@ def test_frustum_sphere_encloses_the_frustum_and_is_tight():
     assert r < 0.9 * far_corner  # smaller than the sphere around the camera centre
 
 
-@pytest.mark.parametrize("cam", [Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
-                                 Camera("PINHOLE", 320, 240, [100, 120, 10, 230]),  # very wide, off-centre
-                                 Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200])])
+@pytest.mark.parametrize(
+    "cam",
+    [
+        Camera("PINHOLE", 640, 480, [500, 500, 320, 240]),
+        Camera("PINHOLE", 320, 240, [100, 120, 10, 230]),  # very wide, off-centre
+        Camera("SIMPLE_PINHOLE", 100, 400, [900, 50, 200]),
+    ],
+)
 def test_reach_sphere_encloses_the_view_pyramid_within_reach(cam):
     rng = np.random.default_rng(6)
     T = random_pose(rng)
@@ -184,7 +205,9 @@ def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend):
     # the cached tiers follow new arrays (another depth range, other view directions)
     T = random_pose(rng, 50)
     for dr2, vd2 in ((dr * 0.5, vd), (dr, -vd)):
-        np.testing.assert_array_equal(visible_rows(idx, cam, T, vd2, va, dr2), brute_visible(P, vd2, va, dr2, cam, T, ViewLimits()))
+        np.testing.assert_array_equal(
+            visible_rows(idx, cam, T, vd2, va, dr2), brute_visible(P, vd2, va, dr2, cam, T, ViewLimits())
+        )
     lim = ViewLimits(depth_scale=(0.1, 5.0))
     np.testing.assert_array_equal(visible_rows(idx, cam, T, vd, va, dr, lim), brute_visible(P, vd, va, dr, cam, T, lim))
 

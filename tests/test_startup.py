@@ -13,10 +13,17 @@ HEAVY = ("torch", "open3d", "pycolmap", "cv2", "h5py", "scipy", "rerun", "trimes
 
 
 def loaded(argv: list[str]) -> set[str]:
-    code = ("import sys\nfrom favormap.cli import main\ntry:\n    rc = main(sys.argv[1:])\nexcept SystemExit:\n    rc = 0\n"
-            f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))\nprint('RC', rc)")
-    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "RERUN_ANALYTICS": "false"})
+    code = (
+        "import sys\nfrom favormap.cli import main\ntry:\n    rc = main(sys.argv[1:])\nexcept SystemExit:\n    rc = 0\n"
+        f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))\nprint('RC', rc)"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code, *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "RERUN_ANALYTICS": "false"},
+    )
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("LOADED"))
     assert "Traceback" not in r.stderr, r.stderr
     return {m for m in line.split(" ", 1)[1].split(",") if m}

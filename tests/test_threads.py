@@ -106,18 +106,26 @@ def _fake_cgroup(tmp_path, proc_lines: str, files: dict) -> tuple[Path, Path]:
 
 
 def test_cgroup_v2_quota_is_read_up_the_hierarchy(tmp_path):
-    root, proc = _fake_cgroup(tmp_path, "0::/jobs/a\n", {"jobs/a/cpu.max": "max 100000\n", "jobs/cpu.max": "150000 100000\n",
-                                                        "cpu.max": "max 100000\n"})
+    root, proc = _fake_cgroup(
+        tmp_path,
+        "0::/jobs/a\n",
+        {"jobs/a/cpu.max": "max 100000\n", "jobs/cpu.max": "150000 100000\n", "cpu.max": "max 100000\n"},
+    )
     assert thr._cgroup_quota(root, proc) == pytest.approx(1.5)
     root, proc = _fake_cgroup(tmp_path / "b", "0::/\n", {"cpu.max": "max 100000\n"})
     assert thr._cgroup_quota(root, proc) is None
 
 
 def test_cgroup_v1_quota(tmp_path):
-    root, proc = _fake_cgroup(tmp_path, "4:cpu,cpuacct:/docker/x\n3:memory:/docker/x\n",
-                              {"cpu,cpuacct/docker/x/cpu.cfs_quota_us": "300000\n", "cpu,cpuacct/docker/x/cpu.cfs_period_us": "100000\n"})
+    root, proc = _fake_cgroup(
+        tmp_path,
+        "4:cpu,cpuacct:/docker/x\n3:memory:/docker/x\n",
+        {"cpu,cpuacct/docker/x/cpu.cfs_quota_us": "300000\n", "cpu,cpuacct/docker/x/cpu.cfs_period_us": "100000\n"},
+    )
     assert thr._cgroup_quota(root, proc) == pytest.approx(3.0)
-    root, proc = _fake_cgroup(tmp_path / "u", "4:cpu,cpuacct:/\n", {"cpu/cpu.cfs_quota_us": "-1\n", "cpu/cpu.cfs_period_us": "100000\n"})
+    root, proc = _fake_cgroup(
+        tmp_path / "u", "4:cpu,cpuacct:/\n", {"cpu/cpu.cfs_quota_us": "-1\n", "cpu/cpu.cfs_period_us": "100000\n"}
+    )
     assert thr._cgroup_quota(root, proc) is None
 
 
@@ -149,7 +157,9 @@ def test_a_fresh_process_follows_the_rule():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     n, t, c, inter = map(int, out.stdout.split())
     assert 1 <= n <= thr.available_cpus() and t == c == n and inter == 1  # how many depends on the machine's load
-    out = subprocess.run([sys.executable, "-c", code], env=dict(env, OMP_NUM_THREADS="1"), capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=dict(env, OMP_NUM_THREADS="1"), capture_output=True, text=True, check=True
+    )
     assert out.stdout.split() == ["1", "1", "1", "1"]
 
 
@@ -162,8 +172,14 @@ def test_cli_threads_option(small_map, restore_pools, capsys):
     assert main(["query", str(path), "--near", "0", "0", "0", "--knn", "2", "--threads", "1", "--json"]) == 0
     assert torch.get_num_threads() == 1
     capsys.readouterr()
-    for cmd in (["build", "seq", "-o", "x.h5"], ["localize", "m.h5", "q.png"], ["eval", "m.h5", "seq"],
-                ["merge", "a.h5", "b.h5", "-o", "c.h5"], ["prune", "a.h5", "-o", "b.h5"], ["demo"]):
+    for cmd in (
+        ["build", "seq", "-o", "x.h5"],
+        ["localize", "m.h5", "q.png"],
+        ["eval", "m.h5", "seq"],
+        ["merge", "a.h5", "b.h5", "-o", "c.h5"],
+        ["prune", "a.h5", "-o", "b.h5"],
+        ["demo"],
+    ):
         with pytest.raises(SystemExit) as e:
             main(cmd + ["--threads", "0"])
         assert e.value.code == 2
@@ -186,7 +202,12 @@ def queries(small_sequence):
 
 
 def _key(res):
-    return (bool(res.success), res.num_inliers, [it.num_matches for it in res.iterations], res.cam_from_world.round(9).tobytes())
+    return (
+        bool(res.success),
+        res.num_inliers,
+        [it.num_matches for it in res.iterations],
+        res.cam_from_world.round(9).tobytes(),
+    )
 
 
 def test_a_localizer_shared_by_threads_gives_the_single_threaded_results(small_map, queries):
@@ -270,22 +291,39 @@ def test_readers_never_fail_while_other_processes_write_maps_beside_theirs(small
     for i, (img, prior) in enumerate(queries):
         np.save(tmp_path / f"q{i}.npy", img)
         r = loc.localize(img, prior)
-        spec.append({"image": str(tmp_path / f"q{i}.npy"), "prior": prior.tolist(),
-                     "expected": [bool(r.success), int(r.num_inliers), r.cam_from_world.round(9).tolist()]})
+        spec.append(
+            {
+                "image": str(tmp_path / f"q{i}.npy"),
+                "prior": prior.tolist(),
+                "expected": [bool(r.success), int(r.num_inliers), r.cam_from_world.round(9).tolist()],
+            }
+        )
     loc.close()
     (tmp_path / "spec.json").write_text(json.dumps({"queries": spec}))
     stop = tmp_path / "stop"
-    readers = [subprocess.Popen([sys.executable, "-c", READER, str(path), str(tmp_path / "spec.json"), str(stop)], env=ENV,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    readers = [
+        subprocess.Popen(
+            [sys.executable, "-c", READER, str(path), str(tmp_path / "spec.json"), str(stop)],
+            env=ENV,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
     try:
         for p in readers:  # the readers are localizing before the first write starts
             assert p.stdout.readline().strip() == "ready", p.stderr.read()[-2000:]
         favormap = [sys.executable, "-m", "favormap"]
-        writes = [["prune", str(path), "-o", str(folder / "pruned.h5"), "--max-landmarks", "150"],
-                  ["merge", str(path), str(folder / "pruned.h5"), "-o", str(folder / "merged.h5")],
-                  ["prune", str(folder / "merged.h5"), "-o", str(folder / "pruned.h5"), "--min-track", "6"]]
+        writes = [
+            ["prune", str(path), "-o", str(folder / "pruned.h5"), "--max-landmarks", "150"],
+            ["merge", str(path), str(folder / "pruned.h5"), "-o", str(folder / "merged.h5")],
+            ["prune", str(folder / "merged.h5"), "-o", str(folder / "pruned.h5"), "--min-track", "6"],
+        ]
         for cmd in writes:  # one after the other, while the readers run
-            r = subprocess.run(favormap + cmd + ["-q", "--threads", "1"], env=ENV, capture_output=True, text=True, timeout=300)
+            r = subprocess.run(
+                favormap + cmd + ["-q", "--threads", "1"], env=ENV, capture_output=True, text=True, timeout=300
+            )
             assert r.returncode == 0, r.stderr
     finally:
         stop.touch()

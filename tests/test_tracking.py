@@ -46,8 +46,10 @@ def _features(X, T, D, rng, noise_px=0.2, visible=None, extra=None):
 
 
 def _owners_of(tracks: Tracks, owners) -> list[np.ndarray]:
-    return [np.array([owners[f][k] for f, k in zip(tracks.frame_idx[a:b], tracks.keypoint_idx[a:b])])
-            for a, b in zip(tracks.offsets[:-1], tracks.offsets[1:])]
+    return [
+        np.array([owners[f][k] for f, k in zip(tracks.frame_idx[a:b], tracks.keypoint_idx[a:b])])
+        for a, b in zip(tracks.offsets[:-1], tracks.offsets[1:])
+    ]
 
 
 def test_tracks_join_the_keypoints_of_one_point_across_frames():
@@ -109,7 +111,9 @@ def test_a_track_with_two_keypoints_in_one_frame_is_dropped():
 def test_no_matches_give_no_tracks():
     X, T, D, rng = _rig(n_points=20)
     feats, _ = _features(X, T, D, rng)
-    feats = [Features(f.keypoints, f.scores, np.roll(f.descriptors, i, axis=1), f.image_size) for i, f in enumerate(feats)]
+    feats = [
+        Features(f.keypoints, f.scores, np.roll(f.descriptors, i, axis=1), f.image_size) for i, f in enumerate(feats)
+    ]
     tracks = track_features(feats, T, [CAM] * len(T), min_track=5, min_similarity=0.9)
     assert len(tracks) == 0 and len(tracks.frame_idx) == 0
 
@@ -120,7 +124,7 @@ def _observe(X, T, noise_px=0.0, rng=None):
     point is behind: the pixel is where the formula puts it)."""
     fi = np.repeat(np.arange(len(T))[None], len(X), 0).ravel()
     tid = np.repeat(np.arange(len(X)), len(T))
-    xy = np.stack([project(CAM.K, T[f], X[t:t + 1])[0] for f, t in zip(fi, tid)])
+    xy = np.stack([project(CAM.K, T[f], X[t : t + 1])[0] for f, t in zip(fi, tid)])
     if noise_px:
         xy += rng.normal(0, noise_px, xy.shape)
     return Tracks.from_obs(fi, np.arange(len(fi)), xy, tid)

@@ -32,18 +32,26 @@ def _rerun_cli() -> list[str]:
 
 
 def _verify(rrd: Path) -> None:
-    out = subprocess.run(_rerun_cli() + ["rrd", "verify", str(rrd)], capture_output=True, text=True, env=_RERUN_ENV, timeout=60)
+    out = subprocess.run(
+        _rerun_cli() + ["rrd", "verify", str(rrd)], capture_output=True, text=True, env=_RERUN_ENV, timeout=60
+    )
     assert out.returncode == 0, out.stdout + out.stderr
 
 
 def _entities(rrd: Path) -> set[str]:
     """Entity paths of the data recording (blueprint and property entities left out)."""
-    out = subprocess.run(_rerun_cli() + ["rrd", "print", str(rrd)], capture_output=True, text=True, env=_RERUN_ENV, timeout=60)
+    out = subprocess.run(
+        _rerun_cli() + ["rrd", "print", str(rrd)], capture_output=True, text=True, env=_RERUN_ENV, timeout=60
+    )
     assert out.returncode == 0, out.stderr
     paths = set(_ENTITY.findall(out.stdout))
     assert "/viewport" in paths, "the recording carries no blueprint"
-    return {p for p in paths if not p.startswith(("/view/", "/container/", "/viewport", "/time_panel", "/__", "/blueprint"))
-            and p not in ("/top_panel", "/blueprint_panel", "/selection_panel")}
+    return {
+        p
+        for p in paths
+        if not p.startswith(("/view/", "/container/", "/viewport", "/time_panel", "/__", "/blueprint"))
+        and p not in ("/top_panel", "/blueprint_panel", "/selection_panel")
+    }
 
 
 @pytest.fixture(autouse=True)
@@ -62,8 +70,23 @@ def built(tmp_path_factory):
     mp, rrd = root / "map.h5", root / "build.rrd"
     os.environ["FAVORMAP_RERUN_STRICT"] = "1"
     try:
-        rc = main(["build", str(seq), "-o", str(mp), "--resize", "0", "--iterations", "30", "--max-landmarks", "200",
-                   "-q", "--rerun-save", str(rrd)])
+        rc = main(
+            [
+                "build",
+                str(seq),
+                "-o",
+                str(mp),
+                "--resize",
+                "0",
+                "--iterations",
+                "30",
+                "--max-landmarks",
+                "200",
+                "-q",
+                "--rerun-save",
+                str(rrd),
+            ]
+        )
     finally:
         os.environ.pop("FAVORMAP_RERUN_STRICT", None)
     assert rc == 0
@@ -77,7 +100,11 @@ def _documented() -> list[re.Pattern]:
         m = re.match(r"\|\s*`(/?[^`]+)`\s*\|", line)
         if m and not m.group(1).startswith("--"):
             p = "/" + m.group(1).strip("/")
-            pats.append(re.compile("^" + re.sub(r"<[^>]+>", "[^/]+", re.escape(p).replace(r"\<", "<").replace(r"\>", ">")) + "$"))
+            pats.append(
+                re.compile(
+                    "^" + re.sub(r"<[^>]+>", "[^/]+", re.escape(p).replace(r"\<", "<").replace(r"\>", ">")) + "$"
+                )
+            )
     return pats
 
 
@@ -92,14 +119,20 @@ def test_no_flag_no_recording_and_no_rerun_import(tmp_path):
     from favormap.cli import make_parser
     from favormap.viz import recording_from_args
 
-    for argv in (["build", "seq", "-o", "m.h5"], ["localize", "m.h5", "q.png", "--prior", "p.txt"], ["eval", "m.h5", "seq"]):
+    for argv in (
+        ["build", "seq", "-o", "m.h5"],
+        ["localize", "m.h5", "q.png", "--prior", "p.txt"],
+        ["eval", "m.h5", "seq"],
+    ):
         args = make_parser().parse_args(argv)
         assert args.rerun is False and args.rerun_save is None and args.rerun_connect is None
         assert recording_from_args(args, "favormap test") is None
     assert recording_from_args(argparse.Namespace(), "favormap test") is None
-    code = ("import sys; from favormap.cli import make_parser; from favormap.viz import recording_from_args; "
-            "a = make_parser().parse_args(['build', 's', '-o', 'm.h5']); assert recording_from_args(a, 'x') is None; "
-            "assert 'rerun' not in sys.modules, 'rerun imported without a flag'")
+    code = (
+        "import sys; from favormap.cli import make_parser; from favormap.viz import recording_from_args; "
+        "a = make_parser().parse_args(['build', 's', '-o', 'm.h5']); assert recording_from_args(a, 'x') is None; "
+        "assert 'rerun' not in sys.modules, 'rerun imported without a flag'"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
 
@@ -108,9 +141,22 @@ def test_build_recording(built):
     _, _, _, rrd = built
     _verify(rrd)
     paths = _entities(rrd)
-    for p in ("/world", "/world/camera", "/world/camera/image", "/world/camera/image/keypoints", "/world/camera/image/tracks",
-              "/world/camera/image/landmarks", "/world/map/landmarks", "/world/map/voxels", "/world/map/trajectory",
-              "/world/map/trajectory/frustums", "/train/loss", "/train/psnr", "/build/timings", "/build/stats"):
+    for p in (
+        "/world",
+        "/world/camera",
+        "/world/camera/image",
+        "/world/camera/image/keypoints",
+        "/world/camera/image/tracks",
+        "/world/camera/image/landmarks",
+        "/world/map/landmarks",
+        "/world/map/voxels",
+        "/world/map/trajectory",
+        "/world/map/trajectory/frustums",
+        "/train/loss",
+        "/train/psnr",
+        "/build/timings",
+        "/build/stats",
+    ):
         assert p in paths, p
     _check_documented(paths)
 
@@ -128,11 +174,21 @@ def test_localize_recording(built):
     assert main(["localize", str(mp), str(fr.image_path), "--prior", str(pose), "--rerun-save", str(rrd)]) == 0
     _verify(rrd)
     paths = _entities(rrd)
-    for p in ("/world/map/landmarks", "/world/map/trajectory", "/world/query/prior", "/world/query/rendered/iterations",
-              "/world/query/rendered/iterations/1", "/world/query/rendered/estimate", "/world/query/rendered/estimate/image",
-              "/world/query/rendered/estimate/image/keypoints", "/world/query/rendered/estimate/image/inliers",
-              "/world/query/rendered/estimate/image/outliers", "/world/query/rendered/inliers",
-              "/metrics/inliers/rendered", "/log/rendered"):
+    for p in (
+        "/world/map/landmarks",
+        "/world/map/trajectory",
+        "/world/query/prior",
+        "/world/query/rendered/iterations",
+        "/world/query/rendered/iterations/1",
+        "/world/query/rendered/estimate",
+        "/world/query/rendered/estimate/image",
+        "/world/query/rendered/estimate/image/keypoints",
+        "/world/query/rendered/estimate/image/inliers",
+        "/world/query/rendered/estimate/image/outliers",
+        "/world/query/rendered/inliers",
+        "/metrics/inliers/rendered",
+        "/log/rendered",
+    ):
         assert p in paths, p
     _check_documented(paths)
 
@@ -143,8 +199,15 @@ def test_eval_recording(built):
     assert main(["eval", str(mp), str(seq_dir), "--every", "10", "--iters", "2", "-q", "--rerun-save", str(rrd)]) == 0
     _verify(rrd)
     paths = _entities(rrd)
-    for p in ("/world/query/gt", "/world/query/prior", "/world/query/rendered/estimate/image", "/world/query/mean/estimate/image",
-              "/metrics/translation_error/rendered", "/metrics/rotation_error_deg/mean", "/metrics/translation_error/prior"):
+    for p in (
+        "/world/query/gt",
+        "/world/query/prior",
+        "/world/query/rendered/estimate/image",
+        "/world/query/mean/estimate/image",
+        "/metrics/translation_error/rendered",
+        "/metrics/rotation_error_deg/mean",
+        "/metrics/translation_error/prior",
+    ):
         assert p in paths, p
     _check_documented(paths)
 
@@ -155,7 +218,14 @@ def test_view_recording(built):
     assert main(["view", str(mp), "--rerun-save", str(rrd)]) == 0
     _verify(rrd)
     paths = _entities(rrd)
-    for p in ("/world", "/world/map/landmarks", "/world/map/voxels", "/world/map/trajectory", "/world/map/trajectory/frustums", "/map"):
+    for p in (
+        "/world",
+        "/world/map/landmarks",
+        "/world/map/voxels",
+        "/world/map/trajectory",
+        "/world/map/trajectory/frustums",
+        "/map",
+    ):
         assert p in paths, p
     _check_documented(paths)
 
@@ -178,9 +248,17 @@ def test_similarity_merge_and_prune_logging(built):
         Xc = transform_points(T, m.positions[rows])
         cam = m.cameras[int(m.frame_camera_ids[0])]
         uv = Xc[:, :2] / Xc[:, 2:] * np.array(cam.focal) + np.array(cam.principal_point)
-        res = LocalizationResult(True, T, len(rows), len(rows) - 3, [IterationResult(T, len(m), len(rows), len(rows) - 3, True)],
-                                 {"extraction": 0.01}, keypoints=uv.astype(np.float32),
-                                 matches=np.c_[rows, np.arange(len(rows))], inlier_mask=np.arange(len(rows)) >= 3)
+        res = LocalizationResult(
+            True,
+            T,
+            len(rows),
+            len(rows) - 3,
+            [IterationResult(T, len(m), len(rows), len(rows) - 3, True)],
+            {"extraction": 0.01},
+            keypoints=uv.astype(np.float32),
+            matches=np.c_[rows, np.arange(len(rows))],
+            inlier_mask=np.arange(len(rows)) >= 3,
+        )
         res.match_similarity = np.linspace(0.7, 1.0, len(rows))
         with Recording("favormap test", kind="localize", save=rrd, map_=m, strict=True) as rec:
             rec.log_localization(0, read_rgb(seq_dir / "images" / "000002.png"), res, T, gt=T)
@@ -188,8 +266,14 @@ def test_similarity_merge_and_prune_logging(built):
             rec.log_prune(mp, mp)
     _verify(rrd)
     paths = _entities(rrd)
-    for p in ("/world/query/rendered/estimate/image/similarity", "/metrics/similarity/rendered", "/world/map/sources",
-              "/map/sources", "/world/removed", "/map/removed"):
+    for p in (
+        "/world/query/rendered/estimate/image/similarity",
+        "/metrics/similarity/rendered",
+        "/world/map/sources",
+        "/map/sources",
+        "/world/removed",
+        "/map/removed",
+    ):
         assert p in paths, p
     _check_documented(paths)
 
@@ -199,8 +283,12 @@ def test_connect_streams_to_a_running_server(built):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    srv = subprocess.Popen(_rerun_cli() + ["--serve-grpc", "--port", str(port)], env=_RERUN_ENV,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    srv = subprocess.Popen(
+        _rerun_cli() + ["--serve-grpc", "--port", str(port)],
+        env=_RERUN_ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         t_end = time.monotonic() + 20
         while time.monotonic() < t_end:
@@ -228,10 +316,24 @@ def test_spawned_viewer_collects_no_analytics(built, tmp_path):
     except OSError:
         pass
     _, _, mp, _ = built
-    env = {k: v for k, v in os.environ.items() if k not in ("CI", "DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET",
-                                                            "XDG_CONFIG_HOME", "XDG_DATA_HOME", "RERUN_ANALYTICS")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k
+        not in (
+            "CI",
+            "DISPLAY",
+            "WAYLAND_DISPLAY",
+            "WAYLAND_SOCKET",
+            "XDG_CONFIG_HOME",
+            "XDG_DATA_HOME",
+            "RERUN_ANALYTICS",
+        )
+    }
     env["HOME"] = str(tmp_path)
-    out = subprocess.run([sys.executable, "-m", "favormap", "view", str(mp)], capture_output=True, text=True, env=env, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "favormap", "view", str(mp)], capture_output=True, text=True, env=env, timeout=120
+    )
     assert out.returncode == 1, out.stdout + out.stderr
     assert "rerun viewer could not start" in out.stderr
     assert not list(tmp_path.rglob("*")), [str(p) for p in tmp_path.rglob("*")]

@@ -44,10 +44,19 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
     m = build_map(seq, cfg)
     cam = seq.cameras[0]
     lo, hi = start, start + n_train - 1
-    queries = [path[lo - 6], path[lo - 3], path[hi + 3], path[hi + 6], path[hi + 9],
-               _moved(path[lo + 3], 0.5), _moved(path[hi - 3], -0.6), _moved(path[hi + 5], 0.45), _moved(path[lo - 4], -0.6)]
+    queries = [
+        path[lo - 6],
+        path[lo - 3],
+        path[hi + 3],
+        path[hi + 6],
+        path[hi + 9],
+        _moved(path[lo + 3], 0.5),
+        _moved(path[hi - 3], -0.6),
+        _moved(path[hi + 5], 0.45),
+        _moved(path[lo - 4], -0.6),
+    ]
     ex = features.create(m.extractor)
-    R3 = m.grid_resolution ** 3
+    R3 = m.grid_resolution**3
     desc = torch.as_tensor(m.descriptors.reshape(m.num_landmarks, R3, -1))
     dens = torch.as_tensor(m.density.reshape(m.num_landmarks, R3))
     obs_c = camera_centers(m.cam_from_world[m.track_frame])
@@ -66,8 +75,14 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
         vis, uv = vis[ok], uv[ok]
         truth = ex.sample(ex.extract(img), uv)
         c = camera_centers(T)
-        rendered = render_from_camera(desc[vis], dens[vis], torch.as_tensor(m.positions[vis]).float(),
-                                      torch.as_tensor(m.voxel_size[vis]), torch.as_tensor(c).float(), m.render_samples).numpy()
+        rendered = render_from_camera(
+            desc[vis],
+            dens[vis],
+            torch.as_tensor(m.positions[vis]).float(),
+            torch.as_tensor(m.voxel_size[vis]),
+            torch.as_tensor(c).float(),
+            m.render_samples,
+        ).numpy()
         nearest = np.zeros_like(truth)
         for k, j in enumerate(vis):
             obs = np.flatnonzero(m.track_landmark == j)
@@ -88,12 +103,20 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
     return {k: np.concatenate(v) if k != "angle" else np.array(v) for k, v in out.items()}
 
 
-@pytest.mark.parametrize("extractor", [
-    "xfeat",
-    pytest.param("sift", marks=pytest.mark.xfail(
-        strict=True, reason="target not met for SIFT: rendered vs mean descriptor -0.0048 (>= 10 deg), -0.0016 (all) "
-                            "on this scene; SIFT's track mean already predicts extrapolated views as well as the grid")),
-])
+@pytest.mark.parametrize(
+    "extractor",
+    [
+        "xfeat",
+        pytest.param(
+            "sift",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="target not met for SIFT: rendered vs mean descriptor -0.0048 (>= 10 deg), -0.0016 (all) "
+                "on this scene; SIFT's track mean already predicts extrapolated views as well as the grid",
+            ),
+        ),
+    ],
+)
 def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_path(tmp_path, extractor):
     from favormap.voxels import VoxelConfig
 
@@ -123,7 +146,7 @@ def test_sparse_rendering_equals_dense_rendering():
         o = 0.5 - 2.0 * F.normalize(d, dim=-1) + 0.3 * torch.randn(G, K, 3, generator=g)
         o[:, -1] = torch.tensor([3.0, 3.0, 3.0])  # a ray that misses the box
         d[:, -1] = torch.tensor([1.0, 0.0, 0.0])
-        desc, dens = torch.randn(G, R ** 3, C, generator=g), torch.randn(G, R ** 3, generator=g)
+        desc, dens = torch.randn(G, R**3, C, generator=g), torch.randn(G, R**3, generator=g)
         a, op_a = render(desc, dens, *ray_stencils(o, d, R, N))
         b, op_b = render_sparse(desc, dens, *ray_corners(o, d, R, N))
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
@@ -146,7 +169,9 @@ def test_quality_presets_and_cli_flags():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers()
     cli_build.register(sub)
-    args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "reference", "--iterations", "50", "--device", "cpu"])
+    args = ap.parse_args(
+        ["build", "seq", "-o", "x.h5", "--quality", "reference", "--iterations", "50", "--device", "cpu"]
+    )
     cfg = cli_build.config_from_args(args).voxel
     assert (cfg.iterations, cfg.rays_per_landmark, cfg.box_factor, cfg.resolution) == (50, 1024, 12.0, 3)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
@@ -177,8 +202,14 @@ def test_reference_preset_trains_in_memory_bounded_groups():
             t = rng.normal(size=(len(offs), C))
             targets.append(t / np.linalg.norm(t, axis=1, keepdims=True))
     dist = np.linalg.norm(X[:, None] - np.array(origins[:n_cams])[None], axis=2).min(1)
-    data = TrainingRays(X, 12 * dist / 500.0, np.array(obs_lm), np.array(origins), np.array(dirs, np.float32),
-                        np.array(targets, np.float32))
+    data = TrainingRays(
+        X,
+        12 * dist / 500.0,
+        np.array(obs_lm),
+        np.array(origins),
+        np.array(dirs, np.float32),
+        np.array(targets, np.float32),
+    )
     a = train_voxels(data, VoxelConfig.preset("reference", iterations=3))
     b = train_voxels(data, VoxelConfig.preset("reference", iterations=3, max_batch_rays=2000))  # 1 landmark per group
     torch.testing.assert_close(a.descriptors, b.descriptors, atol=1e-5, rtol=1e-4)

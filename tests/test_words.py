@@ -53,9 +53,19 @@ def test_localize_and_query_name_conventions_and_units(small_map, small_sequence
 def test_eval_table_gives_units_in_every_header():
     from favormap.localize.evaluate import EvalReport, format_table
 
-    summary = {"localized": 1, "queries": 1, "false_successes": 0, "median_translation": 0.01, "median_rotation_deg": 0.2,
-               "p90_translation": 0.02, "mean_time_s": 0.2, "recall": {"0.05/5": 1.0},
-               "per_iteration": [{"iteration": 1, "median_translation": 0.01, "median_rotation_deg": 0.2, "mean_inliers": 50.0}]}
+    summary = {
+        "localized": 1,
+        "queries": 1,
+        "false_successes": 0,
+        "median_translation": 0.01,
+        "median_rotation_deg": 0.2,
+        "p90_translation": 0.02,
+        "mean_time_s": 0.2,
+        "recall": {"0.05/5": 1.0},
+        "per_iteration": [
+            {"iteration": 1, "median_translation": 0.01, "median_rotation_deg": 0.2, "mean_inliers": 50.0}
+        ],
+    }
     text = format_table([EvalReport("rendered", [], 1, (), summary)])
     header = next(ln for ln in text.splitlines() if "median t" in ln)
     for col in ("median t (units)", "median R (deg)", "mean inliers (count)"):

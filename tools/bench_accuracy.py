@@ -97,7 +97,9 @@ def fox_splits(which: list[str]) -> list[Split]:
 def nearest_view_angle(queries, mapping) -> np.ndarray:
     from favormap.geometry import pose_error
 
-    return np.array([min(pose_error(q.cam_from_world, m.cam_from_world)[1] for m in mapping.frames) for q in queries.frames])
+    return np.array(
+        [min(pose_error(q.cam_from_world, m.cam_from_world)[1] for m in mapping.frames) for q in queries.frames]
+    )
 
 
 def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
@@ -176,8 +178,9 @@ def localizer_config(overrides: dict):
 
     over = dict(overrides)
     if over.get("checks") == "none":
-        over["checks"] = SuccessChecks(min_inliers=12, min_inlier_ratio=0.0, max_iteration_change=(np.inf, np.inf),
-                                       min_visible_inliers=0.0)
+        over["checks"] = SuccessChecks(
+            min_inliers=12, min_inlier_ratio=0.0, max_iteration_change=(np.inf, np.inf), min_visible_inliers=0.0
+        )
     return LocalizeConfig(**over)
 
 
@@ -210,17 +213,23 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     path, build_s = build_or_load(split, workdir, build_cfg, args.reuse, tag)
     m = Map.open(path)
     extent = extent or scene_extent(m.positions)
-    print(f"[{split.name}] {build_cfg.extractor} map {len(m)} landmarks from {len(split.mapping)} frames "
-          f"({'reused' if build_s is None else f'built in {build_s:.0f} s'}), "
-          f"{len(split.queries)} queries, scene extent {extent:.3f} units", file=sys.stderr)
+    print(
+        f"[{split.name}] {build_cfg.extractor} map {len(m)} landmarks from {len(split.mapping)} frames "
+        f"({'reused' if build_s is None else f'built in {build_s:.0f} s'}), "
+        f"{len(split.queries)} queries, scene extent {extent:.3f} units",
+        file=sys.stderr,
+    )
     obs_desc = None
     if any(VARIANTS[v][0] == "nearest" for v in args.variants):
         obs_desc = observation_descriptors(m, split.mapping)
 
     for prior_mode in args.priors:
         priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
-        variants = args.variants if prior_mode == "noise" else [
-            v for v in args.variants if v == "rendered" or "global_ratio" in VARIANTS[v][1]]
+        variants = (
+            args.variants
+            if prior_mode == "noise"
+            else [v for v in args.variants if v == "rendered" or "global_ratio" in VARIANTS[v][1]]
+        )
         for name in variants:
             source_name, over = VARIANTS[name]
             cfg = dc.replace(localizer_config(over), descriptors=source_name, device=args.device)
@@ -261,14 +270,17 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
             o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
             _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
             mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
-            o.diagnostics = diagnostics_from_matches(wcam, fr.cam_from_world, b.points3d, res.keypoints,
-                                                     b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]])
+            o.diagnostics = diagnostics_from_matches(
+                wcam, fr.cam_from_world, b.points3d, res.keypoints, b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]]
+            )
             outs.append(o)
         rows.append(record(split, name, "none", outs, 1, extent, len(b.points3d)))
     return rows
 
 
-def record(split: Split, method: str, prior_mode: str, outcomes, iterations: int, extent: float, landmarks: int) -> dict:
+def record(
+    split: Split, method: str, prior_mode: str, outcomes, iterations: int, extent: float, landmarks: int
+) -> dict:
     from favormap.localize.evaluate import summarize
 
     s = summarize(outcomes, iterations, ((0.01, 1.0),), extent)
@@ -281,9 +293,12 @@ def record(split: Split, method: str, prior_mode: str, outcomes, iterations: int
             sel = (split.angle >= lo) & (split.angle < hi)
             if sel.any():
                 ok = sel & succ
-                s["bins"][f"{lo}-{hi}"] = {"queries": int(sel.sum()), "localized": int(ok.sum()),
-                                           "median_translation": float(np.median(err[ok])) if ok.any() else None,
-                                           "precision": _mean([o.diagnostics.get("match_precision") for o, k in zip(outcomes, sel) if k])}
+                s["bins"][f"{lo}-{hi}"] = {
+                    "queries": int(sel.sum()),
+                    "localized": int(ok.sum()),
+                    "median_translation": float(np.median(err[ok])) if ok.any() else None,
+                    "precision": _mean([o.diagnostics.get("match_precision") for o, k in zip(outcomes, sel) if k]),
+                }
     print(f"[{split.name}] {prior_mode:>8} | {method:<42} {fmt_row(s)}", file=sys.stderr)
     return s
 
@@ -305,35 +320,50 @@ def _f(v, spec):
 
 def fmt_row(s: dict) -> str:
     iters = "/".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
-    return (f"med {_f(s['median_translation'], '.4f')} ({_f(s['median_translation_pct_extent'], '.2f')} %) "
-            f"p90 {_f(s['p90_translation'], '.4f')}  R {_f(s['median_rotation_deg'], '.3f')}  "
-            f"loc {100 * s['success_rate']:.0f} %  FS {s['false_successes']}  inl {s['mean_inliers']:.0f}  "
-            f"iters {iters}  {s['mean_time_s'] * 1000:.0f} ms  prec {_f(s['match_precision'], '.2f')}  "
-            f"rep {_f(s['keypoint_repeatability'], '.2f')}")
+    return (
+        f"med {_f(s['median_translation'], '.4f')} ({_f(s['median_translation_pct_extent'], '.2f')} %) "
+        f"p90 {_f(s['p90_translation'], '.4f')}  R {_f(s['median_rotation_deg'], '.3f')}  "
+        f"loc {100 * s['success_rate']:.0f} %  FS {s['false_successes']}  inl {s['mean_inliers']:.0f}  "
+        f"iters {iters}  {s['mean_time_s'] * 1000:.0f} ms  prec {_f(s['match_precision'], '.2f')}  "
+        f"rep {_f(s['keypoint_repeatability'], '.2f')}"
+    )
 
 
 def markdown(rows: list[dict]) -> str:
-    out = ["| split | prior | method | landmarks | median t (units) | % extent | p90 t | median R (deg) | localized | "
-           "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| split | prior | method | landmarks | median t (units) | % extent | p90 t | median R (deg) | localized | "
+        "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for s in rows:
         iters = " / ".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
-        out.append(f"| {s['split']} | {s['prior']} | {s['method']} | {s.get('landmarks') or '-'} | "
-                   f"{_f(s['median_translation'], '.4f')} | {_f(s['median_translation_pct_extent'], '.2f')} | "
-                   f"{_f(s['p90_translation'], '.4f')} | {_f(s['median_rotation_deg'], '.3f')} | "
-                   f"{s['localized']}/{s['queries']} | {s['false_successes']} | {s['mean_inliers']:.0f} | {iters} | "
-                   f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} |")
+        out.append(
+            f"| {s['split']} | {s['prior']} | {s['method']} | {s.get('landmarks') or '-'} | "
+            f"{_f(s['median_translation'], '.4f')} | {_f(s['median_translation_pct_extent'], '.2f')} | "
+            f"{_f(s['p90_translation'], '.4f')} | {_f(s['median_rotation_deg'], '.3f')} | "
+            f"{s['localized']}/{s['queries']} | {s['false_successes']} | {s['mean_inliers']:.0f} | {iters} | "
+            f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} |"
+        )
     bins = [s for s in rows if s.get("bins")]
     if bins:
-        out += ["", "Per angle to the nearest mapping view (deg): localized / queries, median translation (units), match precision @GT", "",
-                "| split | prior | method | " + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS) + " |",
-                "|---|---|---|" + "---|" * len(ANGLE_BINS)]
+        out += [
+            "",
+            "Per angle to the nearest mapping view (deg): localized / queries, median translation (units), match "
+            "precision @GT",
+            "",
+            "| split | prior | method | " + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS) + " |",
+            "|---|---|---|" + "---|" * len(ANGLE_BINS),
+        ]
         for s in bins:
             cells = []
             for lo, hi in ANGLE_BINS:
                 b = s["bins"].get(f"{lo}-{hi}")
-                cells.append("-" if b is None else f"{b['localized']}/{b['queries']}, {_f(b['median_translation'], '.4f')}, "
-                                                   f"{_f(b['precision'], '.2f')}")
+                cells.append(
+                    "-"
+                    if b is None
+                    else f"{b['localized']}/{b['queries']}, {_f(b['median_translation'], '.4f')}, "
+                    f"{_f(b['precision'], '.2f')}"
+                )
             out.append(f"| {s['split']} | {s['prior']} | {s['method']} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
@@ -345,17 +375,24 @@ def main():
     ap.add_argument("--queries", help="custom split: query sequence")
     ap.add_argument("--priors", default="noise,nearest,constant,none")
     ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS))
-    ap.add_argument("--extractor", default=None,
-                    help="build with this extractor, or several (comma-separated: one map each, one table; "
-                         "default: the build default)")
+    ap.add_argument(
+        "--extractor",
+        default=None,
+        help="build with this extractor, or several (comma-separated: one map each, one table; "
+        "default: the build default)",
+    )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
-    ap.add_argument("--quality", default=None, help="voxel training preset (fast | reference; default: the build default)")
+    ap.add_argument(
+        "--quality", default=None, help="voxel training preset (fast | reference; default: the build default)"
+    )
     ap.add_argument("--device", default="cpu", help="torch device for training and localization (cpu | cuda)")
     ap.add_argument("--orbit-frames", type=int, default=24)
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
-    ap.add_argument("--baseline-budget", type=int, default=0, help="also run the baseline restricted to N longest tracks")
+    ap.add_argument(
+        "--baseline-budget", type=int, default=0, help="also run the baseline restricted to N longest tracks"
+    )
     ap.add_argument("--workdir", default="/tmp/favormap-bench-accuracy")
     ap.add_argument("--reuse", action="store_true", help="reuse maps in --workdir built with the same settings")
     ap.add_argument("--seed", type=int, default=0)
@@ -410,11 +447,13 @@ def main():
         rows += run_split(sp, args, build_cfgs)
     print(markdown(rows))
     builds = {(r["split"], r["extractor"]): r["build_s"] for r in rows if "extractor" in r}
-    print(f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {','.join(extractors)}, "
-          f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
-          f"{build_cfg.voxel.iterations} training iterations x {build_cfg.voxel.rays_per_landmark} rays, "
-          f"box factor {build_cfg.voxel.box_factor}, device {args.device}; map builds: "
-          + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items()))
+    print(
+        f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {','.join(extractors)}, "
+        f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
+        f"{build_cfg.voxel.iterations} training iterations x {build_cfg.voxel.rays_per_landmark} rays, "
+        f"box factor {build_cfg.voxel.box_factor}, device {args.device}; map builds: "
+        + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items())
+    )
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Per-stage build times on a sequence (default: ../shared/data/fox, else a synthetic room).
 
-    python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--repeat 1]
+python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--repeat 1]
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ def main():
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--extractor", default=None, help="default: the build default")
     ap.add_argument("--quality", default=None, help="voxel training preset (fast | reference)")
-    ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)")
+    ap.add_argument(
+        "--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)"
+    )
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args()
 
@@ -68,14 +70,19 @@ def main():
     total = time.perf_counter() - t
     timings = dict(m.provenance["timings"], write=round(write_s, 3))
     st = m.provenance["stats"]
-    print(f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
-          f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, torch threads {torch.get_num_threads()}, cores {os.cpu_count()}")
+    print(
+        f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
+        f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, torch threads "
+        f"{torch.get_num_threads()}, cores {os.cpu_count()}"
+    )
     print(f"{'stage':<12} {'seconds':>9} {'share':>7}")
     for k, v in timings.items():
         print(f"{k:<12} {v:>9.2f} {100 * v / total:>6.1f}%")
     print(f"{'total':<12} {total:>9.2f}")
-    print(f"median reproj {st['median_reproj_error_px']:.3f} px, median PSNR {st['median_psnr']:.2f} dB, "
-          f"file {out.stat().st_size / 1e6:.1f} MB")
+    print(
+        f"median reproj {st['median_reproj_error_px']:.3f} px, median PSNR {st['median_psnr']:.2f} dB, "
+        f"file {out.stat().st_size / 1e6:.1f} MB"
+    )
 
 
 if __name__ == "__main__":

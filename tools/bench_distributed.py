@@ -75,11 +75,17 @@ def main():
             runs.append((f"ray {n} cpu", m.provenance["timings"], time.perf_counter() - t, m, startup))
 
     ref = runs[0][3]
-    print(f"sequence: {len(seq)} frames, {len(ref.positions)} landmarks, {args.iterations} iterations, train batch "
-          f"{args.train_batch} ({-(-len(ref.positions) // args.train_batch)} tasks); machine: {os.cpu_count()} cores, "
-          f"load average {os.getloadavg()[0]:.1f} at the end")
+    print(
+        f"sequence: {len(seq)} frames, {len(ref.positions)} landmarks, {args.iterations} iterations, train batch "
+        f"{args.train_batch} ({-(-len(ref.positions) // args.train_batch)} tasks); machine: {os.cpu_count()} cores, "
+        f"load average {os.getloadavg()[0]:.1f} at the end"
+    )
     stages = list(runs[0][1])
-    head = f"{'run':<10}" + "".join(f"{s:>12}" for s in stages) + f"{'total':>9}{'parallel x':>11}{'driver':>8}{'ray start':>10}{'min cos':>9}"
+    head = (
+        f"{'run':<10}"
+        + "".join(f"{s:>12}" for s in stages)
+        + f"{'total':>9}{'parallel x':>11}{'driver':>8}{'ray start':>10}{'min cos':>9}"
+    )
     print(head)
     base = None
     for label, tm, total, m, startup in runs:
@@ -90,9 +96,15 @@ def main():
         drv = sum(tm.get(s, 0) for s in DRIVER) / total
         same = len(m.positions) == len(ref.positions) and np.allclose(m.positions, ref.positions)
         cos = f"{min_cosine(ref, m):>9.5f}" if same else f"{'differs':>9}"
-        print(f"{label:<10}" + "".join(f"{tm.get(s, 0):>12.2f}" for s in stages) + f"{total:>9.2f}{speed}{100 * drv:>7.1f}%"
-              f"{startup:>10.1f}{cos}")
-    print("parallel x: extract + patches + train of the first Ray run / this run's; driver: track + triangulate / total")
+        print(
+            f"{label:<10}"
+            + "".join(f"{tm.get(s, 0):>12.2f}" for s in stages)
+            + f"{total:>9.2f}{speed}{100 * drv:>7.1f}%"
+            f"{startup:>10.1f}{cos}"
+        )
+    print(
+        "parallel x: extract + patches + train of the first Ray run / this run's; driver: track + triangulate / total"
+    )
 
 
 if __name__ == "__main__":

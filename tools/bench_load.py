@@ -57,7 +57,9 @@ def _run_many(cmds: list[list[str]], concurrent: bool) -> tuple[float, float]:
             p.returncode = os.waitstatus_to_exitcode(status)
             cpu += ru.ru_utime + ru.ru_stime
             if p.returncode != 0:
-                raise SystemExit(f"bench_load: {' '.join(c for c in p.args[2:])} failed: {p.stderr.read().decode()[-500:]}")
+                raise SystemExit(
+                    f"bench_load: {' '.join(c for c in p.args[2:])} failed: {p.stderr.read().decode()[-500:]}"
+                )
             p.stderr.close()
     return time.perf_counter() - t0, cpu
 
@@ -70,10 +72,22 @@ def bench_builds(seq: Path, work: Path, counts: list[int], threads: int | None) 
         seq_wall, seq_cpu = _run_many(cmds, concurrent=False)
         load = _loadavg()
         con_wall, con_cpu = _run_many(cmds, concurrent=True)
-        rows.append({"n": n, "sequential_s": seq_wall, "concurrent_s": con_wall, "ratio": con_wall / seq_wall,
-                     "cpu_sequential_s": seq_cpu, "cpu_concurrent_s": con_cpu, "load": load})
-        print(f"  N={n}: sequential {seq_wall:6.1f} s (cpu {seq_cpu:6.1f} s)   concurrent {con_wall:6.1f} s "
-              f"(cpu {con_cpu:6.1f} s)   ratio {con_wall / seq_wall:.2f}   load {load}", flush=True)
+        rows.append(
+            {
+                "n": n,
+                "sequential_s": seq_wall,
+                "concurrent_s": con_wall,
+                "ratio": con_wall / seq_wall,
+                "cpu_sequential_s": seq_cpu,
+                "cpu_concurrent_s": con_cpu,
+                "load": load,
+            }
+        )
+        print(
+            f"  N={n}: sequential {seq_wall:6.1f} s (cpu {seq_cpu:6.1f} s)   concurrent {con_wall:6.1f} s "
+            f"(cpu {con_cpu:6.1f} s)   ratio {con_wall / seq_wall:.2f}   load {load}",
+            flush=True,
+        )
     return rows
 
 
@@ -115,14 +129,32 @@ def localize_all(loc, queries: list, n: int) -> tuple[list[float], int]:
 def _summary(k: int, lat: list[float], ok: int, wall: float, rss_mb: float, mode: str) -> dict:
     lat_ms = sorted(1000 * x for x in lat)
     p99 = lat_ms[min(len(lat_ms) - 1, int(round(0.99 * (len(lat_ms) - 1))))]
-    return {"mode": mode, "k": k, "queries": len(lat), "localized": ok, "qps": len(lat) / wall,
-            "p50_ms": statistics.median(lat_ms), "p99_ms": p99, "peak_rss_mb": rss_mb, "load": _loadavg()}
+    return {
+        "mode": mode,
+        "k": k,
+        "queries": len(lat),
+        "localized": ok,
+        "qps": len(lat) / wall,
+        "p50_ms": statistics.median(lat_ms),
+        "p99_ms": p99,
+        "peak_rss_mb": rss_mb,
+        "load": _loadavg(),
+    }
 
 
 def bench_clients_processes(map_path: Path, qspec: Path, k: int, per_client: int, threads: int | None) -> dict:
     spec = json.dumps({"map": str(map_path), "queries": str(qspec), "n": per_client, "threads": threads})
-    procs = [subprocess.Popen([sys.executable, "-c", CLIENT, str(ROOT), spec], env=ENV, stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(k)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", CLIENT, str(ROOT), spec],
+            env=ENV,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(k)
+    ]
     for p in procs:
         if p.stdout.readline().strip() != "ready":
             raise SystemExit(f"bench_load: client failed: {p.stderr.read()[-800:]}")
@@ -184,11 +216,28 @@ print(json.dumps({"n": n, "ok": ok, "failed": failed, "seconds": time.perf_count
 """
 
 
-def bench_readers_writers(map_path: Path, other_map: Path, qspec: Path, work: Path, readers: int, seconds: float,
-                          threads: int | None, with_writers: bool) -> dict:
+def bench_readers_writers(
+    map_path: Path,
+    other_map: Path,
+    qspec: Path,
+    work: Path,
+    readers: int,
+    seconds: float,
+    threads: int | None,
+    with_writers: bool,
+) -> dict:
     spec = json.dumps({"map": str(map_path), "queries": str(qspec), "seconds": seconds, "threads": threads})
-    procs = [subprocess.Popen([sys.executable, "-c", READER, str(ROOT), spec], env=ENV, stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(readers)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", READER, str(ROOT), spec],
+            env=ENV,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(readers)
+    ]
     for p in procs:
         if p.stdout.readline().strip() != "ready":
             raise SystemExit(f"bench_load: reader failed: {p.stderr.read()[-800:]}")
@@ -199,12 +248,20 @@ def bench_readers_writers(map_path: Path, other_map: Path, qspec: Path, work: Pa
     t0 = time.perf_counter()
     while with_writers and time.perf_counter() - t0 < seconds:
         out = work / f"written{writes % 2}.h5"
-        cmd = (_favormap("prune", str(map_path), "-o", str(out), "--max-landmarks", "300", "-q", threads=threads) if writes % 2 == 0
-               else _favormap("merge", str(map_path), str(other_map), "-o", str(out), "-q", threads=threads))
+        cmd = (
+            _favormap("prune", str(map_path), "-o", str(out), "--max-landmarks", "300", "-q", threads=threads)
+            if writes % 2 == 0
+            else _favormap("merge", str(map_path), str(other_map), "-o", str(out), "-q", threads=threads)
+        )
         r = subprocess.run(cmd, env=ENV, capture_output=True, text=True)
-        v = subprocess.run([sys.executable, "-m", "favormap", "validate", str(out)], env=ENV, capture_output=True, text=True)
+        v = subprocess.run(
+            [sys.executable, "-m", "favormap", "validate", str(out)], env=ENV, capture_output=True, text=True
+        )
         if r.returncode != 0 or v.returncode != 0:
-            bad.append(f"{cmd[3]}: rc {r.returncode} {r.stderr.strip()[-200:]} / validate rc {v.returncode} {v.stdout.strip()[-200:]}")
+            bad.append(
+                f"{cmd[3]}: rc {r.returncode} {r.stderr.strip()[-200:]} / validate rc {v.returncode} "
+                f"{v.stdout.strip()[-200:]}"
+            )
         writes += 1
     res = []
     for p in procs:
@@ -213,10 +270,18 @@ def bench_readers_writers(map_path: Path, other_map: Path, qspec: Path, work: Pa
         r["stderr"] = err.strip()[-300:]
         res.append(r)
     n = sum(r["n"] for r in res)
-    return {"readers": readers, "writers": with_writers, "writes": writes, "bad_writes": bad,
-            "queries": n, "qps": n / max(r["seconds"] for r in res), "localized": sum(r["ok"] for r in res),
-            "reader_failures": sum(r["failed"] for r in res), "reader_errors": [r["stderr"] for r in res if r["failed"]],
-            "load": _loadavg()}
+    return {
+        "readers": readers,
+        "writers": with_writers,
+        "writes": writes,
+        "bad_writes": bad,
+        "queries": n,
+        "qps": n / max(r["seconds"] for r in res),
+        "localized": sum(r["ok"] for r in res),
+        "reader_failures": sum(r["failed"] for r in res),
+        "reader_errors": [r["stderr"] for r in res if r["failed"]],
+        "load": _loadavg(),
+    }
 
 
 # -- inputs ------------------------------------------------------------------------------------------------
@@ -272,19 +337,29 @@ def main():
     tmp = tempfile.TemporaryDirectory(prefix="favormap-load-")
     work = Path(tmp.name)
     seq = prepare_inputs(args.sequence, work)
-    print(f"machine: {os.cpu_count()} CPUs, {available_cpus()} usable by favormap, threads per process "
-          f"{resolve_threads(args.threads)}; load average {_loadavg()}; sequence {seq}", flush=True)
+    print(
+        f"machine: {os.cpu_count()} CPUs, {available_cpus()} usable by favormap, threads per process "
+        f"{resolve_threads(args.threads)}; load average {_loadavg()}; sequence {seq}",
+        flush=True,
+    )
     report = {"cpus": os.cpu_count(), "sequence": str(seq), "threads": args.threads}
     if "a" in sections:
         print("(a) concurrent builds vs the same builds in sequence", flush=True)
         report["builds"] = bench_builds(seq, work, [int(x) for x in args.builds.split(",")], args.threads)
     if sections & {"b", "c"}:
         map_path, other = work / "map.h5", work / "other.h5"
-        subprocess.run(_favormap("build", str(seq), "-o", str(map_path), "--exclude-every", "4", "-q", threads=args.threads),
-                       env=ENV, check=True, stdout=subprocess.DEVNULL)
+        subprocess.run(
+            _favormap("build", str(seq), "-o", str(map_path), "--exclude-every", "4", "-q", threads=args.threads),
+            env=ENV,
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
         qspec = write_queries(seq, work)
     if "b" in sections:
-        print(f"(b) localization clients, {args.queries} queries each (processes, then threads sharing one Localizer)", flush=True)
+        print(
+            f"(b) localization clients, {args.queries} queries each (processes, then threads sharing one Localizer)",
+            flush=True,
+        )
         rows = []
         ks = [int(x) for x in args.clients.split(",")]
         for k in ks:
@@ -301,16 +376,29 @@ def main():
         loc.close()
         report["clients"] = rows
     if "c" in sections:
-        print(f"(c) {args.readers} reader processes localizing for {args.seconds:.0f} s, alone and while prune/merge "
-              "write new maps in the same folder", flush=True)
-        subprocess.run(_favormap("build", str(seq), "-o", str(other), "--exclude-every", "3", "-q", threads=args.threads),
-                       env=ENV, check=True, stdout=subprocess.DEVNULL)
-        rows = [bench_readers_writers(map_path, other, qspec, work, args.readers, args.seconds, args.threads, w)
-                for w in (False, True)]
+        print(
+            f"(c) {args.readers} reader processes localizing for {args.seconds:.0f} s, alone and while prune/merge "
+            "write new maps in the same folder",
+            flush=True,
+        )
+        subprocess.run(
+            _favormap("build", str(seq), "-o", str(other), "--exclude-every", "3", "-q", threads=args.threads),
+            env=ENV,
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
+        rows = [
+            bench_readers_writers(map_path, other, qspec, work, args.readers, args.seconds, args.threads, w)
+            for w in (False, True)
+        ]
         for r in rows:
-            print(f"  {'with writers' if r['writers'] else 'alone       '}: {r['queries']:4d} queries, {r['qps']:5.2f} q/s, "
-                  f"{r['reader_failures']} reader failures, {r['writes']} maps written, {len(r['bad_writes'])} invalid"
-                  f"   load {r['load']}", flush=True)
+            print(
+                f"  {'with writers' if r['writers'] else 'alone       '}: {r['queries']:4d} queries, {r['qps']:5.2f} "
+                "q/s, "
+                f"{r['reader_failures']} reader failures, {r['writes']} maps written, {len(r['bad_writes'])} invalid"
+                f"   load {r['load']}",
+                flush=True,
+            )
             for msg in r["bad_writes"] + r["reader_errors"]:
                 print(f"    {msg}")
         report["readers"] = rows
@@ -320,9 +408,13 @@ def main():
 
 
 def _print_client(r: dict, base: dict) -> None:
-    print(f"  {r['mode']:<9} K={r['k']}: {r['qps']:6.2f} q/s ({r['qps'] / base['qps']:.2f}x K=1)  p50 {r['p50_ms']:6.0f} ms  "
-          f"p99 {r['p99_ms']:6.0f} ms  peak RSS {r['peak_rss_mb']:5.0f} MB  localized {r['localized']}/{r['queries']}"
-          f"   load {r['load']}", flush=True)
+    print(
+        f"  {r['mode']:<9} K={r['k']}: {r['qps']:6.2f} q/s ({r['qps'] / base['qps']:.2f}x K=1)  p50 "
+        f"{r['p50_ms']:6.0f} ms  "
+        f"p99 {r['p99_ms']:6.0f} ms  peak RSS {r['peak_rss_mb']:5.0f} MB  localized {r['localized']}/{r['queries']}"
+        f"   load {r['load']}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

@@ -58,8 +58,10 @@ def main():
         rows.append(res.timings)
         errs.append(pose_error(res.cam_from_world, T))
     keys = list(rows[0])
-    print(f"map {path}: {len(loc.map)} landmarks; {len(views)} queries 640x480, 3 iterations, device {args.device}, "
-          f"descriptors {args.descriptors}")
+    print(
+        f"map {path}: {len(loc.map)} landmarks; {len(views)} queries 640x480, 3 iterations, device {args.device}, "
+        f"descriptors {args.descriptors}"
+    )
     print(f"{'stage':<12} {'ms/query':>9}")
     for k in keys:
         print(f"{k:<12} {1000 * np.mean([r[k] for r in rows]):>9.1f}")

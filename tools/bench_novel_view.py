@@ -16,8 +16,10 @@ training camera that observed it. Per bin the table gives the mean cosine to the
   - ``mean descriptor``: the landmark's mean observed descriptor (what the map stores),
 
 "view chg" is how much a method's descriptor of a landmark varies across the query views (mean
-pairwise 1 - cosine; the truth's own figure is on the first row), and the training time of each variant (CPU seconds of the training call, this machine, torch threads
-as set by --threads; CPU rather than wall time so that figures stay comparable on a loaded machine)
+pairwise 1 - cosine; the truth's own figure is on the first row), and the training time of each
+variant (CPU seconds of the training call, this machine, torch threads
+as set by --threads; CPU rather than wall time so that figures stay comparable on a loaded
+machine)
 and the median cosine of its rendered vs extracted training patches (fit cos).
 
 The expensive part (rendering, extraction, tracking, triangulation, training patches, query
@@ -106,8 +108,15 @@ CACHE_VERSION = 4
 # "default" is VoxelConfig() (the fast preset) with prior_mean_deg resolved per extractor as in
 # build_map. The others start from PAPER, the training before this benchmark existed (box = S l/f,
 # 200 iterations x 32 patch rays per landmark, no centre rays, no prior).
-PAPER = dict(box_factor=7.0, iterations=200, rays_per_landmark=32, centre_rays=0.0, prior_rays=0, prior_kernel_deg=3.0,
-             prior_mean_deg=0.0)
+PAPER = dict(
+    box_factor=7.0,
+    iterations=200,
+    rays_per_landmark=32,
+    centre_rays=0.0,
+    prior_rays=0,
+    prior_kernel_deg=3.0,
+    prior_mean_deg=0.0,
+)
 _P = dict(PAPER, prior_rays=16)  # with the view-extrapolation prior
 VARIANTS: dict[str, dict] = {
     "default": {},
@@ -181,7 +190,9 @@ def query_poses(path, train_idx, scene, n_between=3):
             out.append(("orbit+lowered", moved(path[k], -0.8)))
     for k in [lo + 5, hi - 5]:
         out.append(("closer", moved(path[k], -0.1, dfwd=0.6)))
-    for T in random_views_near([path[i] for i in train_idx], n_between, seed=5, max_trans=0.03, max_rot_deg=2.0, scene=scene):
+    for T in random_views_near(
+        [path[i] for i in train_idx], n_between, seed=5, max_trans=0.03, max_rot_deg=2.0, scene=scene
+    ):
         out.append(("between", T))
     return [(k, T) for k, T in out if scene.camera_is_valid(geometry.camera_centers(T))]
 
@@ -195,7 +206,9 @@ def prepare(args) -> dict:
     from favormap.tracking import track_features
     from favormap.triangulation import TriangulationConfig, triangulate
 
-    key = dict(v=CACHE_VERSION, w=args.width, h=args.height, n=args.train_frames, L=args.max_landmarks, ex=args.extractor)
+    key = dict(
+        v=CACHE_VERSION, w=args.width, h=args.height, n=args.train_frames, L=args.max_landmarks, ex=args.extractor
+    )
     digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
     cache = Path(args.cache) / f"novel_view_{digest}.pkl"
     if cache.exists() and not args.refresh:
@@ -212,13 +225,29 @@ def prepare(args) -> dict:
     cfg = BuildConfig(extractor=args.extractor, max_keypoints=2048, max_side=0, max_landmarks=args.max_landmarks)
     ex = features.create(cfg.extractor, max_keypoints=cfg.max_keypoints)
     with tempfile.TemporaryDirectory() as tmp:
-        seq = write_sequence(Path(tmp) / "room", poses=[path[i] for i in train_idx], width=args.width, height=args.height, scene=scene)
+        seq = write_sequence(
+            Path(tmp) / "room", poses=[path[i] for i in train_idx], width=args.width, height=args.height, scene=scene
+        )
         ff = extract_sequence(seq, ex, cfg.max_side)
-    tracks = track_features(ff.features, ff.cam_from_world, ff.cameras, cfg.min_track, cfg.match_window,
-                            cfg.max_epipolar_px, cfg.min_similarity)
+    tracks = track_features(
+        ff.features,
+        ff.cam_from_world,
+        ff.cameras,
+        cfg.min_track,
+        cfg.match_window,
+        cfg.max_epipolar_px,
+        cfg.min_similarity,
+    )
     Ks = np.stack([c.K for c in ff.cameras])
-    lms = select_landmarks(triangulate(tracks, ff.cam_from_world, Ks, TriangulationConfig(cfg.max_reproj_px, cfg.min_angle_deg,
-                                                                                        min_track=cfg.min_track)), cfg.max_landmarks)
+    lms = select_landmarks(
+        triangulate(
+            tracks,
+            ff.cam_from_world,
+            Ks,
+            TriangulationConfig(cfg.max_reproj_px, cfg.min_angle_deg, min_track=cfg.min_track),
+        ),
+        cfg.max_landmarks,
+    )
     rays = training_rays(lms, ff, ex, cfg.voxel.patch_size, box_factor=1.0)  # sizes = min l / f
     X = lms.positions
     P = rays.ray_dirs.shape[1]
@@ -255,10 +284,29 @@ def prepare(args) -> dict:
         order = np.argsort(ang, axis=1)[:, :2]
         a2 = np.take_along_axis(ang, order, 1)
         o2 = np.take_along_axis(idx, order, 1)
-        qs.append(dict(kind=kind, cam_from_world=T, center=c, vis=vis, truth=truth, angle=a2[:, 0], angle2=a2[:, 1],
-                       nearest_obs=o2[:, 0], second_obs=o2[:, 1]))
-    data = dict(rays=rays, positions=X, mean_desc=mean_desc.astype(np.float32), centre_targets=rays.targets[:, P // 2],
-                queries=qs, key=key, train_frames=len(train_idx), prep_seconds=time.perf_counter() - t0)
+        qs.append(
+            dict(
+                kind=kind,
+                cam_from_world=T,
+                center=c,
+                vis=vis,
+                truth=truth,
+                angle=a2[:, 0],
+                angle2=a2[:, 1],
+                nearest_obs=o2[:, 0],
+                second_obs=o2[:, 1],
+            )
+        )
+    data = dict(
+        rays=rays,
+        positions=X,
+        mean_desc=mean_desc.astype(np.float32),
+        centre_targets=rays.targets[:, P // 2],
+        queries=qs,
+        key=key,
+        train_frames=len(train_idx),
+        prep_seconds=time.perf_counter() - t0,
+    )
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     with open(cache, "wb") as f:
         pickle.dump(data, f)
@@ -306,7 +354,9 @@ def baselines(data) -> dict[str, tuple]:
         res["nearest training view"].append(ct[q["nearest_obs"]])
         res["2 nearest views"].append(blend / np.linalg.norm(blend, axis=1, keepdims=True))
         res["mean descriptor"].append(md[q["vis"]])
-    return {k: (np.concatenate([np.sum(x * q["truth"], 1) for x, q in zip(v, data["queries"])]), v) for k, v in res.items()}
+    return {
+        k: (np.concatenate([np.sum(x * q["truth"], 1) for x, q in zip(v, data["queries"])]), v) for k, v in res.items()
+    }
 
 
 def run_variant(data, overrides: dict, extractor: str):
@@ -328,7 +378,9 @@ def run_variant(data, overrides: dict, extractor: str):
     sims, vecs = [], []
     for q in data["queries"]:
         v = torch.as_tensor(q["vis"]).long()
-        r = render_from_camera(desc[v], dens[v], centers[v], sizes[v], torch.as_tensor(q["center"]).float(), cfg.samples).numpy()
+        r = render_from_camera(
+            desc[v], dens[v], centers[v], sizes[v], torch.as_tensor(q["center"]).float(), cfg.samples
+        ).numpy()
         sims.append(np.sum(r * q["truth"], 1))
         vecs.append(r)
     return np.concatenate(sims), vecs, train_s, float(np.median(grids.cosine))
@@ -337,8 +389,13 @@ def run_variant(data, overrides: dict, extractor: str):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--variants", default="default", help="comma-separated names of VARIANTS, or 'all'")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="VoxelConfig override applied to every variant (repeatable)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="VoxelConfig override applied to every variant (repeatable)",
+    )
     ap.add_argument("--list", action="store_true", help="list the variants and exit")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
@@ -362,7 +419,7 @@ def main():
     extra = {}
     for kv in args.set:
         k, v = kv.split("=", 1)
-        extra[k] = json.loads(v) if v[:1] in "0123456789-[{tfn\"." else v
+        extra[k] = json.loads(v) if v[:1] in '0123456789-[{tfn".' else v
     data = prepare(args)
     angles = np.concatenate([q["angle"] for q in data["queries"]])
     counts = [int(((angles >= lo) & (angles < hi)).sum()) for lo, hi in BINS] + [len(angles)]
@@ -377,18 +434,41 @@ def main():
         print(f"  {label}: all {rows[-1][1][-1]:.4f}, train {train_s:.1f} s", file=sys.stderr, flush=True)
 
     L = len(data["positions"])
-    print(f"{data['train_frames']} training frames {args.width}x{args.height}, {L} landmarks, {len(data['queries'])} query views, "
-          f"extractor {args.extractor}, torch threads {args.threads}")
+    print(
+        f"{data['train_frames']} training frames {args.width}x{args.height}, {L} landmarks, {len(data['queries'])} "
+        "query views, "
+        f"extractor {args.extractor}, torch threads {args.threads}"
+    )
     head = [_bin_label(*b) for b in BINS] + ["all"]
-    print(f"{'mean cosine to truth':<34}" + "".join(f"{h:>10}" for h in head) + f"{'view chg':>10}{'cpu s':>8}{'fit cos':>9}")
+    print(
+        f"{'mean cosine to truth':<34}"
+        + "".join(f"{h:>10}" for h in head)
+        + f"{'view chg':>10}{'cpu s':>8}{'fit cos':>9}"
+    )
     print(f"{'pairs':<34}" + "".join(f"{c:>10d}" for c in counts))
     for label, vals, vc, ts, tc in rows:
-        print(f"{label:<34}" + "".join(f"{v:>10.4f}" for v in vals) + f"{vc:>10.4f}" + (f"{ts:>8.1f}{tc:>9.3f}" if ts is not None else ""))
+        print(
+            f"{label:<34}"
+            + "".join(f"{v:>10.4f}" for v in vals)
+            + f"{vc:>10.4f}"
+            + (f"{ts:>8.1f}{tc:>9.3f}" if ts is not None else "")
+        )
     if args.json:
         with open(args.json, "a") as f:
             for label, vals, vc, ts, tc in rows:
-                f.write(json.dumps(dict(variant=label, bins=dict(zip(head, vals)), view_change=vc, train_s=ts, fit_cos=tc,
-                                        key=data["key"])) + "\n")
+                f.write(
+                    json.dumps(
+                        dict(
+                            variant=label,
+                            bins=dict(zip(head, vals)),
+                            view_change=vc,
+                            train_s=ts,
+                            fit_cos=tc,
+                            key=data["key"],
+                        )
+                    )
+                    + "\n"
+                )
     return 0
 
 

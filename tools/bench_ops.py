@@ -92,9 +92,13 @@ def landmark_layout(L: int, rng: np.random.Generator) -> dict:
     dmax = dmin + rng.uniform(3, 25, L)
     far = rng.random(L) < 0.003
     dmax[far] = rng.uniform(60, 150, far.sum())
-    return dict(positions=pos, view_dir=vd.astype(np.float32), view_angle=rng.uniform(5, 35, L).astype(np.float32),
-                depth_range=np.c_[dmin, dmax].astype(np.float32),
-                voxel_size=(7 * (dmin + dmax) / 2 / 500).astype(np.float32))
+    return dict(
+        positions=pos,
+        view_dir=vd.astype(np.float32),
+        view_angle=rng.uniform(5, 35, L).astype(np.float32),
+        depth_range=np.c_[dmin, dmax].astype(np.float32),
+        voxel_size=(7 * (dmin + dmax) / 2 / 500).astype(np.float32),
+    )
 
 
 def street_poses(n: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -122,8 +126,15 @@ def write_synthetic(path: Path, L: int, C: int, R: int, n_frames: int, seed: int
     lay = landmark_layout(L, rng)
     track = (3 + rng.geometric(0.2, L)).astype(np.int32)
     O = int(track.sum())
-    header = dict(extractor="xfeat", channels=C, grid_resolution=R, patch_size=7, render_samples=12, max_side=640,
-                  provenance={"synthetic": "tools/bench_ops.py", "seed": seed})
+    header = dict(
+        extractor="xfeat",
+        channels=C,
+        grid_resolution=R,
+        patch_size=7,
+        render_samples=12,
+        max_side=640,
+        provenance={"synthetic": "tools/bench_ops.py", "seed": seed},
+    )
     with MapWriter(path, header, L, n_frames) as w:
         w.put("landmarks/ids", new_landmark_ids(L))
         w.put("landmarks/positions", lay["positions"])
@@ -145,12 +156,16 @@ def write_synthetic(path: Path, L: int, C: int, R: int, n_frames: int, seed: int
             w.create(k)
         for a in range(0, L, chunk):
             n = min(chunk, L - a)
-            d = rng.standard_normal((n, R ** 3, C), np.float32) * 0.2
+            d = rng.standard_normal((n, R**3, C), np.float32) * 0.2
             w.write_rows("voxels/descriptors", a, d)
-            w.write_rows("voxels/density", a, rng.normal(0, 2, (n, R ** 3)).astype(np.float32))
+            w.write_rows("voxels/density", a, rng.normal(0, 2, (n, R**3)).astype(np.float32))
             w.write_rows("landmarks/mean_descriptor", a, d.mean(1))
-    return {"write_s": time.perf_counter() - t0, "write_peak_rss_mb": peak_rss_mb(), "observations": O,
-            "file_size_gb": path.stat().st_size / 1e9}
+    return {
+        "write_s": time.perf_counter() - t0,
+        "write_peak_rss_mb": peak_rss_mb(),
+        "observations": O,
+        "file_size_gb": path.stat().st_size / 1e9,
+    }
 
 
 # -------------------------------------------------------------------------------------------------
@@ -178,8 +193,13 @@ def bench_queries(path: Path, n_queries: int, seed: int) -> tuple[list, dict]:
     idx, t1 = timed(SpatialIndex, m.positions)
     _, t2 = timed(idx.prepare_visibility, m.depth_range, 2.0, m.view_dir, m.view_angle)
     tiers = idx._tiers
-    rows.append(("build index (KD-trees of the reach tiers)", (t1[0] + t2[0]) * 1e3,
-                 f"{len(tiers.tiers) - (tiers.num_direct > 0)} tiers, {tiers.num_direct} tested directly"))
+    rows.append(
+        (
+            "build index (KD-trees of the reach tiers)",
+            (t1[0] + t2[0]) * 1e3,
+            f"{len(tiers.tiers) - (tiers.num_direct > 0)} tiers, {tiers.num_direct} tested directly",
+        )
+    )
     _, t3 = timed(lambda: idx._tree)
     rows.append(("build index (one KD-tree, radius/knn)", t3[0] * 1e3, ""))
     cam = working_camera(Camera.from_dict(CAMERA), m.max_side)
@@ -189,7 +209,10 @@ def bench_queries(path: Path, n_queries: int, seed: int) -> tuple[list, dict]:
     for T in poses:
         r_idx, t = timed(visible_rows, idx, cam, T, m.view_dir, m.view_angle, m.depth_range, lim, repeat=3)
         t_idx.append(min(t))
-        r_bf, t = timed(lambda: np.flatnonzero(visible_mask(m.positions, cam, T, m.view_dir, m.view_angle, m.depth_range, lim)), repeat=2)
+        r_bf, t = timed(
+            lambda T=T: np.flatnonzero(visible_mask(m.positions, cam, T, m.view_dir, m.view_angle, m.depth_range, lim)),
+            repeat=2,
+        )
         t_bf.append(min(t))
         if not np.array_equal(r_idx, r_bf):
             raise SystemExit(f"visible_rows differs from brute force ({len(r_idx)} vs {len(r_bf)})")
@@ -197,19 +220,38 @@ def bench_queries(path: Path, n_queries: int, seed: int) -> tuple[list, dict]:
         n_cand.append(len(tiers.candidates(cam, T)[0]))
         f_idx, t = timed(idx.frustum, cam, T, 30.0, repeat=3)
         t_fr.append(min(t))
-        f_bf, t = timed(lambda: np.flatnonzero(project_inside(m.positions, cam, T, 0.0, 30.0)), repeat=2)
+        f_bf, t = timed(lambda T=T: np.flatnonzero(project_inside(m.positions, cam, T, 0.0, 30.0)), repeat=2)
         t_frbf.append(min(t))
         if not np.array_equal(f_idx, f_bf):
             raise SystemExit("frustum differs from brute force")
         _, t = timed(m.voxels, r_idx)
         t_vox.append(t[0])
     med = lambda v: float(np.median(v)) * 1e3  # noqa: E731
-    rows.append(("visibility query, index (visible_rows)", med(t_idx),
-                 f"median of {n_queries}; {int(np.median(n_vis))} visible, {int(np.median(n_cand))} candidates tested"))
-    rows.append(("visibility query, brute force (all landmarks)", med(t_bf), f"speed-up x{np.median(t_bf) / np.median(t_idx):.1f} (identical results)"))
+    rows.append(
+        (
+            "visibility query, index (visible_rows)",
+            med(t_idx),
+            f"median of {n_queries}; {int(np.median(n_vis))} visible, {int(np.median(n_cand))} candidates tested",
+        )
+    )
+    rows.append(
+        (
+            "visibility query, brute force (all landmarks)",
+            med(t_bf),
+            f"speed-up x{np.median(t_bf) / np.median(t_idx):.1f} (identical results)",
+        )
+    )
     rows.append(("frustum query 0-30 m, index", med(t_fr), ""))
-    rows.append(("frustum query 0-30 m, brute-force projection", med(t_frbf), f"speed-up x{np.median(t_frbf) / np.median(t_fr):.1f} (identical results)"))
-    rows.append(("read voxel grids of the visible landmarks", med(t_vox), f"{m.bytes_read / 1e6 / n_queries:.1f} MB per query"))
+    rows.append(
+        (
+            "frustum query 0-30 m, brute-force projection",
+            med(t_frbf),
+            f"speed-up x{np.median(t_frbf) / np.median(t_fr):.1f} (identical results)",
+        )
+    )
+    rows.append(
+        ("read voxel grids of the visible landmarks", med(t_vox), f"{m.bytes_read / 1e6 / n_queries:.1f} MB per query")
+    )
     _, py_peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     mem = {"peak_rss_mb": peak_rss_mb(), "rss_before_open_mb": rss0, "tracemalloc_peak_mb": py_peak / 1e6}
@@ -240,8 +282,24 @@ def child(kind: str, args) -> dict:
 
 
 def run_child(kind: str, path: Path, args, out: Path | None = None) -> dict:
-    cmd = [sys.executable, __file__, "--child", kind, "--path", str(path), "--landmarks", str(args.landmarks),
-           "--channels", str(args.channels), "--frames", str(args.frames), "--seed", str(args.seed), "--chunk", str(args.chunk)]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        kind,
+        "--path",
+        str(path),
+        "--landmarks",
+        str(args.landmarks),
+        "--channels",
+        str(args.channels),
+        "--frames",
+        str(args.frames),
+        "--seed",
+        str(args.seed),
+        "--chunk",
+        str(args.chunk),
+    ]
     if out is not None:
         cmd += ["--out", str(out)]
     p = subprocess.run(cmd, capture_output=True, text=True)
@@ -272,15 +330,24 @@ def main(argv=None) -> int:
     path = Path(args.keep) if args.keep else Path(tmpdir) / "bench.h5"
     need = args.landmarks * 27 * (args.channels * 2 + 4) * 1.1
     free = os.statvfs(path.parent).f_bavail * os.statvfs(path.parent).f_frsize
-    print(f"# {args.landmarks} landmarks, R=3, C={args.channels}: about {need / 1e9:.1f} GB of voxels; {free / 1e9:.0f} GB free in {path.parent}")
+    print(
+        f"# {args.landmarks} landmarks, R=3, C={args.channels}: about {need / 1e9:.1f} GB of voxels; "
+        f"{free / 1e9:.0f} GB free in {path.parent}"
+    )
     if need > 0.8 * free:
         raise SystemExit("not enough disk space: use fewer --channels or --landmarks")
     table = []
     try:
         if not path.exists():
             w = run_child("write", path, args)
-            table.append(("write synthetic map (streaming MapWriter)", w["seconds"] * 1e3,
-                          f"{w['file_size_gb']:.2f} GB, {w['observations']} observations, peak RSS {w['peak_rss_mb']:.0f} MB (child)"))
+            table.append(
+                (
+                    "write synthetic map (streaming MapWriter)",
+                    w["seconds"] * 1e3,
+                    f"{w['file_size_gb']:.2f} GB, {w['observations']} observations, peak RSS {w['peak_rss_mb']:.0f} "
+                    "MB (child)",
+                )
+            )
         rows, mem = bench_queries(path, args.queries, args.seed)
         table += rows
         if args.ops:
@@ -297,10 +364,20 @@ def main(argv=None) -> int:
     print(f"{'step':<{w}}  {'ms':>10}  notes")
     for name, ms, note in table:
         print(f"{name:<{w}}  {ms:10.1f}  {note}")
-    print(f"peak RSS of the query process: {mem['peak_rss_mb']:.0f} MB (after imports {mem['rss_before_open_mb']:.0f} MB); "
-          f"Python allocations peak (tracemalloc) {mem['tracemalloc_peak_mb']:.0f} MB")
-    ok_speed = any("speed-up" in r[2] and float(r[2].split("x")[1].split()[0]) >= 10 for r in rows if r[0].startswith("visibility query, brute"))
-    print(f"targets: query >= 10x brute force: {'yes' if ok_speed else 'NO'}; peak RSS < 2 GB: {'yes' if mem['peak_rss_mb'] < 2048 else 'NO'}")
+    print(
+        f"peak RSS of the query process: {mem['peak_rss_mb']:.0f} MB (after imports {mem['rss_before_open_mb']:.0f} "
+        "MB); "
+        f"Python allocations peak (tracemalloc) {mem['tracemalloc_peak_mb']:.0f} MB"
+    )
+    ok_speed = any(
+        "speed-up" in r[2] and float(r[2].split("x")[1].split()[0]) >= 10
+        for r in rows
+        if r[0].startswith("visibility query, brute")
+    )
+    print(
+        f"targets: query >= 10x brute force: {'yes' if ok_speed else 'NO'}; peak RSS < 2 GB: "
+        f"{'yes' if mem['peak_rss_mb'] < 2048 else 'NO'}"
+    )
     return 0
 
 

@@ -26,8 +26,25 @@ from pathlib import Path
 
 
 def run_build(seq: Path, out: Path, rrd: Path | None, args) -> dict:
-    cmd = [sys.executable, "-m", "favormap", "build", str(seq), "-o", str(out), "--max-landmarks", str(args.max_landmarks),
-           "--resize", str(args.resize), "--iterations", str(args.iterations), "--device", "cpu", "-q", "--json"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "favormap",
+        "build",
+        str(seq),
+        "-o",
+        str(out),
+        "--max-landmarks",
+        str(args.max_landmarks),
+        "--resize",
+        str(args.resize),
+        "--iterations",
+        str(args.iterations),
+        "--device",
+        "cpu",
+        "-q",
+        "--json",
+    ]
     if rrd is not None:
         cmd += ["--rerun-save", str(rrd)]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -38,9 +55,13 @@ def run_build(seq: Path, out: Path, rrd: Path | None, args) -> dict:
     if p.returncode != 0:
         sys.exit(f"build failed ({p.returncode}): {p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ''}")
     s = json.loads(p.stdout.strip().splitlines()[-1])
-    return {"wall": wall, "cpu": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
-            "stages": s["total_seconds"], "landmarks": s["landmarks"],
-            "rrd_mb": rrd.stat().st_size / 2**20 if rrd is not None else 0.0}
+    return {
+        "wall": wall,
+        "cpu": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "stages": s["total_seconds"],
+        "landmarks": s["landmarks"],
+        "rrd_mb": rrd.stat().st_size / 2**20 if rrd is not None else 0.0,
+    }
 
 
 def hook_seconds(seq: Path, rrd: Path, args) -> tuple[float, float]:
@@ -59,14 +80,21 @@ def hook_seconds(seq: Path, rrd: Path, args) -> tuple[float, float]:
                 return fn(*a, **kw)
             finally:
                 spent[0] += time.perf_counter() - t
+
         return wrapper
 
-    cfg = BuildConfig(max_side=args.resize, max_landmarks=args.max_landmarks,
-                      voxel=VoxelConfig(iterations=args.iterations, device="cpu"))
+    cfg = BuildConfig(
+        max_side=args.resize,
+        max_landmarks=args.max_landmarks,
+        voxel=VoxelConfig(iterations=args.iterations, device="cpu"),
+    )
     seq_ = read_sequence(seq)
     t0 = time.perf_counter()
-    rec = timed(lambda: __import__("favormap.viz.recording", fromlist=["Recording"]).Recording(
-        "favormap build", kind="build", save=rrd))()
+    rec = timed(
+        lambda: __import__("favormap.viz.recording", fromlist=["Recording"]).Recording(
+            "favormap build", kind="build", save=rrd
+        )
+    )()
     inner = rec.build_observer()
 
     class Timed(BuildObserver):
@@ -108,15 +136,20 @@ def main(argv=None) -> int:
         for with_rerun in order:
             res = run_build(seq, work / "map.h5", work / "build.rrd" if with_rerun else None, args)
             rows.append({"run": r + 1, "rerun": with_rerun, **res})
-            print(f"  run {r + 1} {'--rerun-save' if with_rerun else 'plain       '}  wall {res['wall']:7.2f} s  "
-                  f"cpu {res['cpu']:7.2f} s  stages {res['stages']:7.2f} s", flush=True)
+            print(
+                f"  run {r + 1} {'--rerun-save' if with_rerun else 'plain       '}  wall {res['wall']:7.2f} s  "
+                f"cpu {res['cpu']:7.2f} s  stages {res['stages']:7.2f} s",
+                flush=True,
+            )
 
     def med(key, flag):
         return statistics.median(x[key] for x in rows if x["rerun"] == flag)
 
     print()
-    print(f"favormap build, {args.frames} frames {args.width}x{args.height}, --max-landmarks {args.max_landmarks}, "
-          f"--iterations {args.iterations}, {rows[0]['landmarks']} landmarks, median of {args.repeats}")
+    print(
+        f"favormap build, {args.frames} frames {args.width}x{args.height}, --max-landmarks {args.max_landmarks}, "
+        f"--iterations {args.iterations}, {rows[0]['landmarks']} landmarks, median of {args.repeats}"
+    )
     print(f"{'':24}{'plain':>10}{'--rerun-save':>14}{'overhead':>11}")
     for key, label in (("wall", "wall time (s)"), ("cpu", "CPU time (s)"), ("stages", "sum of stages (s)")):
         a, b = med(key, False), med(key, True)
@@ -124,8 +157,10 @@ def main(argv=None) -> int:
     print(f"{'recording size (MB)':24}{'':10}{med('rrd_mb', True):14.2f}")
     if not args.no_hooks:
         spent, total = hook_seconds(seq, work / "hooks.rrd", args)
-        print(f"time inside the rerun hooks (in-process build, incl. importing rerun and closing the file): "
-              f"{spent:.2f} s of {total:.2f} s = {100 * spent / total:.1f} %")
+        print(
+            f"time inside the rerun hooks (in-process build, incl. importing rerun and closing the file): "
+            f"{spent:.2f} s of {total:.2f} s = {100 * spent / total:.1f} %"
+        )
     if not args.keep:
         import shutil
 

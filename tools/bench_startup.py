@@ -30,17 +30,20 @@ N_BATCH = 10
 
 
 def prepare(work: Path, iterations: int) -> tuple[Path, Path, Path, Path, Path]:
+    import cv2
+
     from favormap.build import BuildConfig, build_map
     from favormap.geometry import inverse, perturb_pose
     from favormap.mapfile import Map, write_map
     from favormap.synthetic import make_room, random_views_near, render, write_sequence
 
-    import cv2
-
     work.mkdir(parents=True, exist_ok=True)
     path, query_dir = work / "room.h5", work / "queries"
-    seq = write_sequence(work / "room", n_frames=30, width=640, height=480) if not (work / "room" / "sequence.json").is_file() \
+    seq = (
+        write_sequence(work / "room", n_frames=30, width=640, height=480)
+        if not (work / "room" / "sequence.json").is_file()
         else __import__("favormap.io", fromlist=["read_sequence"]).read_sequence(work / "room")
+    )
     if not path.is_file():
         t = time.perf_counter()
         cfg = BuildConfig(max_landmarks=1500)
@@ -76,8 +79,10 @@ def run(argv: list[str], env: dict) -> tuple[float, str]:
 
 
 def loaded_modules(argv: list[str], env: dict) -> list[str]:
-    code = ("import sys\nfrom favormap.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
-            f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))")
+    code = (
+        "import sys\nfrom favormap.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))"
+    )
     r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env)
     line = next((ln for ln in r.stdout.splitlines() if ln.startswith("LOADED")), "LOADED ?")
     return [m for m in line.split(" ", 1)[1].split(",") if m]
@@ -85,7 +90,9 @@ def loaded_modules(argv: list[str], env: dict) -> list[str]:
 
 def import_times(argv: list[str], env: dict) -> list[tuple[str, float]]:
     """Cumulative import time (s) of the top-level packages the command imports, largest first."""
-    r = subprocess.run([sys.executable, "-X", "importtime", "-m", "favormap", *argv], capture_output=True, text=True, env=env)
+    r = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "favormap", *argv], capture_output=True, text=True, env=env
+    )
     out = {}
     for ln in r.stderr.splitlines():
         m = re.match(r"import time:\s+\d+ \|\s+(\d+) \| (\s*)(\S+)$", ln)
@@ -108,9 +115,16 @@ def main():
         ("--help", ["--help"], None),
         ("info", ["info", str(path)], None),
         ("validate", ["validate", str(path)], None),
-        ("localize (one image)", ["localize", str(path), str(img), "--prior", str(prior), "--device", "cpu"], TARGET_LOCALIZE_S),
-        (f"localize (folder of {N_BATCH}), per query", ["localize", str(path), str(qdir), "--priors", str(priors), "--device", "cpu"],
-         None),
+        (
+            "localize (one image)",
+            ["localize", str(path), str(img), "--prior", str(prior), "--device", "cpu"],
+            TARGET_LOCALIZE_S,
+        ),
+        (
+            f"localize (folder of {N_BATCH}), per query",
+            ["localize", str(path), str(qdir), "--priors", str(priors), "--device", "cpu"],
+            None,
+        ),
     ]
     print(f"\n{'command':<34} {'median s':>9} {'min s':>7} {'target s':>9}  heavy imports")
     results = {}
@@ -128,8 +142,10 @@ def main():
     out = results["localize (one image)"][1]
     timings = re.search(r"timings \(ms\): (.*)", out)
     print("\none-shot localize, in-process timings (ms): " + (timings.group(1) if timings else "?"))
-    print("one-shot localize, import time by package (s, cumulative): "
-          + ", ".join(f"{k} {v:.2f}" for k, v in import_times(cases[3][1], env)[:8]))
+    print(
+        "one-shot localize, import time by package (s, cumulative): "
+        + ", ".join(f"{k} {v:.2f}" for k, v in import_times(cases[3][1], env)[:8])
+    )
 
 
 if __name__ == "__main__":

@@ -16,7 +16,20 @@ from .. import threads  # first: its CPU-load window starts at import (favormap.
 from ..errors import FavormapError, first_line
 
 # subcommand modules, in --help order
-_COMMANDS = ["build", "info", "localize", "pose", "eval", "query", "merge", "prune", "export", "validate", "view", "demo"]
+_COMMANDS = [
+    "build",
+    "info",
+    "localize",
+    "pose",
+    "eval",
+    "query",
+    "merge",
+    "prune",
+    "export",
+    "validate",
+    "view",
+    "demo",
+]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -83,8 +96,11 @@ def main(argv=None) -> int:
     except Exception as e:  # noqa: BLE001 - last line of defence: one line, no traceback
         if args.debug:
             raise
-        print(f"favormap {args.command}: internal error: {type(e).__name__}: {first_line(e)} (rerun with --debug for details)",
-              file=sys.stderr)
+        print(
+            f"favormap {args.command}: internal error: {type(e).__name__}: {first_line(e)} (rerun with --debug for "
+            "details)",
+            file=sys.stderr,
+        )
         return 3
 
 

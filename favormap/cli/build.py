@@ -4,43 +4,76 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, auto_device, human_size, print_json, reproj_error_line
 
 
 def register(sub):
-    p = sub.add_parser("build", help="build a map from a posed image sequence",
-                       description="Track features through a posed image sequence, triangulate landmarks, train their "
-                                   "feature voxels and write one HDF5 map.")
+    p = sub.add_parser(
+        "build",
+        help="build a map from a posed image sequence",
+        description="Track features through a posed image sequence, triangulate landmarks, train their "
+        "feature voxels and write one HDF5 map.",
+    )
     p.add_argument("sequence", help="sequence folder (nerf, 7scenes, colmap, cambridge, tum, llff or favormap layout)")
     p.add_argument("-o", "--output", required=True, help="map file to write (HDF5)")
     p.add_argument("--format", help="force the sequence format instead of auto-detecting it")
-    p.add_argument("--exclude-every", type=int, default=0, metavar="N",
-                   help="leave out frames 0, N, 2N, ... (held-out queries for 'favormap eval --every N')")
-    p.add_argument("--resize", type=int, default=640, metavar="MAX_SIDE", help="downscale images to this longest side (0: keep; default 640)")
-    p.add_argument("--extractor", default="sift", help="feature extractor (sift, xfeat, disk; default sift; disk needs favormap[disk])")
+    p.add_argument(
+        "--exclude-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="leave out frames 0, N, 2N, ... (held-out queries for 'favormap eval --every N')",
+    )
+    p.add_argument(
+        "--resize",
+        type=int,
+        default=640,
+        metavar="MAX_SIDE",
+        help="downscale images to this longest side (0: keep; default 640)",
+    )
+    p.add_argument(
+        "--extractor",
+        default="sift",
+        help="feature extractor (sift, xfeat, disk; default sift; disk needs favormap[disk])",
+    )
     p.add_argument("--max-keypoints", type=int, default=2048)
     p.add_argument("--min-track", type=int, default=5, help="shortest track that becomes a landmark (default 5)")
     p.add_argument("--max-landmarks", type=int, default=1500, help="landmark budget (default 1500)")
     p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
-    p.add_argument("--quality", choices=("fast", "reference"), default="fast",
-                   help="voxel training preset: fast (default; sized for a few CPU cores) or reference (the reference "
-                        "implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: use a GPU)")
+    p.add_argument(
+        "--quality",
+        choices=("fast", "reference"),
+        default="fast",
+        help="voxel training preset: fast (default; sized for a few CPU cores) or reference (the reference "
+        "implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: use a GPU)",
+    )
     p.add_argument("--grid", type=int, default=None, help="voxel grid resolution R (default: the preset's, 3)")
     p.add_argument("--patch", type=int, default=None, help="descriptor patch size S (default: the preset's, 7)")
-    p.add_argument("--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)")
+    p.add_argument(
+        "--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)"
+    )
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     add_threads_arg(p)
-    p.add_argument("--train-batch", type=int, default=1024, metavar="N",
-                   help="landmarks trained together, one task per batch (default 1024; the map depends on it, "
-                        "not on where the batches run)")
-    p.add_argument("--ray", metavar="auto|local|ADDRESS",
-                   help="run extraction, patches and training as Ray tasks: 'auto' (the cluster of RAY_ADDRESS or "
-                        "one started here with 'ray start', else a local one), 'local', or a cluster address "
-                        "HOST:PORT (needs: pip install 'favormap[distributed]')")
-    p.add_argument("--ray-retries", type=int, default=3, metavar="N",
-                   help="re-runs of a Ray task whose worker died (default 3)")
+    p.add_argument(
+        "--train-batch",
+        type=int,
+        default=1024,
+        metavar="N",
+        help="landmarks trained together, one task per batch (default 1024; the map depends on it, "
+        "not on where the batches run)",
+    )
+    p.add_argument(
+        "--ray",
+        metavar="auto|local|ADDRESS",
+        help="run extraction, patches and training as Ray tasks: 'auto' (the cluster of RAY_ADDRESS or "
+        "one started here with 'ray start', else a local one), 'local', or a cluster address "
+        "HOST:PORT (needs: pip install 'favormap[distributed]')",
+    )
+    p.add_argument(
+        "--ray-retries", type=int, default=3, metavar="N", help="re-runs of a Ray task whose worker died (default 3)"
+    )
     p.add_argument("--ray-cpus", type=float, default=1, metavar="C", help="CPUs per Ray task (default 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -58,17 +91,34 @@ def config_from_args(args):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
         raise InputError("--resize must be >= 0")
-    over = {k: v for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations)) if v is not None}
+    over = {
+        k: v
+        for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations))
+        if v is not None
+    }
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
-    return BuildConfig(extractor=args.extractor, max_keypoints=args.max_keypoints, max_side=args.resize, min_track=args.min_track,
-                       max_landmarks=args.max_landmarks, max_reproj_px=args.max_reproj, train_batch=args.train_batch, voxel=vox,
-                       threads=getattr(args, "threads", None))
+    return BuildConfig(
+        extractor=args.extractor,
+        max_keypoints=args.max_keypoints,
+        max_side=args.resize,
+        min_track=args.min_track,
+        max_landmarks=args.max_landmarks,
+        max_reproj_px=args.max_reproj,
+        train_batch=args.train_batch,
+        voxel=vox,
+        threads=getattr(args, "threads", None),
+    )
 
 
 def summary(m, path: Path) -> dict:
     st = m.provenance["stats"]
-    return {**st, "file": str(path), "file_size": path.stat().st_size, "timings": m.provenance["timings"],
-            "total_seconds": round(sum(m.provenance["timings"].values()), 2)}
+    return {
+        **st,
+        "file": str(path),
+        "file_size": path.stat().st_size,
+        "timings": m.provenance["timings"],
+        "total_seconds": round(sum(m.provenance["timings"].values()), 2),
+    }
 
 
 def print_summary(s: dict) -> None:
@@ -79,7 +129,11 @@ def print_summary(s: dict) -> None:
     print(reproj_error_line(s["median_reproj_error_px"]))
     print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
     print(f"file                {s['file']}  ({human_size(s['file_size'])})")
-    print("seconds per stage   " + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items()) + f"  (total {s['total_seconds']:.1f})")
+    print(
+        "seconds per stage   "
+        + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items())
+        + f"  (total {s['total_seconds']:.1f})"
+    )
 
 
 def run(args) -> int:
@@ -92,8 +146,9 @@ def run(args) -> int:
     out = check_output_path(args.output, [args.sequence])  # before any work
     seq_dir = Path(args.sequence)
     if out.exists() and seq_dir.is_dir() and out.resolve().is_relative_to(seq_dir.resolve()) and not is_hdf5(out):
-        raise InputError(f"output {out} is also an input (a file of the sequence {seq_dir}, not a map); "
-                         "write the map elsewhere")
+        raise InputError(
+            f"output {out} is also an input (a file of the sequence {seq_dir}, not a map); write the map elsewhere"
+        )
     if args.exclude_every < 0 or args.exclude_every == 1:
         raise InputError("--exclude-every must be 0 (off) or >= 2")
     seq = read_sequence(args.sequence, args.format)
@@ -111,7 +166,9 @@ def run(args) -> int:
             raise InputError("--ray-retries must be >= 0")
         if args.ray_cpus <= 0:
             raise InputError("--ray-cpus must be > 0")
-        executor = RayExecutor(args.ray, cpus_per_task=args.ray_cpus, gpus=args.device != "cpu", max_retries=args.ray_retries)
+        executor = RayExecutor(
+            args.ray, cpus_per_task=args.ray_cpus, gpus=args.device != "cpu", max_retries=args.ray_retries
+        )
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap build")
     try:

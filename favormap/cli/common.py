@@ -56,8 +56,14 @@ class StageBars:
         if bar is None:
             for b in self.bars.values():
                 b.close()
-            bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit="", leave=True, file=sys.stderr,
-                                          bar_format="{desc} {bar:30} {n_fmt}/{total_fmt} [{elapsed}]")
+            bar = self.bars[stage] = tqdm(
+                total=total,
+                desc=f"{stage:<12}",
+                unit="",
+                leave=True,
+                file=sys.stderr,
+                bar_format="{desc} {bar:30} {n_fmt}/{total_fmt} [{elapsed}]",
+            )
         bar.n = done
         bar.refresh()
 

@@ -9,12 +9,18 @@ from .common import StageBars, auto_device
 
 
 def register(sub):
-    p = sub.add_parser("demo", help="build a map of a synthetic room and localize held-out views (no data needed)",
-                       description="Render a textured synthetic room along a camera path (Open3D raycasting), build a "
-                                   "map from 4 of every 5 frames, then localize the held-out frames from priors "
-                                   "perturbed by --noise and print the errors.")
-    p.add_argument("--workdir", default="favormap-demo",
-                   help="where the rendered sequence and the map are written and kept (default ./favormap-demo)")
+    p = sub.add_parser(
+        "demo",
+        help="build a map of a synthetic room and localize held-out views (no data needed)",
+        description="Render a textured synthetic room along a camera path (Open3D raycasting), build a "
+        "map from 4 of every 5 frames, then localize the held-out frames from priors "
+        "perturbed by --noise and print the errors.",
+    )
+    p.add_argument(
+        "--workdir",
+        default="favormap-demo",
+        help="where the rendered sequence and the map are written and kept (default ./favormap-demo)",
+    )
     p.add_argument("--frames", type=int, default=30, help="frames rendered (default 30)")
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)

@@ -8,24 +8,34 @@ from .localize import add_localize_options, config_from_args
 
 
 def register(sub):
-    p = sub.add_parser("eval", help="evaluate localization on a posed query sequence",
-                       description="Localize every frame of a posed sequence from a prior and report errors per "
-                                   "iteration, success rate, false successes and recall, next to the mean-descriptor "
-                                   "baseline on the same map. Query frames are numbered from 0 in the sequence's "
-                                   "order; --every N takes frames 0, N, 2N, ... (those 'build --exclude-every N' leaves out).")
+    p = sub.add_parser(
+        "eval",
+        help="evaluate localization on a posed query sequence",
+        description="Localize every frame of a posed sequence from a prior and report errors per "
+        "iteration, success rate, false successes and recall, next to the mean-descriptor "
+        "baseline on the same map. Query frames are numbered from 0 in the sequence's "
+        "order; --every N takes frames 0, N, 2N, ... (those 'build --exclude-every N' leaves out).",
+    )
     p.add_argument("map")
     p.add_argument("queries", help="posed query sequence (any supported format)")
     p.add_argument("--format", help="force the query sequence format")
-    p.add_argument("--prior-mode", choices=["noise", "nearest", "constant", "none"], default="noise",
-                   help="noise: ground truth moved by --noise; nearest: nearest mapping frame; constant: first mapping "
-                        "frame; none: no prior (default noise)")
+    p.add_argument(
+        "--prior-mode",
+        choices=["noise", "nearest", "constant", "none"],
+        default="noise",
+        help="noise: ground truth moved by --noise; nearest: nearest mapping frame; constant: first mapping "
+        "frame; none: no prior (default noise)",
+    )
     p.add_argument("--noise", default="0.3,10", help="prior perturbation 'T_UNITS,DEG' (default 0.3,10)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--every", type=int, default=1, help="use every k-th query frame: 0, k, 2k, ... (default 1)")
     p.add_argument("--split", help="only frames of this split (e.g. test), when the format has splits")
     p.add_argument("--no-baseline", action="store_true", help="skip the mean-descriptor baseline")
-    p.add_argument("--diagnostics", action="store_true",
-                   help="also measure match precision and keypoint repeatability at the ground-truth pose")
+    p.add_argument(
+        "--diagnostics",
+        action="store_true",
+        help="also measure match precision and keypoint repeatability at the ground-truth pose",
+    )
     add_localize_options(p)
     p.add_argument("--json", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true")
@@ -75,18 +85,36 @@ def run(args) -> int:
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap eval", m)
     try:
-        reports = evaluate(locs, queries, cfg, progress=bars, diagnostics=args.diagnostics,
-                           on_query=(lambda method, i, o: rec.log_eval_query(method, i, o, queries.frames[i], queries.cameras[queries.frames[i].camera_id]))
-                           if rec is not None else None)
+        reports = evaluate(
+            locs,
+            queries,
+            cfg,
+            progress=bars,
+            diagnostics=args.diagnostics,
+            on_query=(
+                lambda method, i, o: rec.log_eval_query(
+                    method, i, o, queries.frames[i], queries.cameras[queries.frames[i].camera_id]
+                )
+            )
+            if rec is not None
+            else None,
+        )
     finally:
         bars.close()
         m.close()
         if rec is not None:
             rec.close()
     if args.json:
-        print_json({"map": args.map, "queries": args.queries, "prior_mode": cfg.prior_mode, "noise": list(cfg.noise),
-                    "units": {"translation": "scene units", "rotation": "degrees", "time": "seconds"},
-                    "methods": {r.method: r.summary for r in reports}})
+        print_json(
+            {
+                "map": args.map,
+                "queries": args.queries,
+                "prior_mode": cfg.prior_mode,
+                "noise": list(cfg.noise),
+                "units": {"translation": "scene units", "rotation": "degrees", "time": "seconds"},
+                "methods": {r.method: r.summary for r in reports},
+            }
+        )
     else:
         print(format_table(reports))
     return 0

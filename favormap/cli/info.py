@@ -20,11 +20,17 @@ def run(args) -> int:
     if args.json:
         print_json(info)
         return 0
-    print(f"{info['path']}: favormap map v{info['format_version']} (favormap {info['favormap_version']}, created {info['created']})")
+    print(
+        f"{info['path']}: favormap map v{info['format_version']} (favormap {info['favormap_version']}, created "
+        f"{info['created']})"
+    )
     print(f"landmarks           {info['num_landmarks']}")
     print(f"frames / cameras    {info['num_frames']} / {info['num_cameras']}")
     print(f"extractor           {info['extractor']} ({info['channels']} channels)")
-    print(f"grid / patch        R={info['grid_resolution']} / S={info['patch_size']}  (render samples {info['render_samples']}, images max side {info['max_side']})")
+    print(
+        f"grid / patch        R={info['grid_resolution']} / S={info['patch_size']}  (render samples "
+        f"{info['render_samples']}, images max side {info['max_side']})"
+    )
     if info["num_landmarks"]:
         print(f"mean track length   {info['mean_track_length']:.2f}")
         print(reproj_error_line(info["median_reproj_error_px"]))

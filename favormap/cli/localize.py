@@ -5,8 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
+from ..viz import add_rerun_args, recording_from_args
 from .common import auto_device, print_json
 
 IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
@@ -16,34 +16,58 @@ def add_localize_options(p):
     p.add_argument("--iters", type=int, default=3, help="render-match-PnP iterations (default 3)")
     p.add_argument("--threshold", type=float, default=0.7, help="descriptor similarity threshold (default 0.7)")
     p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
-    p.add_argument("--ransac-px", type=float, default=4.0,
-                   help="RANSAC inlier threshold in pixels of the map's working resolution (default 4)")
+    p.add_argument(
+        "--ransac-px",
+        type=float,
+        default=4.0,
+        help="RANSAC inlier threshold in pixels of the map's working resolution (default 4)",
+    )
     p.add_argument("--min-inliers", type=int, default=20, help="inliers needed for success (default 20)")
     p.add_argument("--no-mutual", action="store_true", help="do not require mutual nearest-neighbour matches")
-    p.add_argument("--ratio", type=float, default=1.0,
-                   help="Lowe ratio test on descriptor distances in the rendering iterations (default 1: off; "
-                        "matching without a prior uses the extractor's: 0.8 for sift, off for xfeat)")
-    p.add_argument("--no-global", action="store_true",
-                   help="never fall back to matching against all landmarks when the prior fails (or is missing)")
+    p.add_argument(
+        "--ratio",
+        type=float,
+        default=1.0,
+        help="Lowe ratio test on descriptor distances in the rendering iterations (default 1: off; "
+        "matching without a prior uses the extractor's: 0.8 for sift, off for xfeat)",
+    )
+    p.add_argument(
+        "--no-global",
+        action="store_true",
+        help="never fall back to matching against all landmarks when the prior fails (or is missing)",
+    )
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
     add_threads_arg(p)
 
 
 def register(sub):
-    p = sub.add_parser("localize", help="localize query image(s) against a map from a pose prior",
-                       description="Render the descriptors of the landmarks visible from the prior, match them to the "
-                                   "query's features and solve PnP-RANSAC, iteratively. Pose files: a 4x4 world_from_cam "
-                                   "matrix (OpenCV axes) or one line 'tx ty tz qx qy qz qw' (TUM).")
+    p = sub.add_parser(
+        "localize",
+        help="localize query image(s) against a map from a pose prior",
+        description="Render the descriptors of the landmarks visible from the prior, match them to the "
+        "query's features and solve PnP-RANSAC, iteratively. Pose files: a 4x4 world_from_cam "
+        "matrix (OpenCV axes) or one line 'tx ty tz qx qy qz qw' (TUM).",
+    )
     p.add_argument("map")
     p.add_argument("query", help="query image, or a folder of images (with --priors)")
-    p.add_argument("--prior", help="pose file of the prior (world_from_cam); without it a coarse pose is found by "
-                                   "matching against all landmarks")
-    p.add_argument("--priors", help="for a folder: text file with lines 'IMAGE_NAME tx ty tz qx qy qz qw' or "
-                                    "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major); without it, no priors")
+    p.add_argument(
+        "--prior",
+        help="pose file of the prior (world_from_cam); without it a coarse pose is found by "
+        "matching against all landmarks",
+    )
+    p.add_argument(
+        "--priors",
+        help="for a folder: text file with lines 'IMAGE_NAME tx ty tz qx qy qz qw' or "
+        "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major); without it, no priors",
+    )
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
     add_localize_options(p)
-    p.add_argument("--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)")
-    p.add_argument("--output", help="write the estimated pose (world_from_cam 4x4) here; for a folder: one line per image")
+    p.add_argument(
+        "--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)"
+    )
+    p.add_argument(
+        "--output", help="write the estimated pose (world_from_cam 4x4) here; for a folder: one line per image"
+    )
     p.add_argument("--json", action="store_true", help="one JSON object per query")
     add_rerun_args(p)
     p.set_defaults(func=run)
@@ -63,11 +87,19 @@ def config_from_args(args):
         raise InputError("--ransac-px must be > 0")
     if args.min_inliers < 4:
         raise InputError("--min-inliers must be >= 4")
-    return LocalizeConfig(iterations=args.iters, match_threshold=args.threshold, max_keypoints=args.max_keypoints,
-                          ransac_max_error_px=args.ransac_px, checks=SuccessChecks(min_inliers=args.min_inliers),
-                          mutual=not args.no_mutual, ratio=args.ratio, global_fallback=not args.no_global,
-                          descriptors=getattr(args, "descriptors", "rendered"), device=auto_device(args.device),
-                          threads=getattr(args, "threads", None))
+    return LocalizeConfig(
+        iterations=args.iters,
+        match_threshold=args.threshold,
+        max_keypoints=args.max_keypoints,
+        ransac_max_error_px=args.ransac_px,
+        checks=SuccessChecks(min_inliers=args.min_inliers),
+        mutual=not args.no_mutual,
+        ratio=args.ratio,
+        global_fallback=not args.no_global,
+        descriptors=getattr(args, "descriptors", "rendered"),
+        device=auto_device(args.device),
+        threads=getattr(args, "threads", None),
+    )
 
 
 def read_priors(path: Path) -> dict:
@@ -160,7 +192,9 @@ def run(args) -> int:
             with atomic_path(Path(args.output)) as tmp:
                 with open(tmp, "w") as fh:
                     for img, res in lines:
-                        fh.write(img.name + " " + " ".join(f"{v:.9g}" for v in inverse(res.cam_from_world).ravel()) + "\n")
+                        fh.write(
+                            img.name + " " + " ".join(f"{v:.9g}" for v in inverse(res.cam_from_world).ravel()) + "\n"
+                        )
     if failures:
         if not args.json:
             msgs = [f"{img.name}: {res.message}" for img, res in lines if not res.success]
@@ -177,10 +211,15 @@ def print_result(name: str, res) -> None:
     print(f"{name}: {status}")
     for k, it in enumerate(res.iterations, 1):
         c = camera_centers(it.cam_from_world)
-        print(f"  iter {k}: visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
-              f"camera centre in world ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) scene units")
+        print(
+            f"  iter {k}: visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
+            f"camera centre in world ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) scene units"
+        )
     if res.success:
         for label, P in (("cam_from_world", T), ("world_from_cam", inverse(T))):
             q = rotmat_to_quat(P[:3, :3])
-            print(f"  {label}: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t ({', '.join(f'{v:.6f}' for v in P[:3, 3])}) scene units")
+            print(
+                f"  {label}: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t "
+                f"({', '.join(f'{v:.6f}' for v in P[:3, 3])}) scene units"
+            )
     print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))

@@ -5,23 +5,40 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, human_size, print_json
 
 
 def register(sub):
-    p = sub.add_parser("merge", help="merge maps into one",
-                       description="Merge maps built with the same extractor, channels, grid and patch size. Landmarks "
-                                   "of later maps that duplicate an existing one (closer than the dedup radius, mean "
-                                   "descriptor cosine > --min-cosine) keep only the better (higher PSNR) one; frames, "
-                                   "cameras and tracks are concatenated. Voxel grids are streamed.")
+    p = sub.add_parser(
+        "merge",
+        help="merge maps into one",
+        description="Merge maps built with the same extractor, channels, grid and patch size. Landmarks "
+        "of later maps that duplicate an existing one (closer than the dedup radius, mean "
+        "descriptor cosine > --min-cosine) keep only the better (higher PSNR) one; frames, "
+        "cameras and tracks are concatenated. Voxel grids are streamed.",
+    )
     p.add_argument("maps", nargs="+", help="two or more map files; the first defines the frame")
     p.add_argument("-o", "--output", required=True, help="merged map file to write")
-    p.add_argument("--dedup-radius", type=float, metavar="R", help="duplicate distance (default: the existing landmark's voxel size)")
-    p.add_argument("--min-cosine", type=float, default=0.8, help="mean-descriptor cosine above which close landmarks are duplicates (default 0.8)")
+    p.add_argument(
+        "--dedup-radius",
+        type=float,
+        metavar="R",
+        help="duplicate distance (default: the existing landmark's voxel size)",
+    )
+    p.add_argument(
+        "--min-cosine",
+        type=float,
+        default=0.8,
+        help="mean-descriptor cosine above which close landmarks are duplicates (default 0.8)",
+    )
     p.add_argument("--no-dedup", action="store_true", help="keep every landmark")
-    p.add_argument("--transform", metavar="FILE", help="4x4 b_to_a matrix (rigid or similarity) applied to the second and later maps")
+    p.add_argument(
+        "--transform",
+        metavar="FILE",
+        help="4x4 b_to_a matrix (rigid or similarity) applied to the second and later maps",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_threads_arg(p)
@@ -40,8 +57,15 @@ def run(args) -> int:
     rec = recording_from_args(args, "favormap merge")
     bars = StageBars(args.quiet or args.json)
     try:
-        res = merge_maps(args.maps, args.output, dedup_radius=args.dedup_radius, transform=T,
-                         min_cosine=args.min_cosine, dedup=not args.no_dedup, progress=bars)
+        res = merge_maps(
+            args.maps,
+            args.output,
+            dedup_radius=args.dedup_radius,
+            transform=T,
+            min_cosine=args.min_cosine,
+            dedup=not args.no_dedup,
+            progress=bars,
+        )
     finally:
         bars.close()
     if rec is not None:
@@ -55,9 +79,17 @@ def run(args) -> int:
         print_json(d)
         return 0
     for s in res.sources:
-        print(f"{s['path']}: {s['landmarks']} landmarks, {s['in_output']} in the merged map"
-              + (f" ({s['dropped_duplicates']} duplicates dropped, {s['replaced']} replaced a worse duplicate)" if s["dropped_duplicates"] or s["replaced"] else ""))
-    print(f"merged              {res.num_landmarks} landmarks, {res.num_frames} frames, {res.num_cameras} cameras"
-          + (f", {res.ids_regenerated} colliding ids regenerated" if res.ids_regenerated else ""))
+        print(
+            f"{s['path']}: {s['landmarks']} landmarks, {s['in_output']} in the merged map"
+            + (
+                f" ({s['dropped_duplicates']} duplicates dropped, {s['replaced']} replaced a worse duplicate)"
+                if s["dropped_duplicates"] or s["replaced"]
+                else ""
+            )
+        )
+    print(
+        f"merged              {res.num_landmarks} landmarks, {res.num_frames} frames, {res.num_cameras} cameras"
+        + (f", {res.ids_regenerated} colliding ids regenerated" if res.ids_regenerated else "")
+    )
     print(f"file                {args.output}  ({human_size(d['file_size'])})")
     return 0

@@ -5,15 +5,19 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from ..viz import add_rerun_args, recording_from_args
 from ..threads import add_threads_arg
+from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, human_size, print_json
 
+
 def register(sub):
-    p = sub.add_parser("prune", help="drop landmarks by track length, quality, region or to a budget",
-                       description="Write a smaller map: drop landmarks with short tracks, low training PSNR or outside a "
-                                   "box, then meet a landmark budget keeping the best landmark of every occupied cell of "
-                                   "a grid (spatially even coverage). Voxel grids are streamed.")
+    p = sub.add_parser(
+        "prune",
+        help="drop landmarks by track length, quality, region or to a budget",
+        description="Write a smaller map: drop landmarks with short tracks, low training PSNR or outside a "
+        "box, then meet a landmark budget keeping the best landmark of every occupied cell of "
+        "a grid (spatially even coverage). Voxel grids are streamed.",
+    )
     p.add_argument("map")
     p.add_argument("-o", "--output", required=True, help="map file to write")
     p.add_argument("--max-landmarks", type=int, metavar="N", help="landmark budget")
@@ -40,7 +44,9 @@ def run(args) -> int:
     rec = recording_from_args(args, "favormap prune")
     bars = StageBars(args.quiet or args.json)
     try:
-        res = prune_map(args.map, args.output, args.max_landmarks, args.min_track, args.min_quality, bbox, progress=bars)
+        res = prune_map(
+            args.map, args.output, args.max_landmarks, args.min_track, args.min_quality, bbox, progress=bars
+        )
     finally:
         bars.close()
     if rec is not None:
@@ -54,7 +60,9 @@ def run(args) -> int:
     print(f"kept                {res.num_after} of {res.num_before} landmarks")
     for k, v in res.removed.items():
         also = res.failing.get(k, v) - v
-        print(f"removed {v:>7}     {reason_text(k, res)}"
-              + (f"  ({also} more fail this test but were already removed above)" if also else ""))
+        print(
+            f"removed {v:>7}     {reason_text(k, res)}"
+            + (f"  ({also} more fail this test but were already removed above)" if also else "")
+        )
     print(f"file                {args.output}  ({human_size(d['file_size'])})")
     return 0

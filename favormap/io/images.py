@@ -71,7 +71,9 @@ def load_image(path: Path, camera: Camera, max_side: int | None = 640) -> tuple[
     return decode_and_prepare(None, path, camera, max_side)
 
 
-def decode_and_prepare(data: bytes | None, name, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
+def decode_and_prepare(
+    data: bytes | None, name, camera: Camera, max_side: int | None = 640
+) -> tuple[np.ndarray, Camera]:
     """:func:`load_image` of an image file's bytes (``data``; None: read the file ``name``)."""
     img = read_rgb(name) if data is None else cv2.cvtColor(decode_image(data, name), cv2.COLOR_BGR2RGB)
     h, w = img.shape[:2]

@@ -83,19 +83,25 @@ def parse_pose(vals: np.ndarray, n_lines: int = 1, source: str = "<pose>") -> np
         T = _matrix(vals, path, "pose")
         dev = geometry.rotation_deviation(T[:3, :3])
         if not dev <= _ROT_TOL:
-            raise InputError(f"pose file {path}: the rotation block is not a rotation (not orthonormal with det +1"
-                             + (f": max |R^T R - I| = {dev:.1e} > {_ROT_TOL:.0e})" if dev < float("inf") else ")"))
+            raise InputError(
+                f"pose file {path}: the rotation block is not a rotation (not orthonormal with det +1"
+                + (f": max |R^T R - I| = {dev:.1e} > {_ROT_TOL:.0e})" if dev < float("inf") else ")")
+            )
         T[:3, :3] = geometry.nearest_rotation(T[:3, :3])
         return T
     if len(vals) in (7, 8) and n_lines == 1:
         t, q = vals[-7:-4], vals[-4:]
         nq = np.linalg.norm(q)
         if not geometry.quaternion_deviation(q) <= _ROT_TOL:
-            raise InputError(f"pose file {path}: the quaternion (qx qy qz qw) is not a unit quaternion (norm {nq:.6g}; "
-                             f"tolerance {_ROT_TOL / 4:.1e})")
+            raise InputError(
+                f"pose file {path}: the quaternion (qx qy qz qw) is not a unit quaternion (norm {nq:.6g}; "
+                f"tolerance {_ROT_TOL / 4:.1e})"
+            )
         return geometry.pose_from_quat_t(q / nq, t)
-    raise InputError(f"pose file {path}: expected a 4x4 (16 numbers) or 3x4 (12) world_from_cam matrix, or one TUM line "
-                     f"'tx ty tz qx qy qz qw'; found {len(vals)} number(s) on {n_lines} line(s)")
+    raise InputError(
+        f"pose file {path}: expected a 4x4 (16 numbers) or 3x4 (12) world_from_cam matrix, or one TUM line "
+        f"'tx ty tz qx qy qz qw'; found {len(vals)} number(s) on {n_lines} line(s)"
+    )
 
 
 def read_world_from_cam(path) -> np.ndarray:
@@ -131,7 +137,10 @@ def read_transform(path, allow_scale: bool = True) -> tuple[np.ndarray, float]:
     path = Path(path)
     vals, n_lines = _read_numbers(path, "transform")
     if len(vals) not in (16, 12):
-        raise InputError(f"transform file {path}: expected a 4x4 (16 numbers) or 3x4 (12 numbers) matrix, found {len(vals)} number(s)")
+        raise InputError(
+            f"transform file {path}: expected a 4x4 (16 numbers) or 3x4 (12 numbers) matrix, found {len(vals)} "
+            "number(s)"
+        )
     T = _matrix(vals, path, "transform")
     A = T[:3, :3]
     det = float(np.linalg.det(A))
@@ -142,7 +151,10 @@ def read_transform(path, allow_scale: bool = True) -> tuple[np.ndarray, float]:
         raise InputError(f"transform file {path}: expected a rigid transform, but it scales by {s:.6g}")
     R = A / s
     if not np.allclose(R.T @ R, np.eye(3), atol=_ROT_TOL):
-        raise InputError(f"transform file {path}: not a rigid (or uniformly scaled) transform: the 3x3 block is not a scaled rotation")
+        raise InputError(
+            f"transform file {path}: not a rigid (or uniformly scaled) transform: the 3x3 block is not a scaled "
+            "rotation"
+        )
     T[:3, :3] = s * geometry.nearest_rotation(R)
     return T, s
 
@@ -155,12 +167,16 @@ def _camera_from_tokens(tokens: list[str], source: str) -> Camera:
         raise InputError(f"camera {source}: expected 'MODEL WIDTH HEIGHT params...' (COLMAP cameras.txt line)")
     model = tokens[0].upper()
     if model not in SUPPORTED_MODELS:
-        raise InputError(f"camera {source}: unsupported camera model {tokens[0]!r} (supported: {', '.join(SUPPORTED_MODELS)})")
+        raise InputError(
+            f"camera {source}: unsupported camera model {tokens[0]!r} (supported: {', '.join(SUPPORTED_MODELS)})"
+        )
     try:
         w, h = int(tokens[1]), int(tokens[2])
         params = [float(t) for t in tokens[3:]]
     except ValueError:
-        raise InputError(f"camera {source}: width/height must be integers and params numbers: {' '.join(tokens)!r}") from None
+        raise InputError(
+            f"camera {source}: width/height must be integers and params numbers: {' '.join(tokens)!r}"
+        ) from None
     return Camera(model, w, h, params)
 
 
@@ -170,7 +186,9 @@ def _camera_from_json(obj, source: str) -> Camera:
     if not isinstance(obj, dict) or not {"model", "width", "height", "params"} <= set(obj):
         raise InputError(f"camera {source}: a JSON camera needs the keys model, width, height, params")
     try:
-        return Camera(str(obj["model"]).upper(), int(obj["width"]), int(obj["height"]), [float(p) for p in obj["params"]])
+        return Camera(
+            str(obj["model"]).upper(), int(obj["width"]), int(obj["height"]), [float(p) for p in obj["params"]]
+        )
     except (TypeError, ValueError):
         raise InputError(f"camera {source}: invalid JSON camera {obj}") from None
 
@@ -187,7 +205,9 @@ def read_camera(spec) -> Camera:
     if not looks_inline:
         path = Path(spec)
         if not path.is_file():
-            raise InputError(f"camera file not found: {path} (or give a COLMAP camera line 'MODEL W H params...' or a JSON camera)")
+            raise InputError(
+                f"camera file not found: {path} (or give a COLMAP camera line 'MODEL W H params...' or a JSON camera)"
+            )
         try:
             text = path.read_text().strip()
         except (OSError, UnicodeDecodeError) as e:
@@ -206,7 +226,15 @@ def read_camera(spec) -> Camera:
 
 
 # -- converting poses from other tools into a prior -------------------------------------------------
-POSE_SOURCES = ("world_from_cam", "cam_from_world", "opengl", "nerf", "colmap", "tum", "7scenes")  # see `favormap pose --help`
+POSE_SOURCES = (
+    "world_from_cam",
+    "cam_from_world",
+    "opengl",
+    "nerf",
+    "colmap",
+    "tum",
+    "7scenes",
+)  # see `favormap pose --help`
 
 
 def _text_of(source: str) -> tuple[str, str]:
@@ -276,7 +304,9 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
             if name in (fp, Path(fp).name, Path(fp).stem, Path(fp).with_suffix("").as_posix()):
                 M = np.asarray(fr["transform_matrix"], np.float64)
                 M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
-                return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}")))
+                return geometry.inverse(
+                    geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}"))
+                )
         raise InputError(f"{label}: no frame with file_path {name!r}")
     if kind == "colmap":
         lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
@@ -288,7 +318,9 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
         nums = tok[1:8] if len(tok) >= 10 else tok
         vals = _numbers(" ".join(nums), label)
         if len(vals) != 7:
-            raise InputError(f"{label}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' or 'QW QX QY QZ TX TY TZ'")
+            raise InputError(
+                f"{label}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' or 'QW QX QY QZ TX TY TZ'"
+            )
         qw, qx, qy, qz, tx, ty, tz = vals
         T = np.eye(4)
         T[:3, :3] = _quat([qx, qy, qz, qw], label)
@@ -306,6 +338,8 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
             raise InputError(f"{label}: no 'timestamp tx ty tz qx qy qz qw' line")
         rows = [min(rows, key=lambda r: abs(r[0] - t0))]
     if len(rows) != 1 or len(rows[0]) not in (7, 8):
-        raise InputError(f"{label}: expected one line 'timestamp tx ty tz qx qy qz qw' (or give the file and --name TIMESTAMP)")
+        raise InputError(
+            f"{label}: expected one line 'timestamp tx ty tz qx qy qz qw' (or give the file and --name TIMESTAMP)"
+        )
     v = rows[0][-7:]
     return geometry.inverse(_rigid(_quat(v[3:], label), v[:3], label))

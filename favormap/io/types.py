@@ -34,7 +34,10 @@ class Camera:
         if self.model not in SUPPORTED_MODELS:
             raise InputError(f"unsupported camera model {self.model!r} (supported: {', '.join(SUPPORTED_MODELS)})")
         if len(self.params) != len(SUPPORTED_MODELS[self.model]):
-            raise InputError(f"camera model {self.model} needs {len(SUPPORTED_MODELS[self.model])} parameters, got {len(self.params)}")
+            raise InputError(
+                f"camera model {self.model} needs {len(SUPPORTED_MODELS[self.model])} parameters, got "
+                f"{len(self.params)}"
+            )
         if self.width <= 0 or self.height <= 0 or not np.all(np.isfinite(self.params)):
             raise InputError(f"invalid camera: {self.width}x{self.height} {self.params.tolist()}")
 
@@ -76,13 +79,13 @@ class Camera:
             return p[4:8].copy()
         return np.array([p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11]])
 
-    def pinhole(self) -> "Camera":
+    def pinhole(self) -> Camera:
         """The undistorted pinhole camera with the same focal length and principal point."""
         fx, fy = self.focal
         cx, cy = self.principal_point
         return Camera("PINHOLE", self.width, self.height, [fx, fy, cx, cy])
 
-    def scaled(self, new_width: int, new_height: int) -> "Camera":
+    def scaled(self, new_width: int, new_height: int) -> Camera:
         """The same camera for an image resized to ``new_width`` x ``new_height``."""
         sx, sy = new_width / self.width, new_height / self.height
         p = self.params.copy()
@@ -100,13 +103,20 @@ class Camera:
     def to_pycolmap(self):
         import pycolmap
 
-        return pycolmap.Camera(model=self.model, width=int(self.width), height=int(self.height), params=self.params.tolist())
+        return pycolmap.Camera(
+            model=self.model, width=int(self.width), height=int(self.height), params=self.params.tolist()
+        )
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "width": int(self.width), "height": int(self.height), "params": self.params.tolist()}
+        return {
+            "model": self.model,
+            "width": int(self.width),
+            "height": int(self.height),
+            "params": self.params.tolist(),
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Camera":
+    def from_dict(cls, d: dict) -> Camera:
         return cls(str(d["model"]), int(d["width"]), int(d["height"]), d["params"])
 
 
@@ -136,7 +146,9 @@ class Sequence:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def subset(self, indices) -> "Sequence":
+    def subset(self, indices) -> Sequence:
         frames = [self.frames[i] for i in indices]
         used = {f.camera_id for f in frames}
-        return Sequence(self.root, self.format, {k: v for k, v in self.cameras.items() if k in used}, frames, dict(self.extra))
+        return Sequence(
+            self.root, self.format, {k: v for k, v in self.cameras.items() if k in used}, frames, dict(self.extra)
+        )

@@ -1,7 +1,27 @@
 """localize: iterative render -> match -> PnP-RANSAC against a map, and its evaluation."""
 
 from .descriptors import DescriptorSource, MeanDescriptors, NearestViewDescriptors, RenderedDescriptors, make_source
-from .localizer import IterationResult, LocalizationResult, LocalizeConfig, Localizer, SuccessChecks, localize, match_descriptors
+from .localizer import (
+    IterationResult,
+    LocalizationResult,
+    LocalizeConfig,
+    Localizer,
+    SuccessChecks,
+    localize,
+    match_descriptors,
+)
 
-__all__ = ["DescriptorSource", "IterationResult", "LocalizationResult", "LocalizeConfig", "Localizer", "MeanDescriptors",
-           "NearestViewDescriptors", "RenderedDescriptors", "SuccessChecks", "localize", "make_source", "match_descriptors"]
+__all__ = [
+    "DescriptorSource",
+    "IterationResult",
+    "LocalizationResult",
+    "LocalizeConfig",
+    "Localizer",
+    "MeanDescriptors",
+    "NearestViewDescriptors",
+    "RenderedDescriptors",
+    "SuccessChecks",
+    "localize",
+    "make_source",
+    "match_descriptors",
+]

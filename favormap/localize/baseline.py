@@ -102,7 +102,7 @@ def ratio_match(points_desc: torch.Tensor, query_desc: torch.Tensor, ratio: floa
         return np.zeros((0, 2), np.int64)
     out = []
     for s in range(0, len(query_desc), chunk):
-        sim, idx = torch.topk(query_desc[s:s + chunk] @ points_desc.T, 2, dim=1)
+        sim, idx = torch.topk(query_desc[s : s + chunk] @ points_desc.T, 2, dim=1)
         dist = torch.sqrt(torch.clamp(2 - 2 * sim, min=0))
         keep = torch.nonzero(dist[:, 0] < ratio * dist[:, 1]).squeeze(1)
         out.append(torch.stack([idx[keep, 0], keep + s], 1))
@@ -112,8 +112,14 @@ def ratio_match(points_desc: torch.Tensor, query_desc: torch.Tensor, ratio: floa
 class StructureBaseline:
     """SIFT 3D points with mean descriptors, triangulated by pycolmap from known poses."""
 
-    def __init__(self, points3d: np.ndarray, descriptors: np.ndarray, track_lengths: np.ndarray,
-                 config: StructureBaselineConfig, reconstruction=None):
+    def __init__(
+        self,
+        points3d: np.ndarray,
+        descriptors: np.ndarray,
+        track_lengths: np.ndarray,
+        config: StructureBaselineConfig,
+        reconstruction=None,
+    ):
         import pycolmap
 
         self.points3d = np.asarray(points3d, np.float64).reshape(-1, 3)
@@ -131,7 +137,7 @@ class StructureBaseline:
 
     # -- build ---------------------------------------------------------------------------------
     @classmethod
-    def build(cls, seq: Sequence, config: StructureBaselineConfig | None = None, workdir=None) -> "StructureBaseline":
+    def build(cls, seq: Sequence, config: StructureBaselineConfig | None = None, workdir=None) -> StructureBaseline:
         """Extract, match and triangulate ``seq`` (known cameras and poses) in ``workdir``
         (a temporary directory, removed afterwards, by default)."""
         cfg = config or StructureBaselineConfig()
@@ -146,7 +152,7 @@ class StructureBaseline:
             return cls._build(seq, cfg, Path(workdir))
 
     @classmethod
-    def _build(cls, seq: Sequence, cfg: StructureBaselineConfig, wd: Path) -> "StructureBaseline":
+    def _build(cls, seq: Sequence, cfg: StructureBaselineConfig, wd: Path) -> StructureBaseline:
         import pycolmap
 
         images_dir, db_path, out_dir = wd / "images", wd / "database.db", wd / "sparse"
@@ -184,7 +190,8 @@ class StructureBaseline:
                 descs[image_id] = np.asarray(desc.data)
                 rec.add_image_with_trivial_frame(
                     pycolmap.Image(name=name, keypoints=kp[:, :2].astype(np.float64), camera_id=cid, image_id=image_id),
-                    to_rigid3d(frame.cam_from_world))
+                    to_rigid3d(frame.cam_from_world),
+                )
         if sum(len(d) for d in descs.values()) == 0:
             raise FavormapError("the structure baseline found no SIFT features in the images")
         mopts = pycolmap.FeatureMatchingOptions()
@@ -194,12 +201,14 @@ class StructureBaseline:
             pycolmap.match_exhaustive(db_path, matching_options=mopts, device=pycolmap.Device.cpu)
         else:
             pairing = pycolmap.SequentialPairingOptions(overlap=cfg.sequential_overlap)
-            pycolmap.match_sequential(db_path, matching_options=mopts, pairing_options=pairing, device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(
+                db_path, matching_options=mopts, pairing_options=pairing, device=pycolmap.Device.cpu
+            )
         rec = pycolmap.triangulate_points(rec, db_path, images_dir, out_dir)
         return cls._from_reconstruction(rec, descs, cfg)
 
     @classmethod
-    def _from_reconstruction(cls, rec, descs: dict[int, np.ndarray], cfg: StructureBaselineConfig) -> "StructureBaseline":
+    def _from_reconstruction(cls, rec, descs: dict[int, np.ndarray], cfg: StructureBaselineConfig) -> StructureBaseline:
         if rec.num_points3D() == 0:
             raise FavormapError("pycolmap triangulated no 3D points (too few verified matches between the frames?)")
         offsets, start = {}, 0
@@ -217,10 +226,12 @@ class StructureBaseline:
         mean = torch.zeros(len(lengths_np), 128).index_add_(0, owner, all_desc[torch.as_tensor(rows)])
         return cls(np.asarray(xyz), mean.numpy(), lengths_np, cfg, rec)
 
-    def subset(self, max_points: int) -> "StructureBaseline":
+    def subset(self, max_points: int) -> StructureBaseline:
         """The same baseline restricted to its ``max_points`` longest-track points."""
         keep = np.sort(np.argsort(-self.track_lengths, kind="stable")[: max(0, int(max_points))])
-        return StructureBaseline(self.points3d[keep], self.descriptors[keep], self.track_lengths[keep], replace(self.config))
+        return StructureBaseline(
+            self.points3d[keep], self.descriptors[keep], self.track_lengths[keep], replace(self.config)
+        )
 
     # -- localize ------------------------------------------------------------------------------
     def prepare(self, image, camera: Camera) -> tuple[np.ndarray, Camera]:
@@ -247,7 +258,8 @@ class StructureBaseline:
                 est.ransac.max_error = self.ransac_max_error_px
                 est.ransac.random_seed = cfg.seed
                 ans = pycolmap.estimate_and_refine_absolute_pose(
-                    kp[m[:, 1], :2].astype(np.float64), self.points3d[m[:, 0]], cam.to_pycolmap(), est)
+                    kp[m[:, 1], :2].astype(np.float64), self.points3d[m[:, 0]], cam.to_pycolmap(), est
+                )
                 if ans is not None:
                     pose, n_in = from_rigid3d(ans["cam_from_world"]), int(ans["num_inliers"])
                     mask = np.asarray(ans["inlier_mask"], bool)

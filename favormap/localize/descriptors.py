@@ -51,11 +51,13 @@ class RenderedDescriptors:
         dev = self.device
         with torch.no_grad():
             out = render_from_camera(
-                torch.as_tensor(desc, device=dev), torch.as_tensor(dens, device=dev),
+                torch.as_tensor(desc, device=dev),
+                torch.as_tensor(dens, device=dev),
                 torch.as_tensor(self.map.positions[rows], dtype=torch.float32, device=dev),
                 torch.as_tensor(self.map.voxel_size[rows], device=dev),
                 torch.as_tensor(camera_centers(cam_from_world), dtype=torch.float32, device=dev),
-                self.map.render_samples)
+                self.map.render_samples,
+            )
         _tick(timings, "rendering", s)
         return out
 
@@ -125,7 +127,9 @@ def observation_descriptors(map_: Map, sequence, extractor=None) -> np.ndarray:
     return out
 
 
-def make_source(name: str, map_: Map, device: str = "cpu", obs_descriptors: np.ndarray | None = None) -> DescriptorSource:
+def make_source(
+    name: str, map_: Map, device: str = "cpu", obs_descriptors: np.ndarray | None = None
+) -> DescriptorSource:
     if name == "rendered":
         return RenderedDescriptors(map_, device)
     if name == "mean":

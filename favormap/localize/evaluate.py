@@ -7,8 +7,9 @@ default 5 % of the scene extent or 5 degrees): the one kind of answer a robot ca
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -87,8 +88,13 @@ def scene_extent(points: np.ndarray) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds, extent: float = 1.0,
-              false_success: tuple[float, float] = (0.05, 5.0)) -> dict:
+def summarize(
+    outcomes: list[QueryOutcome],
+    iterations: int,
+    thresholds,
+    extent: float = 1.0,
+    false_success: tuple[float, float] = (0.05, 5.0),
+) -> dict:
     """Error statistics of one method; failed queries count with their (prior) pose in the medians."""
     n = len(outcomes)
     if n == 0:
@@ -97,18 +103,28 @@ def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds, extent:
     for k in range(iterations):
         errs, inl = [], []
         for o in outcomes:
-            its = [it for it in (getattr(o.result, "iterations", None) or []) if getattr(it, "kind", "render") == "render"]
+            its = [
+                it for it in (getattr(o.result, "iterations", None) or []) if getattr(it, "kind", "render") == "render"
+            ]
             ok = [it for it in its[: k + 1] if it.success]
             pose = ok[-1].cam_from_world if ok else o.result.cam_from_world
             errs.append(pose_error(pose, o.gt))
             inl.append(its[min(k, len(its) - 1)].num_inliers if its else o.result.num_inliers)
         errs = np.array(errs)
-        per_iter.append({"iteration": k + 1, "median_translation": float(np.median(errs[:, 0])),
-                         "median_rotation_deg": float(np.median(errs[:, 1])), "mean_inliers": float(np.mean(inl))})
+        per_iter.append(
+            {
+                "iteration": k + 1,
+                "median_translation": float(np.median(errs[:, 0])),
+                "median_rotation_deg": float(np.median(errs[:, 1])),
+                "mean_inliers": float(np.mean(inl)),
+            }
+        )
     final = np.array([pose_error(o.result.cam_from_world, o.gt) for o in outcomes]).reshape(-1, 2)
     success = np.array([bool(o.result.success) for o in outcomes])
     wrong = (final[:, 0] > false_success[0] * extent) | (final[:, 1] > false_success[1])
-    recall = {f"{t:g}/{r:g}deg": float(np.mean(success & (final[:, 0] <= t) & (final[:, 1] <= r))) for t, r in thresholds}
+    recall = {
+        f"{t:g}/{r:g}deg": float(np.mean(success & (final[:, 0] <= t) & (final[:, 1] <= r))) for t, r in thresholds
+    }
     loc = final[success]
     diag = [o.diagnostics for o in outcomes if o.diagnostics]
 
@@ -117,38 +133,61 @@ def summarize(outcomes: list[QueryOutcome], iterations: int, thresholds, extent:
         return float(np.mean(v)) if v else None
 
     return {
-        "queries": n, "localized": int(success.sum()), "success_rate": float(success.mean()),
+        "queries": n,
+        "localized": int(success.sum()),
+        "success_rate": float(success.mean()),
         "false_successes": int((success & wrong).sum()),
         "median_translation": float(np.median(loc[:, 0])) if len(loc) else None,
         "p90_translation": float(np.percentile(loc[:, 0], 90)) if len(loc) else None,
         "median_translation_pct_extent": float(100 * np.median(loc[:, 0]) / extent) if len(loc) else None,
         "median_rotation_deg": float(np.median(loc[:, 1])) if len(loc) else None,
         "mean_inliers": float(np.mean([o.result.num_inliers for o in outcomes])),
-        "per_iteration": per_iter, "recall": recall, "scene_extent": extent,
+        "per_iteration": per_iter,
+        "recall": recall,
+        "scene_extent": extent,
         "mean_time_s": float(np.mean([o.seconds for o in outcomes])),
-        "match_precision": dmean("match_precision"), "keypoint_repeatability": dmean("keypoint_repeatability"),
+        "match_precision": dmean("match_precision"),
+        "keypoint_repeatability": dmean("keypoint_repeatability"),
     }
 
 
 def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     if len(uv) == 0 or len(keypoints) == 0:
         return np.full(len(uv), np.inf)
-    return torch.cdist(torch.as_tensor(uv, dtype=torch.float64), torch.as_tensor(keypoints, dtype=torch.float64)).min(1).values.numpy()
+    return (
+        torch.cdist(torch.as_tensor(uv, dtype=torch.float64), torch.as_tensor(keypoints, dtype=torch.float64))
+        .min(1)
+        .values.numpy()
+    )
 
 
-def diagnostics_from_matches(camera, gt: np.ndarray, points: np.ndarray, keypoints: np.ndarray,
-                             matched_points: np.ndarray, matched_keypoints: np.ndarray, radius_px: float = 2.0) -> dict:
+def diagnostics_from_matches(
+    camera,
+    gt: np.ndarray,
+    points: np.ndarray,
+    keypoints: np.ndarray,
+    matched_points: np.ndarray,
+    matched_keypoints: np.ndarray,
+    radius_px: float = 2.0,
+) -> dict:
     """Match precision (share of matches whose keypoint lies within ``radius_px`` of the matched
     point's projection at the ground-truth pose) and keypoint repeatability (share of the
     candidate ``points`` projecting inside the image that have a query keypoint within ``radius_px``)."""
     inside = project_inside(points, camera, gt) if len(points) else np.zeros(0, bool)
     uv = project(camera.K, gt, points[inside]) if inside.any() else np.zeros((0, 2))
     rep = _nearest_keypoint_distance(uv, keypoints)
-    err = np.linalg.norm(project(camera.K, gt, matched_points) - matched_keypoints, axis=1) if len(matched_points) else np.zeros(0)
-    return {"match_precision": float(np.mean(err <= radius_px)) if len(err) else None,
-            "median_match_error_px": float(np.median(err)) if len(err) else None,
-            "keypoint_repeatability": float(np.mean(rep <= radius_px)) if len(rep) else None,
-            "diag_matches": int(len(err)), "diag_points": int(len(uv))}
+    err = (
+        np.linalg.norm(project(camera.K, gt, matched_points) - matched_keypoints, axis=1)
+        if len(matched_points)
+        else np.zeros(0)
+    )
+    return {
+        "match_precision": float(np.mean(err <= radius_px)) if len(err) else None,
+        "median_match_error_px": float(np.median(err)) if len(err) else None,
+        "keypoint_repeatability": float(np.mean(rep <= radius_px)) if len(rep) else None,
+        "diag_matches": int(len(err)),
+        "diag_points": int(len(uv)),
+    }
 
 
 def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radius_px: float = 2.0) -> dict:
@@ -158,16 +197,33 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
     cfg = localizer.config
     img, cam = localizer.prepare(image, camera)
     feats = localizer.extractor.extract(img)
-    rows = visible_rows(localizer.index, cam, gt, localizer.map.view_dir, localizer.map.view_angle,
-                        localizer.map.depth_range, cfg.view_limits)
+    rows = visible_rows(
+        localizer.index,
+        cam,
+        gt,
+        localizer.map.view_dir,
+        localizer.map.view_angle,
+        localizer.map.depth_range,
+        cfg.view_limits,
+    )
     desc = localizer.source(rows, gt, {})
-    m = match_descriptors(desc, torch.as_tensor(feats.descriptors, device=cfg.device), cfg.match_threshold, cfg.mutual, cfg.ratio)
+    m = match_descriptors(
+        desc, torch.as_tensor(feats.descriptors, device=cfg.device), cfg.match_threshold, cfg.mutual, cfg.ratio
+    )
     pos = localizer.map.positions
-    return diagnostics_from_matches(cam, gt, pos[rows], feats.keypoints, pos[rows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px)
+    return diagnostics_from_matches(
+        cam, gt, pos[rows], feats.keypoints, pos[rows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px
+    )
 
 
-def evaluate(localizers: dict[str, Localizer], queries: Sequence, cfg: EvalConfig | None = None,
-             progress: Callable | None = None, on_query: Callable | None = None, diagnostics: bool = False) -> list[EvalReport]:
+def evaluate(
+    localizers: dict[str, Localizer],
+    queries: Sequence,
+    cfg: EvalConfig | None = None,
+    progress: Callable | None = None,
+    on_query: Callable | None = None,
+    diagnostics: bool = False,
+) -> list[EvalReport]:
     """Localize every query frame from its prior with each named localizer (e.g. one per
     descriptor source on the same map)."""
     import time
@@ -192,8 +248,11 @@ def evaluate(localizers: dict[str, Localizer], queries: Sequence, cfg: EvalConfi
             if progress:
                 progress(f"eval {method}", i + 1, len(queries.frames))
         iters = loc.config.iterations
-        reports.append(EvalReport(method, outs, iters, cfg.thresholds,
-                                  summarize(outs, iters, cfg.thresholds, extent, cfg.false_success)))
+        reports.append(
+            EvalReport(
+                method, outs, iters, cfg.thresholds, summarize(outs, iters, cfg.thresholds, extent, cfg.false_success)
+            )
+        )
     return reports
 
 
@@ -206,11 +265,16 @@ def format_table(reports: list[EvalReport]) -> str:
     lines = []
     for rep in reports:
         s = rep.summary
-        lines.append(f"{rep.method}: {s['localized']}/{s['queries']} localized, {s['false_successes']} false successes, "
-                     f"median {_fmt(s['median_translation'], '.4f')} units / {_fmt(s['median_rotation_deg'], '.3f')} deg "
-                     f"(p90 {_fmt(s['p90_translation'], '.4f')} units), {s['mean_time_s'] * 1000:.0f} ms/query")
+        lines.append(
+            f"{rep.method}: {s['localized']}/{s['queries']} localized, {s['false_successes']} false successes, "
+            f"median {_fmt(s['median_translation'], '.4f')} units / {_fmt(s['median_rotation_deg'], '.3f')} deg "
+            f"(p90 {_fmt(s['p90_translation'], '.4f')} units), {s['mean_time_s'] * 1000:.0f} ms/query"
+        )
         lines.append(f"  {'iter':>4}  {'median t (units)':>16}  {'median R (deg)':>14}  {'mean inliers (count)':>20}")
         for it in s["per_iteration"]:
-            lines.append(f"  {it['iteration']:>4}  {it['median_translation']:>16.4f}  {it['median_rotation_deg']:>14.3f}  {it['mean_inliers']:>20.1f}")
+            lines.append(
+                f"  {it['iteration']:>4}  {it['median_translation']:>16.4f}  {it['median_rotation_deg']:>14.3f}  "
+                f"{it['mean_inliers']:>20.1f}"
+            )
         lines.append("  recall (units/deg): " + ", ".join(f"({k}) {100 * v:.1f} %" for k, v in s["recall"].items()))
     return "\n".join(lines)

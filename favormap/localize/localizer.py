@@ -56,7 +56,9 @@ class LocalizeConfig:
     max_keypoints: int = 4096
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
-    guided_radius_px: float = 0.0  # > 0: a final step matches each landmark to query keypoints this close to its projection
+    guided_radius_px: float = (
+        0.0  # > 0: a final step matches each landmark to query keypoints this close to its projection
+    )
     guided_ransac_px: float = 2.0  # RANSAC threshold of that step
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
@@ -111,16 +113,23 @@ class LocalizationResult:
             "num_inliers": int(self.num_inliers),
             "checks": {k: (round(v, 5) if isinstance(v, float) else v) for k, v in self.checks.items()},
             "iterations": [
-                {"kind": it.kind, "cam_from_world": it.cam_from_world.tolist(), "num_visible": it.num_visible,
-                 "num_matches": it.num_matches, "num_inliers": it.num_inliers, "success": it.success}
+                {
+                    "kind": it.kind,
+                    "cam_from_world": it.cam_from_world.tolist(),
+                    "num_visible": it.num_visible,
+                    "num_matches": it.num_matches,
+                    "num_inliers": it.num_inliers,
+                    "success": it.success,
+                }
                 for it in self.iterations
             ],
             "timings": {k: round(v, 5) for k, v in self.timings.items()},
         }
 
 
-def match_descriptors(rendered: torch.Tensor, query: torch.Tensor, threshold: float, mutual: bool = False,
-                      ratio: float = 1.0) -> np.ndarray:
+def match_descriptors(
+    rendered: torch.Tensor, query: torch.Tensor, threshold: float, mutual: bool = False, ratio: float = 1.0
+) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
     query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
     rendered descriptor is also that query descriptor's most similar one, and when the best
@@ -131,7 +140,7 @@ def match_descriptors(rendered: torch.Tensor, query: torch.Tensor, threshold: fl
     if ratio < 1.0 and sim.shape[1] >= 2:
         top, arg = sim.topk(2, dim=1)
         best_sim, best = top[:, 0], arg[:, 0]
-        ok = (2 - 2 * top[:, 0]).clamp_min(0) < ratio ** 2 * (2 - 2 * top[:, 1]).clamp_min(0)
+        ok = (2 - 2 * top[:, 0]).clamp_min(0) < ratio**2 * (2 - 2 * top[:, 1]).clamp_min(0)
     else:
         best_sim, best = sim.max(1)
         ok = torch.ones_like(best_sim, dtype=torch.bool)
@@ -154,15 +163,23 @@ class Localizer:
     the torch/OpenCV pools sized by ``config.threads``; on 2 cores, 4 threads sharing one Localizer
     localized as many queries per second as 4 processes, in less memory (tools/bench_load.py)."""
 
-    def __init__(self, map_: Map | str, config: LocalizeConfig | None = None,
-                 descriptor_source: DescriptorSource | None = None):
+    def __init__(
+        self, map_: Map | str, config: LocalizeConfig | None = None, descriptor_source: DescriptorSource | None = None
+    ):
         self.config = config or LocalizeConfig()
         configure_threads(self.config.threads)
         self.map = map_ if isinstance(map_, Map) else Map.open(map_)
-        self.extractor = feats_mod.create(self.map.extractor, max_keypoints=self.config.max_keypoints,
-                                          device=None if self.config.device == "cpu" else self.config.device)
+        self.extractor = feats_mod.create(
+            self.map.extractor,
+            max_keypoints=self.config.max_keypoints,
+            device=None if self.config.device == "cpu" else self.config.device,
+        )
         self.index = SpatialIndex(self.map.positions)
-        self.default_camera = self.map.cameras[int(self.map.frame_camera_ids[0])] if self.map.num_frames else next(iter(self.map.cameras.values()))
+        self.default_camera = (
+            self.map.cameras[int(self.map.frame_camera_ids[0])]
+            if self.map.num_frames
+            else next(iter(self.map.cameras.values()))
+        )
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
         if self.config.global_ratio is None:
@@ -188,7 +205,9 @@ class Localizer:
         return prior
 
     # -- main loop -----------------------------------------------------------------------------------
-    def localize(self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None) -> LocalizationResult:
+    def localize(
+        self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None
+    ) -> LocalizationResult:
         """Localize one query image. Without a prior, a coarse pose is found first by matching
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
         cfg = self.config
@@ -212,15 +231,22 @@ class Localizer:
             first = None
         coarse, it = self._global_pose(q, t)
         if coarse is None:
-            return first or self._result(q, None, [it], t, np.eye(4), "without a prior, matching against all landmarks "
-                                         f"found no pose ({it.num_matches} matches, {it.num_inliers} inliers)")
+            return first or self._result(
+                q,
+                None,
+                [it],
+                t,
+                np.eye(4),
+                "without a prior, matching against all landmarks "
+                f"found no pose ({it.num_matches} matches, {it.num_inliers} inliers)",
+            )
         res = self._refine(q, coarse, (first.iterations if first is not None else []) + [it], t)
         if not res.success and first is not None:
             res.message = f"{first.message}; from a coarse pose found without the prior: {res.message}"
             res.cam_from_world = prior
         return res
 
-    def _pnp(self, q: "_Query", points: np.ndarray, kp_idx: np.ndarray, t: dict, max_error_px: float | None = None):
+    def _pnp(self, q: _Query, points: np.ndarray, kp_idx: np.ndarray, t: dict, max_error_px: float | None = None):
         import pycolmap
 
         s = time.perf_counter()
@@ -230,12 +256,16 @@ class Localizer:
         ans = None
         if len(kp_idx) >= 4:
             ans = pycolmap.estimate_and_refine_absolute_pose(
-                q.feats.keypoints[kp_idx].astype(np.float64), points.astype(np.float64), q.cam.to_pycolmap(), est,
-                pycolmap.AbsolutePoseRefinementOptions())
+                q.feats.keypoints[kp_idx].astype(np.float64),
+                points.astype(np.float64),
+                q.cam.to_pycolmap(),
+                est,
+                pycolmap.AbsolutePoseRefinementOptions(),
+            )
         t["pnp"] += time.perf_counter() - s
         return ans
 
-    def _global_pose(self, q: "_Query", t: dict):
+    def _global_pose(self, q: _Query, t: dict):
         """Coarse pose without a prior: mutual matches against every landmark's mean descriptor."""
         cfg = self.config
         s = time.perf_counter()
@@ -243,7 +273,9 @@ class Localizer:
             rows = np.arange(len(self.map))
             if len(rows) > cfg.global_max_landmarks:
                 rows = np.sort(np.argsort(-self.map.track_length, kind="stable")[: cfg.global_max_landmarks])
-            d = torch.nn.functional.normalize(torch.as_tensor(self.map.mean_descriptors(rows), device=cfg.device), dim=-1)
+            d = torch.nn.functional.normalize(
+                torch.as_tensor(self.map.mean_descriptors(rows), device=cfg.device), dim=-1
+            )
             self._global = (rows, d)
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
@@ -256,15 +288,22 @@ class Localizer:
         pose = from_rigid3d(ans["cam_from_world"]) if ok else np.eye(4)
         return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
 
-    def _visible(self, q: "_Query", pose: np.ndarray, t: dict) -> np.ndarray:
+    def _visible(self, q: _Query, pose: np.ndarray, t: dict) -> np.ndarray:
         """Rows of the landmarks visible from ``pose`` (timed into ``t["visibility"]``)."""
         s = time.perf_counter()
-        rows = visible_rows(self.index, q.cam, pose, self.map.view_dir, self.map.view_angle, self.map.depth_range,
-                            self.config.view_limits)
+        rows = visible_rows(
+            self.index,
+            q.cam,
+            pose,
+            self.map.view_dir,
+            self.map.view_angle,
+            self.map.depth_range,
+            self.config.view_limits,
+        )
         t["visibility"] += time.perf_counter() - s
         return rows
 
-    def _refine(self, q: "_Query", start: np.ndarray, iters: list[IterationResult], t: dict) -> LocalizationResult:
+    def _refine(self, q: _Query, start: np.ndarray, iters: list[IterationResult], t: dict) -> LocalizationResult:
         cfg = self.config
         pose = start
         last = None
@@ -282,7 +321,9 @@ class Localizer:
             iters.append(IterationResult(new_pose, len(rows), len(m), n_in, ok))
             if not ok:
                 break
-            last = dict(matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims)
+            last = dict(
+                matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims
+            )
             dt, dr = pose_error(new_pose, pose)
             pose = new_pose
             if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
@@ -291,7 +332,7 @@ class Localizer:
             last = self._guided(q, pose, iters, t) or last
         return self._result(q, last, iters, t, start)
 
-    def _guided(self, q: "_Query", pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
+    def _guided(self, q: _Query, pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
         """Search by projection: each landmark visible from ``pose`` is matched to the most similar
         query keypoint within ``guided_radius_px`` of its projection (mutually, above the
         threshold), then PnP runs again with a tight threshold."""
@@ -311,16 +352,23 @@ class Localizer:
         ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t, cfg.guided_ransac_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
-        iters.append(IterationResult(from_rigid3d(ans["cam_from_world"]) if ok else pose, len(rows), len(idx), n_in, ok,
-                                     kind="guided"))
+        iters.append(
+            IterationResult(
+                from_rigid3d(ans["cam_from_world"]) if ok else pose, len(rows), len(idx), n_in, ok, kind="guided"
+            )
+        )
         if not ok:
             iters.pop()  # keep the rendering iterations' estimate
             return None
-        return dict(matches=np.c_[rows[idx], kidx], inliers=np.asarray(ans["inlier_mask"], bool),
-                    similarity=best_sim.cpu().numpy()[idx])
+        return dict(
+            matches=np.c_[rows[idx], kidx],
+            inliers=np.asarray(ans["inlier_mask"], bool),
+            similarity=best_sim.cpu().numpy()[idx],
+        )
 
-    def _result(self, q: "_Query", last: dict | None, iters: list[IterationResult], t: dict, start: np.ndarray,
-                message: str = "") -> LocalizationResult:
+    def _result(
+        self, q: _Query, last: dict | None, iters: list[IterationResult], t: dict, start: np.ndarray, message: str = ""
+    ) -> LocalizationResult:
         """Apply the success checks to the last iteration and assemble the result."""
         ok_iters = [it for it in iters if it.success]
         final = iters[-1]
@@ -328,47 +376,80 @@ class Localizer:
         reason = message
         if not message:
             if not final.success:
-                reason = (f"too few inliers ({final.num_matches} matches, {final.num_inliers} inliers, {final.num_visible} "
-                          f"visible landmarks; need {self.config.checks.min_inliers} inliers)")
+                reason = (
+                    f"too few inliers ({final.num_matches} matches, {final.num_inliers} inliers, {final.num_visible} "
+                    f"visible landmarks; need {self.config.checks.min_inliers} inliers)"
+                )
                 if final.num_visible < self.config.checks.min_inliers:
-                    reason += ("; the prior sees almost none of the map's landmarks: is it world_from_cam in OpenCV "
-                               "axes (x right, y down, z forward), in the map's frame?")
+                    reason += (
+                        "; the prior sees almost none of the map's landmarks: is it world_from_cam in OpenCV "
+                        "axes (x right, y down, z forward), in the map's frame?"
+                    )
             else:
                 checks, reason = self._checks(q, last, iters)
         success = not reason
         est = ok_iters[-1].cam_from_world if ok_iters else None
         return LocalizationResult(
-            success=success, cam_from_world=est if success else start,
-            num_matches=final.num_matches, num_inliers=final.num_inliers, iterations=iters, timings=t,
-            message=reason, checks=checks, keypoints=q.feats.keypoints,
-            matches=None if last is None else last["matches"], inlier_mask=None if last is None else last["inliers"],
-            match_similarity=None if last is None else last["similarity"], estimate=est)
+            success=success,
+            cam_from_world=est if success else start,
+            num_matches=final.num_matches,
+            num_inliers=final.num_inliers,
+            iterations=iters,
+            timings=t,
+            message=reason,
+            checks=checks,
+            keypoints=q.feats.keypoints,
+            matches=None if last is None else last["matches"],
+            inlier_mask=None if last is None else last["inliers"],
+            match_similarity=None if last is None else last["similarity"],
+            estimate=est,
+        )
 
-    def _checks(self, q: "_Query", last: dict, iters: list[IterationResult]) -> tuple[dict, str]:
+    def _checks(self, q: _Query, last: dict, iters: list[IterationResult]) -> tuple[dict, str]:
         """Measured values of the success checks and the first one that fails ('' when all pass)."""
         c = self.config.checks
         final = iters[-1]
         pose = final.cam_from_world
         vals: dict = {"inliers": final.num_inliers, "inlier_ratio": final.num_inliers / max(final.num_matches, 1)}
         g = max([i for i, it in enumerate(iters) if it.kind == "global"], default=-1)
-        render_iters = iters[g + 1:]  # the refinement (render, guided) that gave this pose
+        render_iters = iters[g + 1 :]  # the refinement (render, guided) that gave this pose
         if len(render_iters) >= 2:
             dt, dr = pose_error(render_iters[-1].cam_from_world, render_iters[-2].cam_from_world)
             vals["iteration_change"] = dt / self.scale
             vals["iteration_change_deg"] = dr
         rows = last["matches"][last["inliers"], 0]
-        vis = visible_mask(self.map.positions[rows], q.cam, pose, self.map.view_dir[rows], self.map.view_angle[rows],
-                           self.map.depth_range[rows], self.config.view_limits) if len(rows) else np.zeros(0, bool)
+        vis = (
+            visible_mask(
+                self.map.positions[rows],
+                q.cam,
+                pose,
+                self.map.view_dir[rows],
+                self.map.view_angle[rows],
+                self.map.depth_range[rows],
+                self.config.view_limits,
+            )
+            if len(rows)
+            else np.zeros(0, bool)
+        )
         vals["visible_inliers"] = float(vis.mean()) if len(vis) else 0.0
         if vals["inlier_ratio"] < c.min_inlier_ratio:
-            return vals, f"low inlier ratio ({final.num_inliers} of {final.num_matches} matches; need {c.min_inlier_ratio:.0%})"
-        if len(render_iters) >= 2 and (vals["iteration_change"] > c.max_iteration_change[0]
-                                       or vals["iteration_change_deg"] > c.max_iteration_change[1]):
-            return vals, (f"iterations disagree (last two estimates {vals['iteration_change']:.3f} x landmark depth, "
-                          f"{vals['iteration_change_deg']:.2f} deg apart)")
+            return (
+                vals,
+                f"low inlier ratio ({final.num_inliers} of {final.num_matches} matches; need {c.min_inlier_ratio:.0%})",
+            )
+        if len(render_iters) >= 2 and (
+            vals["iteration_change"] > c.max_iteration_change[0]
+            or vals["iteration_change_deg"] > c.max_iteration_change[1]
+        ):
+            return vals, (
+                f"iterations disagree (last two estimates {vals['iteration_change']:.3f} x landmark depth, "
+                f"{vals['iteration_change_deg']:.2f} deg apart)"
+            )
         if vals["visible_inliers"] < c.min_visible_inliers:
-            return vals, (f"only {vals['visible_inliers']:.0%} of the inlier landmarks are visible from the estimated pose "
-                          f"(need {c.min_visible_inliers:.0%})")
+            return vals, (
+                f"only {vals['visible_inliers']:.0%} of the inlier landmarks are visible from the estimated pose "
+                f"(need {c.min_visible_inliers:.0%})"
+            )
         return vals, ""
 
 
@@ -379,8 +460,9 @@ class _Query:
     cam: Camera
 
 
-def localize(map_, image, prior_cam_from_world=None, camera: Camera | None = None,
-             config: LocalizeConfig | None = None) -> LocalizationResult:
+def localize(
+    map_, image, prior_cam_from_world=None, camera: Camera | None = None, config: LocalizeConfig | None = None
+) -> LocalizationResult:
     """One-shot convenience wrapper around :class:`Localizer`."""
     loc = Localizer(map_, config)
     try:

@@ -5,4 +5,15 @@ from .reader import Map
 from .schema import FORMAT, FORMAT_VERSION, check_file, load_schema
 from .writer import MapWriter, atomic_path, write_map
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "Map", "MapData", "MapWriter", "atomic_path", "check_file", "load_schema", "new_landmark_ids", "write_map"]
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "Map",
+    "MapData",
+    "MapWriter",
+    "atomic_path",
+    "check_file",
+    "load_schema",
+    "new_landmark_ids",
+    "write_map",
+]

@@ -100,7 +100,7 @@ class MapData(MapCounts):
         """Names of the per-landmark arrays (from the schema)."""
         return tuple(field_name(p) for p in landmark_datasets())
 
-    def select_landmarks(self, idx: np.ndarray) -> "MapData":
+    def select_landmarks(self, idx: np.ndarray) -> MapData:
         """A new map with the landmarks ``idx`` (order kept) and their observations."""
         idx = np.asarray(idx, np.int64)
         remap = np.full(self.num_landmarks, -1, np.int64)
@@ -108,6 +108,13 @@ class MapData(MapCounts):
         keep = remap[self.track_landmark] >= 0
         kw, extra = self.split_landmark_arrays({k: getattr(self, k)[idx] for k in self.landmark_names()})
         return dataclasses.replace(
-            self, cameras=dict(self.cameras), frame_names=list(self.frame_names), provenance=dict(self.provenance),
-            track_landmark=remap[self.track_landmark[keep]].astype(np.int32), track_frame=self.track_frame[keep],
-            track_xy=self.track_xy[keep], extra=extra, **kw)
+            self,
+            cameras=dict(self.cameras),
+            frame_names=list(self.frame_names),
+            provenance=dict(self.provenance),
+            track_landmark=remap[self.track_landmark[keep]].astype(np.int32),
+            track_frame=self.track_frame[keep],
+            track_xy=self.track_xy[keep],
+            extra=extra,
+            **kw,
+        )

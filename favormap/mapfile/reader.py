@@ -72,7 +72,10 @@ class Map(MapCounts):
                 view = open_view(self._f, self.path)
             problems = check_structure(view)
             if problems:
-                raise MapFormatError(f"{self.path} is not a valid favormap map: {problems[0]}" + (f" (+{len(problems) - 1} more problems; run favormap validate)" if len(problems) > 1 else ""))
+                raise MapFormatError(
+                    f"{self.path} is not a valid favormap map: {problems[0]}"
+                    + (f" (+{len(problems) - 1} more problems; run favormap validate)" if len(problems) > 1 else "")
+                )
             self._view = view
             a = view.attrs
             self.extractor = str(a["extractor"])
@@ -86,9 +89,16 @@ class Map(MapCounts):
             self.favormap_version = str(a["favormap_version"])
             self.provenance = json.loads(a["provenance"])
             arrays = {}
-            for p in (*metadata_datasets(), "frames/names",
-                      "frames/camera_ids", "frames/cam_from_world", "cameras/ids", "cameras/models",
-                      "cameras/sizes", "cameras/params"):
+            for p in (
+                *metadata_datasets(),
+                "frames/names",
+                "frames/camera_ids",
+                "frames/cam_from_world",
+                "cameras/ids",
+                "cameras/models",
+                "cameras/sizes",
+                "cameras/params",
+            ):
                 with _guard(self.path, repr(p)):
                     arrays[p] = self._ds(p)[()]
             self._check_values(arrays)
@@ -100,8 +110,12 @@ class Map(MapCounts):
             from ..io.types import SUPPORTED_MODELS
 
             self.cameras = {}
-            for cid, model, (w, h), params in zip(arrays["cameras/ids"], _strings(arrays["cameras/models"]),
-                                                  arrays["cameras/sizes"], arrays["cameras/params"]):
+            for cid, model, (w, h), params in zip(
+                arrays["cameras/ids"],
+                _strings(arrays["cameras/models"]),
+                arrays["cameras/sizes"],
+                arrays["cameras/params"],
+            ):
                 try:
                     self.cameras[int(cid)] = Camera(model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])])
                 except FavormapError as e:
@@ -125,7 +139,7 @@ class Map(MapCounts):
 
     # -- basics ----------------------------------------------------------------------------------
     @classmethod
-    def open(cls, path, **kw) -> "Map":
+    def open(cls, path, **kw) -> Map:
         return cls(path, **kw)
 
     def close(self):
@@ -188,7 +202,7 @@ class Map(MapCounts):
             return self._voxels(rows)
 
     def _voxels(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        R3 = self.grid_resolution ** 3
+        R3 = self.grid_resolution**3
         if self._slot is None:
             self._slot = np.full(len(self), -1, np.int64)
             self._slot_row = np.full(self.cache_size, -1, np.int64)
@@ -204,7 +218,7 @@ class Map(MapCounts):
         if len(missing):
             d, s = self._read_rows(missing)
             desc[~hit], dens[~hit] = d[inverse], s[inverse]
-            keep = missing[-self.cache_size:], d[-self.cache_size:], s[-self.cache_size:]
+            keep = missing[-self.cache_size :], d[-self.cache_size :], s[-self.cache_size :]
             new = (self._next + np.arange(len(keep[0]))) % self.cache_size
             old = self._slot_row[new]
             self._slot[old[old >= 0]] = -1
@@ -220,7 +234,7 @@ class Map(MapCounts):
             raise MapFormatError(f"{self.path}: map is closed")
         dd = self._ds("voxels/descriptors")
         ds = self._ds("voxels/density")
-        R3 = self.grid_resolution ** 3
+        R3 = self.grid_resolution**3
         out_d = np.empty((len(rows), R3, self.channels), np.float32)
         out_s = np.empty((len(rows), R3), np.float32)
         breaks = np.flatnonzero(np.diff(rows) != 1) + 1
@@ -269,8 +283,20 @@ class Map(MapCounts):
         kw, extra = MapData.split_landmark_arrays(arrays)
         tl, tf, txy = self.tracks()
         return MapData(
-            extractor=self.extractor, channels=self.channels, grid_resolution=self.grid_resolution,
-            patch_size=self.patch_size, render_samples=self.render_samples, max_side=self.max_side,
-            cameras=dict(self.cameras), frame_names=list(self.frame_names), frame_camera_ids=self.frame_camera_ids,
-            cam_from_world=self.cam_from_world, track_landmark=tl, track_frame=tf, track_xy=txy,
-            provenance=dict(self.provenance), extra=extra, **kw)
+            extractor=self.extractor,
+            channels=self.channels,
+            grid_resolution=self.grid_resolution,
+            patch_size=self.patch_size,
+            render_samples=self.render_samples,
+            max_side=self.max_side,
+            cameras=dict(self.cameras),
+            frame_names=list(self.frame_names),
+            frame_camera_ids=self.frame_camera_ids,
+            cam_from_world=self.cam_from_world,
+            track_landmark=tl,
+            track_frame=tf,
+            track_xy=txy,
+            provenance=dict(self.provenance),
+            extra=extra,
+            **kw,
+        )

@@ -16,10 +16,10 @@ version V is viewed through schema V (:class:`MapView`) and upgraded in memory b
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from datetime import datetime
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -31,7 +31,7 @@ FORMAT_VERSION = 1
 # MIGRATIONS[V](view) upgrades a MapView of version V to version V + 1 in memory: rename or derive
 # datasets/attributes (view.datasets values may become numpy arrays), then set view.version = V + 1.
 # Keep every old schemas/favormap-map.v<V>.json and document the change in its "migrations" section.
-MIGRATIONS: dict[int, Callable[["MapView"], None]] = {}
+MIGRATIONS: dict[int, Callable[[MapView], None]] = {}
 
 # the dimension symbols that root attributes fix (the others, K and O, come from the datasets)
 ATTR_DIMS = (("C", "channels"), ("R", "grid_resolution"), ("L", "num_landmarks"), ("M", "num_frames"))
@@ -43,21 +43,21 @@ def _schema_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "schemas"
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(version: int = FORMAT_VERSION) -> dict:
     path = _schema_dir() / f"favormap-map.v{int(version)}.json"
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
-        raise MapFormatError(f"no schema for map format version {version} ({path} is missing; broken installation?)") from None
+        raise MapFormatError(
+            f"no schema for map format version {version} ({path} is missing; broken installation?)"
+        ) from None
 
 
 def numpy_dtype(name: str):
     import h5py
 
     return h5py.string_dtype() if name == "str" else np.dtype(name)
-
-
 
 
 # -- header -----------------------------------------------------------------------------------------
@@ -79,14 +79,18 @@ def check_header(attrs, path="map") -> int:
     fmt = _attr(attrs, "format")
     if fmt != FORMAT:
         if fmt is None:
-            raise MapFormatError(f"{path} is not a favormap map (HDF5 file without format={FORMAT!r}; foreign or incompletely written)")
+            raise MapFormatError(
+                f"{path} is not a favormap map (HDF5 file without format={FORMAT!r}; foreign or incompletely written)"
+            )
         raise MapFormatError(f"{path} is not a favormap map (format attribute is {fmt!r}, expected {FORMAT!r})")
     ver = _attr(attrs, "format_version")
     if isinstance(ver, (bool, np.bool_)) or not isinstance(ver, (int, np.integer)):
         raise MapFormatError(f"{path}: missing or invalid format_version ({ver!r})")
     ver = int(ver)
     if ver > FORMAT_VERSION:
-        raise MapFormatError(f"{path} has map format version {ver}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap")
+        raise MapFormatError(
+            f"{path} has map format version {ver}, this favormap reads up to {FORMAT_VERSION}: upgrade favormap"
+        )
     if ver < 1:
         raise MapFormatError(f"{path}: invalid format_version {ver}")
     return ver
@@ -105,7 +109,7 @@ class MapView:
         self.extra: list[str] = []  # datasets in the file that the schema does not know
 
     @classmethod
-    def from_file(cls, f, version: int) -> "MapView":
+    def from_file(cls, f, version: int) -> MapView:
         import h5py
 
         attrs = {}
@@ -134,13 +138,15 @@ class MapView:
                 view.extra += [f"{g}/{k}" for k in obj.keys() if f"{g}/{k}" not in known]
         return view
 
-    def upgrade(self, to: int | None = None) -> "MapView":
+    def upgrade(self, to: int | None = None) -> MapView:
         """Apply the migrations from ``self.version`` up to ``to`` (default: FORMAT_VERSION)."""
         to = FORMAT_VERSION if to is None else to
         while self.version < to:
             step = MIGRATIONS.get(self.version)
             if step is None:
-                raise MapFormatError(f"no migration from map format version {self.version} to {self.version + 1} (broken installation?)")
+                raise MapFormatError(
+                    f"no migration from map format version {self.version} to {self.version + 1} (broken installation?)"
+                )
             v = self.version
             step(self)
             self.version = v + 1
@@ -210,7 +216,9 @@ def check_attributes(attrs: dict, version: int = FORMAT_VERSION, values: bool = 
     return problems
 
 
-def check_datasets(view: MapView, version: int = FORMAT_VERSION, h5: bool = True, broken: set | None = None) -> list[str]:
+def check_datasets(
+    view: MapView, version: int = FORMAT_VERSION, h5: bool = True, broken: set | None = None
+) -> list[str]:
     """Problems of dataset presence, dtype, shape (dimensions shared between datasets and with the
     attributes) and, for ``h5`` files, chunking with Fletcher-32. The paths whose content cannot be
     interpreted (missing, wrong dtype or shape) are added to ``broken``."""
@@ -239,8 +247,11 @@ def check_datasets(view: MapView, version: int = FORMAT_VERSION, h5: bool = True
             continue
         if want == "str":
             in_h5 = isinstance(obj, h5py.Dataset)
-            if not (dtype.kind == "S" or (dtype.kind == "O" and (not in_h5 or h5py.check_string_dtype(dtype) is not None))
-                    or (dtype.kind == "U" and not in_h5)):
+            if not (
+                dtype.kind == "S"
+                or (dtype.kind == "O" and (not in_h5 or h5py.check_string_dtype(dtype) is not None))
+                or (dtype.kind == "U" and not in_h5)
+            ):
                 problems.append(f"{path!r} has dtype {dtype}, expected strings")
         elif dtype != np.dtype(want):
             problems.append(f"{path!r} has dtype {dtype}, expected {want}")
@@ -291,7 +302,9 @@ def _count(mask) -> str:
     return f"{n} value{'s' if n != 1 else ''}"
 
 
-def check_values(path: str, a: np.ndarray, dims: dict, arrays: dict | None = None, version: int = FORMAT_VERSION) -> tuple[list[str], list[str]]:
+def check_values(
+    path: str, a: np.ndarray, dims: dict, arrays: dict | None = None, version: int = FORMAT_VERSION
+) -> tuple[list[str], list[str]]:
     """(problems, warnings) of the ``values`` constraints of dataset ``path`` for its fully read
     array ``a``. ``arrays`` gives the other datasets (for ``in`` and ``consistent_with``)."""
     spec = load_schema(version)["datasets"][path].get("values", {})
@@ -346,7 +359,9 @@ def check_values(path: str, a: np.ndarray, dims: dict, arrays: dict | None = Non
             last = np.abs(T[:, 3] - [0, 0, 0, 1]).max(1) > tol
             bad = ortho | det | last
             if bad.any():
-                problems.append(f"{path!r}: {_count(bad)} not a rigid transform (rotation + translation, last row 0 0 0 1)")
+                problems.append(
+                    f"{path!r}: {_count(bad)} not a rigid transform (rotation + translation, last row 0 0 0 1)"
+                )
     if spec.get("unique"):
         u, c = np.unique(a, return_counts=True)
         if (c > 1).any():
@@ -355,7 +370,9 @@ def check_values(path: str, a: np.ndarray, dims: dict, arrays: dict | None = Non
         vals = [v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in a.ravel().tolist()]
         bad = sorted({v for v in vals if v not in spec["enum"]})
         if bad:
-            problems.append(f"{path!r}: unknown value(s) {', '.join(map(repr, bad[:3]))} (allowed: {', '.join(spec['enum'])})")
+            problems.append(
+                f"{path!r}: unknown value(s) {', '.join(map(repr, bad[:3]))} (allowed: {', '.join(spec['enum'])})"
+            )
     if "in" in spec and spec["in"] in arrays and arrays[spec["in"]] is not None:
         bad = ~np.isin(a, arrays[spec["in"]])
         if bad.any():
@@ -365,7 +382,9 @@ def check_values(path: str, a: np.ndarray, dims: dict, arrays: dict | None = Non
         idx = idx[(idx >= 0) & (idx < len(a))]
         bad = np.bincount(idx, minlength=len(a)) != a
         if bad.any():
-            warnings.append(f"{path!r}: {_count(bad)} differ from the number of observations in {spec['consistent_with']!r}")
+            warnings.append(
+                f"{path!r}: {_count(bad)} differ from the number of observations in {spec['consistent_with']!r}"
+            )
     return problems, warnings
 
 

@@ -54,8 +54,6 @@ class Report:
         return asdict(self)
 
 
-
-
 def _describe(e: BaseException) -> str:
     if isinstance(e, OSError):
         return f"checksum mismatch or read error ({first_line(e)})"
@@ -112,7 +110,9 @@ def _read_full(ds, path: str, spec: dict, report: Report) -> np.ndarray | None:
                     bad_rows.append((c, d))
     if first_error is not None:
         nbad = sum(d - c for c, d in bad_rows)
-        where = ", ".join(f"{c}" if d == c + 1 else f"{c}-{d - 1}" for c, d in bad_rows[:8]) + (", ..." if len(bad_rows) > 8 else "")
+        where = ", ".join(f"{c}" if d == c + 1 else f"{c}-{d - 1}" for c, d in bad_rows[:8]) + (
+            ", ..." if len(bad_rows) > 8 else ""
+        )
         report.problems.append(f"{path!r}: {_describe(first_error)} in row(s) {where} ({nbad} of {n} rows damaged)")
         return None
     report.datasets_read += 1
@@ -226,9 +226,13 @@ def _validate_open(f, path: Path, report: Report) -> None:
 def format_report(r: Report) -> list[str]:
     """Human-readable lines for ``favormap validate``."""
     if r.valid:
-        ver = f"favormap map v{r.format_version}" + (f", read as v{r.reader_version}" if r.format_version != r.reader_version else "")
-        lines = [f"{r.path}: valid ({ver}, {r.num_landmarks} landmarks, {r.num_frames} frames; "
-                 f"{r.datasets_read} datasets, {r.bytes_read} bytes read, checksums verified)"]
+        ver = f"favormap map v{r.format_version}" + (
+            f", read as v{r.reader_version}" if r.format_version != r.reader_version else ""
+        )
+        lines = [
+            f"{r.path}: valid ({ver}, {r.num_landmarks} landmarks, {r.num_frames} frames; "
+            f"{r.datasets_read} datasets, {r.bytes_read} bytes read, checksums verified)"
+        ]
     else:
         lines = [f"{r.path}: INVALID, {len(r.problems)} problem{'s' if len(r.problems) != 1 else ''}:"]
         lines += [f"  - {p}" for p in r.problems]

@@ -18,10 +18,21 @@ from ..errors import FavormapError, MapFormatError
 from ..io import Camera
 from .fields import field_name, landmark_datasets
 from .model import MapData
-from .schema import FORMAT, FORMAT_VERSION, check_arrays, check_attributes, check_file, check_values, load_schema, numpy_dtype
+from .schema import (
+    FORMAT,
+    FORMAT_VERSION,
+    check_arrays,
+    check_attributes,
+    check_file,
+    check_values,
+    load_schema,
+    numpy_dtype,
+)
 
-POSE_CONVENTION = ("cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
-                   "pixel centre of the top-left pixel at (0.5, 0.5)")
+POSE_CONVENTION = (
+    "cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
+    "pixel centre of the top-left pixel at (0.5, 0.5)"
+)
 
 
 PARTIAL_SUFFIX = ".partial"
@@ -149,8 +160,12 @@ def check_frames(cameras: dict[int, Camera], names, camera_ids, cam_from_world) 
     frames (the schema's value checks). :func:`build.build_map` runs it on its input sequence, so that a
     map the writer would refuse is refused before any image is read, not after the training."""
     datasets = load_schema(FORMAT_VERSION)["datasets"]
-    arrays = {**camera_arrays(cameras), "frames/names": list(names),
-              "frames/camera_ids": np.asarray(camera_ids), "frames/cam_from_world": np.asarray(cam_from_world)}
+    arrays = {
+        **camera_arrays(cameras),
+        "frames/names": list(names),
+        "frames/camera_ids": np.asarray(camera_ids),
+        "frames/cam_from_world": np.asarray(cam_from_world),
+    }
     try:
         stored = {k: _stored(v, datasets[k]) for k, v in arrays.items()}
     except (TypeError, ValueError) as e:
@@ -198,7 +213,7 @@ class MapWriter:
         self._arrays: dict[str, np.ndarray] = {}  # whole datasets, for the cross-dataset value checks
 
     # -- context --------------------------------------------------------------------------------
-    def __enter__(self) -> "MapWriter":
+    def __enter__(self) -> MapWriter:
         self._tmp = self._stack.enter_context(atomic_path(self.path))
         self.f = h5py.File(self._tmp, "w", libver="latest")
         return self
@@ -247,8 +262,10 @@ class MapWriter:
 
     def _refuse(self, problems: list[str]):
         if problems:
-            raise MapFormatError(f"refusing to write an invalid map to {self.path}: {problems[0]}"
-                                 + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+            raise MapFormatError(
+                f"refusing to write an invalid map to {self.path}: {problems[0]}"
+                + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else "")
+            )
 
     def put(self, name: str, data) -> None:
         """Write a whole dataset (cast to the schema dtype)."""
@@ -301,7 +318,7 @@ class MapWriter:
             with np.errstate(over="ignore", invalid="ignore"):
                 block = data.reshape((n,) + ds.shape[1:]).astype(ds.dtype, copy=False)
             self._refuse([f"{p} (rows {start}..{start + n})" for p in check_values(name, block, self.dims)[0]])
-            ds[start:start + n] = block
+            ds[start : start + n] = block
         self._filled[name] += n
 
     # -- finish -----------------------------------------------------------------------------------
@@ -364,7 +381,7 @@ def map_arrays(m: MapData) -> dict:
     }
 
 
-def _write_contents(w: "MapWriter", arrays: dict) -> None:
+def _write_contents(w: MapWriter, arrays: dict) -> None:
     for name, data in arrays.items():
         w.put(name, data)
 
@@ -380,13 +397,19 @@ def write_map(m: MapData, path) -> Path:
     try:
         header = map_header(m)
         arrays = map_arrays(m)
-        stored = {k: _stored(v, spec) for k, spec in load_schema(FORMAT_VERSION)["datasets"].items() for v in [arrays[k]]}
+        stored = {
+            k: _stored(v, spec) for k, spec in load_schema(FORMAT_VERSION)["datasets"].items() for v in [arrays[k]]
+        }
         problems = check_arrays(stored, header_attributes(header, m.num_landmarks, m.num_frames))
     except (TypeError, ValueError, AttributeError, KeyError) as e:
-        raise MapFormatError(f"refusing to write {path}: the map cannot be serialised ({type(e).__name__}: {e})") from None
+        raise MapFormatError(
+            f"refusing to write {path}: the map cannot be serialised ({type(e).__name__}: {e})"
+        ) from None
     if problems:
-        raise MapFormatError(f"refusing to write an invalid map to {path}: {problems[0]}"
-                             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+        raise MapFormatError(
+            f"refusing to write an invalid map to {path}: {problems[0]}"
+            + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else "")
+        )
     with MapWriter(path, header, m.num_landmarks, m.num_frames) as w:
         _write_contents(w, stored)
     return path

@@ -27,8 +27,23 @@ COLOR_BY = ("quality", "track")
 
 # a unit cube around the origin: 8 corners, 12 outward-facing triangles
 _CUBE_V = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
-_CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                    [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int64)
+_CUBE_F = np.array(
+    [
+        [0, 1, 3],
+        [0, 3, 2],
+        [4, 6, 7],
+        [4, 7, 5],
+        [0, 4, 5],
+        [0, 5, 1],
+        [2, 3, 7],
+        [2, 7, 6],
+        [0, 2, 6],
+        [0, 6, 4],
+        [1, 5, 7],
+        [1, 7, 3],
+    ],
+    np.int64,
+)
 
 
 def colormap(values: np.ndarray, lo: float | None = None, hi: float | None = None) -> tuple[np.ndarray, float, float]:
@@ -55,8 +70,13 @@ class ExportResult:
     value_range: tuple
 
     def to_dict(self) -> dict:
-        return {"output": str(self.path), "num_points": self.num_points, "num_boxes": self.num_boxes,
-                "color_by": self.color_by, "value_range": list(self.value_range)}
+        return {
+            "output": str(self.path),
+            "num_points": self.num_points,
+            "num_boxes": self.num_boxes,
+            "color_by": self.color_by,
+            "value_range": list(self.value_range),
+        }
 
 
 def export_landmarks(m, out, boxes: bool = False, color_by: str = "quality") -> ExportResult:

@@ -53,8 +53,9 @@ def write_landmark_metadata(w: MapWriter, arrays: dict) -> None:
         w.put(p, arrays[field_name(p)])
 
 
-def write_frames_and_tracks(w: MapWriter, cameras: dict, names, camera_ids, cam_from_world,
-                            track_landmark, track_frame, track_xy) -> None:
+def write_frames_and_tracks(
+    w: MapWriter, cameras: dict, names, camera_ids, cam_from_world, track_landmark, track_frame, track_xy
+) -> None:
     """The cameras/*, frames/* and tracks/* datasets."""
     for name, arr in camera_arrays(cameras).items():
         w.put(name, arr)
@@ -80,7 +81,7 @@ def copy_voxels(w: MapWriter, sources, chunk: int = 4096, resample: dict | None 
         rows = np.asarray(rows, np.int64)
         W = resample.get(si)
         for a in range(0, len(rows), chunk):
-            r = rows[a:a + chunk]
+            r = rows[a : a + chunk]
             d, s = m.voxels(r)
             if W is not None:
                 d = np.einsum("nr,brc->bnc", W, d, optimize=True)
@@ -108,9 +109,15 @@ class MergeResult:
     warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"output": str(self.path), "num_landmarks": self.num_landmarks, "num_frames": self.num_frames,
-                "num_cameras": self.num_cameras, "sources": self.sources, "ids_regenerated": self.ids_regenerated,
-                "warnings": self.warnings}
+        return {
+            "output": str(self.path),
+            "num_landmarks": self.num_landmarks,
+            "num_frames": self.num_frames,
+            "num_cameras": self.num_cameras,
+            "sources": self.sources,
+            "ids_regenerated": self.ids_regenerated,
+            "warnings": self.warnings,
+        }
 
 
 def check_compatible(maps: list) -> None:
@@ -134,7 +141,9 @@ def resample_matrix(R_b_to_a: np.ndarray, res: int) -> np.ndarray | None:
     g = np.arange(res) / (res - 1)
     u_new = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # (x, y, z) node order
     u_old = (u_new - 0.5) @ R_b_to_a + 0.5  # R^T (u - 0.5) for row vectors
-    u_old = np.where(np.abs(u_old - np.round(u_old * (res - 1)) / (res - 1)) < 1e-9, np.round(u_old * (res - 1)) / (res - 1), u_old)
+    u_old = np.where(
+        np.abs(u_old - np.round(u_old * (res - 1)) / (res - 1)) < 1e-9, np.round(u_old * (res - 1)) / (res - 1), u_old
+    )
     W = trilinear_stencil(torch.as_tensor(u_old, dtype=torch.float64), res).numpy()
     return W.astype(np.float32)
 
@@ -151,8 +160,16 @@ def _frame_scale(cameras_b: dict, frame_cam_b: np.ndarray, max_side_b: int, max_
     return f[np.searchsorted(ids, frame_cam_b)]
 
 
-def merge_maps(paths, out, dedup_radius: float | None = None, transform: np.ndarray | None = None,
-               min_cosine: float = 0.8, dedup: bool = True, chunk: int = 4096, progress=None) -> MergeResult:
+def merge_maps(
+    paths,
+    out,
+    dedup_radius: float | None = None,
+    transform: np.ndarray | None = None,
+    min_cosine: float = 0.8,
+    dedup: bool = True,
+    chunk: int = 4096,
+    progress=None,
+) -> MergeResult:
     """Merge the maps at ``paths`` into ``out`` (atomic). ``transform``: 4x4 b_to_a (rigid or
     similarity) applied to the second and later maps. See the module docstring for the rules."""
     paths = [Path(p) for p in paths]
@@ -187,8 +204,10 @@ def _similarity(transform, res: int, warnings: list) -> _Similarity | None:
     ang = float(np.degrees(np.arccos(np.clip((np.trace(Rot) - 1) / 2, -1, 1))))
     exact = W is None or np.allclose(W, np.round(W), atol=1e-6)
     if not exact:
-        warnings.append(f"the transform rotates by {ang:.2f} deg: voxel grids of the transformed maps were "
-                        "resampled by trilinear interpolation (approximate)")
+        warnings.append(
+            f"the transform rotates by {ang:.2f} deg: voxel grids of the transformed maps were "
+            "resampled by trilinear interpolation (approximate)"
+        )
     return _Similarity(T, scale, Rot, W)
 
 
@@ -278,9 +297,15 @@ def _select_landmarks(maps, meta, dedup: bool, dedup_radius, min_cosine):
         r_all[replace_slot] = replace_by
         new_rows = np.flatnonzero(keep_new)
         src, row = [s_all, np.full(len(new_rows), k, np.int64)], [r_all, new_rows]
-        stats.append(dict(path=str(mk.path), landmarks=len(mk), kept=int(len(new_rows) + len(replace_slot)),
-                          dropped_duplicates=int(len(mk) - len(new_rows) - len(replace_slot)),
-                          replaced=int(len(replace_slot))))
+        stats.append(
+            dict(
+                path=str(mk.path),
+                landmarks=len(mk),
+                kept=int(len(new_rows) + len(replace_slot)),
+                dropped_duplicates=int(len(mk) - len(new_rows) - len(replace_slot)),
+                replaced=int(len(replace_slot)),
+            )
+        )
     s_all, r_all = np.concatenate(src), np.concatenate(row)
     o = np.lexsort((r_all, s_all))
     s_all, r_all = s_all[o], r_all[o]
@@ -364,12 +389,26 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
 
     provenance = {
         "operation": "merge",
-        "merge": {"sources": [dict(path=str(m.path), num_landmarks=len(m), num_frames=m.num_frames, created=m.created,
-                                   favormap_version=m.favormap_version, provenance=m.provenance) for m in maps],
-                  "dedup": bool(dedup), "dedup_radius": dedup_radius if dedup_radius is not None else "voxel_size",
-                  "min_cosine": float(min_cosine),
-                  "transform_b_to_a": None if transform is None else np.asarray(transform).tolist(),
-                  "counts": stats, "ids_regenerated": n_regen, "warnings": warnings},
+        "merge": {
+            "sources": [
+                dict(
+                    path=str(m.path),
+                    num_landmarks=len(m),
+                    num_frames=m.num_frames,
+                    created=m.created,
+                    favormap_version=m.favormap_version,
+                    provenance=m.provenance,
+                )
+                for m in maps
+            ],
+            "dedup": bool(dedup),
+            "dedup_radius": dedup_radius if dedup_radius is not None else "voxel_size",
+            "min_cosine": float(min_cosine),
+            "transform_b_to_a": None if transform is None else np.asarray(transform).tolist(),
+            "counts": stats,
+            "ids_regenerated": n_regen,
+            "warnings": warnings,
+        },
     }
     header = {k: getattr(first, k) for k in MapWriter.HEADER_KEYS}
     header["provenance"] = provenance

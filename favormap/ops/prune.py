@@ -24,7 +24,7 @@ from .merge import copy_voxels, write_frames_and_tracks, write_landmark_metadata
 REASONS = ("min_track", "min_quality", "bbox", "budget")
 
 
-def reason_text(reason: str, res: "PruneResult") -> str:
+def reason_text(reason: str, res: PruneResult) -> str:
     """Why landmarks were removed, in words, with the setting that removed them."""
     p = res.params
     if reason == "min_track":
@@ -38,7 +38,7 @@ def reason_text(reason: str, res: "PruneResult") -> str:
     return f"over the budget of {p['max_landmarks']} landmarks, thinned evenly in space (--max-landmarks{cell})"
 
 
-def removal_summary(res: "PruneResult") -> str:
+def removal_summary(res: PruneResult) -> str:
     """'1101 seen in fewer than 5 frames (--min-track 5), ...' for the reasons that removed landmarks."""
     return "; ".join(f"{v} {reason_text(k, res)}" for k, v in res.removed.items() if v) or "nothing selected"
 
@@ -80,8 +80,9 @@ def even_cell_size(positions: np.ndarray, n: int, iterations: int = 60) -> float
     return hi
 
 
-def spatially_even(positions: np.ndarray, score: np.ndarray, n: int, tiebreak: np.ndarray | None = None,
-                   cell: float | None = None) -> np.ndarray:
+def spatially_even(
+    positions: np.ndarray, score: np.ndarray, n: int, tiebreak: np.ndarray | None = None, cell: float | None = None
+) -> np.ndarray:
     """Sorted rows of at most ``n`` landmarks spread evenly: per occupied cell the best ``score``
     first, ties broken by the larger ``tiebreak`` (see the module docstring). ``cell``: the cell
     size (default :func:`even_cell_size`)."""
@@ -131,13 +132,19 @@ class PruneResult:
     params: dict = field(default_factory=dict)  # the settings: max_landmarks, min_track, min_quality, bbox
 
     def to_dict(self) -> dict:
-        return {"output": None if self.path is None else str(self.path), "num_before": self.num_before,
-                "num_after": self.num_after, "removed": self.removed, "failing": self.failing,
-                "cell_size": self.cell_size}
+        return {
+            "output": None if self.path is None else str(self.path),
+            "num_before": self.num_before,
+            "num_after": self.num_after,
+            "removed": self.removed,
+            "failing": self.failing,
+            "cell_size": self.cell_size,
+        }
 
 
-def select_rows(m, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None,
-                bbox=None) -> PruneResult:
+def select_rows(
+    m, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None, bbox=None
+) -> PruneResult:
     """Which landmarks of ``m`` (a Map or MapData) to keep, and why the others go."""
     L = len(m.ids)
     keep = np.ones(L, bool)
@@ -168,37 +175,66 @@ def select_rows(m, max_landmarks: int | None = None, min_track: int | None = Non
             rows = rows[sel]
         else:
             removed["budget"] = failing["budget"] = 0
-    params = {"max_landmarks": max_landmarks, "min_track": min_track, "min_quality": min_quality,
-              "bbox": None if bbox is None else parse_bbox(bbox).tolist()}
+    params = {
+        "max_landmarks": max_landmarks,
+        "min_track": min_track,
+        "min_quality": min_quality,
+        "bbox": None if bbox is None else parse_bbox(bbox).tolist(),
+    }
     return PruneResult(None, L, len(rows), removed, failing, cell, rows, params)
 
 
-def prune_map(path, out, max_landmarks: int | None = None, min_track: int | None = None, min_quality: float | None = None,
-              bbox=None, chunk: int = 4096, progress=None, allow_empty: bool = False) -> PruneResult:
+def prune_map(
+    path,
+    out,
+    max_landmarks: int | None = None,
+    min_track: int | None = None,
+    min_quality: float | None = None,
+    bbox=None,
+    chunk: int = 4096,
+    progress=None,
+    allow_empty: bool = False,
+) -> PruneResult:
     """Write the pruned map of ``path`` to ``out`` (atomic; voxel grids streamed)."""
     check_output_path(out, [path])  # fail before any work
     with Map.open(path) as m:
         res = select_rows(m, max_landmarks, min_track, min_quality, bbox)
         rows = res.rows
         if len(rows) == 0 and not allow_empty:
-            raise InputError(f"pruning {path} would remove all {res.num_before} landmarks ({removal_summary(res)}); "
-                             "nothing written")
+            raise InputError(
+                f"pruning {path} would remove all {res.num_before} landmarks ({removal_summary(res)}); nothing written"
+            )
         remap = np.full(len(m), -1, np.int64)
         remap[rows] = np.arange(len(rows))
         tl, tf, txy = m.tracks()
         obs = remap[tl] >= 0
         prov = dict(m.provenance)
         prov["operation"] = "prune"
-        prov["prune"] = {"source": str(m.path), "num_before": res.num_before, "num_after": res.num_after,
-                         "max_landmarks": max_landmarks, "min_track": min_track, "min_quality": min_quality,
-                         "bbox": None if bbox is None else parse_bbox(bbox).tolist(), "removed": res.removed,
-                         "cell_size": res.cell_size}
+        prov["prune"] = {
+            "source": str(m.path),
+            "num_before": res.num_before,
+            "num_after": res.num_after,
+            "max_landmarks": max_landmarks,
+            "min_track": min_track,
+            "min_quality": min_quality,
+            "bbox": None if bbox is None else parse_bbox(bbox).tolist(),
+            "removed": res.removed,
+            "cell_size": res.cell_size,
+        }
         header = {k: getattr(m, k) for k in MapWriter.HEADER_KEYS}
         header["provenance"] = prov
         with MapWriter(out, header, len(rows), m.num_frames) as w:
             write_landmark_metadata(w, {field_name(p): getattr(m, field_name(p))[rows] for p in metadata_datasets()})
-            write_frames_and_tracks(w, m.cameras, m.frame_names, m.frame_camera_ids, m.cam_from_world,
-                                    remap[tl[obs]].astype(np.int32), tf[obs], txy[obs])
+            write_frames_and_tracks(
+                w,
+                m.cameras,
+                m.frame_names,
+                m.frame_camera_ids,
+                m.cam_from_world,
+                remap[tl[obs]].astype(np.int32),
+                tf[obs],
+                txy[obs],
+            )
             copy_voxels(w, [(m, rows)], chunk=chunk, progress=progress)
     res.path = Path(out)
     return res

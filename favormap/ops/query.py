@@ -58,8 +58,14 @@ class QueryResult:
         return d
 
 
-def query_pose(m, cam_from_world: np.ndarray, camera: Camera | None = None, mesh=None,
-               limits: ViewLimits | None = None, index: SpatialIndex | None = None) -> QueryResult:
+def query_pose(
+    m,
+    cam_from_world: np.ndarray,
+    camera: Camera | None = None,
+    mesh=None,
+    limits: ViewLimits | None = None,
+    index: SpatialIndex | None = None,
+) -> QueryResult:
     """Landmarks of ``m`` (Map or MapData) visible from ``cam_from_world``: frustum, trained depth
     and viewing-angle ranges (``spatial.visible_rows``), and with a ``mesh`` not occluded by it."""
     cam = default_camera(m) if camera is None else working_camera(camera, m.max_side)
@@ -77,8 +83,9 @@ def query_pose(m, cam_from_world: np.ndarray, camera: Camera | None = None, mesh
     return QueryResult("pose", rows, np.asarray(m.ids)[rows], len(index), None, counts, cam, c)
 
 
-def query_near(m, center, radius: float | None = None, knn: int | None = None,
-               index: SpatialIndex | None = None) -> QueryResult:
+def query_near(
+    m, center, radius: float | None = None, knn: int | None = None, index: SpatialIndex | None = None
+) -> QueryResult:
     """Landmarks within ``radius`` of ``center`` (sorted by distance), or its ``knn`` nearest."""
     center = np.asarray(center, np.float64).reshape(3)
     if not np.all(np.isfinite(center)):

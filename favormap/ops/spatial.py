@@ -53,6 +53,8 @@ def occluded(points: np.ndarray, camera_center: np.ndarray, mesh, tolerance=1e-3
     camera_center = np.asarray(camera_center, np.float64).reshape(3)
     d = points - camera_center
     dist = np.linalg.norm(d, axis=1)
-    rays = np.concatenate([np.broadcast_to(camera_center, d.shape), d / np.maximum(dist[:, None], 1e-12)], 1).astype(np.float32)
+    rays = np.concatenate([np.broadcast_to(camera_center, d.shape), d / np.maximum(dist[:, None], 1e-12)], 1).astype(
+        np.float32
+    )
     t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     return t < dist * (1 - 1e-3) - np.asarray(tolerance, np.float64)

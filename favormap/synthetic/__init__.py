@@ -6,5 +6,18 @@ from .scene import Box, Scene, make_room
 from .sequence import write_sequence
 from .texture import make_texture
 
-__all__ = ["Box", "Scene", "backproject", "camera_path", "make_camera", "make_room", "make_texture", "project",
-           "random_views_near", "render", "render_depth", "surface_distance", "write_sequence"]
+__all__ = [
+    "Box",
+    "Scene",
+    "backproject",
+    "camera_path",
+    "make_camera",
+    "make_room",
+    "make_texture",
+    "project",
+    "random_views_near",
+    "render",
+    "render_depth",
+    "surface_distance",
+    "write_sequence",
+]

@@ -78,8 +78,9 @@ def camera_path(n: int, kind: str = "orbit", seed: int = 0, step: float = 0.07) 
     return [_roll(geometry.look_at(e, t, up=UP), r) for e, t, r in zip(eye, target, roll)]
 
 
-def random_views_near(poses, n: int, seed: int = 0, max_trans: float = 0.1, max_rot_deg: float = 5.0,
-                      scene: Scene | None = None) -> list[np.ndarray]:
+def random_views_near(
+    poses, n: int, seed: int = 0, max_trans: float = 0.1, max_rot_deg: float = 5.0, scene: Scene | None = None
+) -> list[np.ndarray]:
     """``n`` held-out poses near a path: each interpolates two consecutive ``poses`` at a random
     fraction (centre linearly, rotation by slerp), then moves by up to ``max_trans`` units and
     rotates by up to ``max_rot_deg`` degrees in random directions.  With ``scene``, poses whose
@@ -101,8 +102,9 @@ def random_views_near(poses, n: int, seed: int = 0, max_trans: float = 0.1, max_
         wfc = np.eye(4)
         wfc[:3, :3] = geometry.slerp(A[:3, :3], B[:3, :3], w)
         wfc[:3, 3] = (1 - w) * A[:3, 3] + w * B[:3, 3]
-        T = geometry.perturb_pose(geometry.inverse(wfc), float(rng.uniform(0, max_trans)),
-                                  float(rng.uniform(0, max_rot_deg)), rng)
+        T = geometry.perturb_pose(
+            geometry.inverse(wfc), float(rng.uniform(0, max_trans)), float(rng.uniform(0, max_rot_deg)), rng
+        )
         if scene is not None and not scene.camera_is_valid(geometry.camera_centers(T)):
             continue
         out.append(T)

@@ -67,8 +67,9 @@ def render_depth(scene: Scene, camera: Camera, cam_from_world: np.ndarray) -> np
     return t.reshape(camera.height, camera.width).astype(np.float32)
 
 
-def render(scene: Scene, camera: Camera, cam_from_world: np.ndarray, ss: int = 2,
-           with_depth: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+def render(
+    scene: Scene, camera: Camera, cam_from_world: np.ndarray, ss: int = 2, with_depth: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Render ``scene`` seen by ``camera`` (any supported model: distortion is applied) at ``cam_from_world``.
 
     Returns (rgb uint8 HxWx3, depth float32 HxW): the colour is averaged over ``ss x ss`` samples
@@ -97,8 +98,14 @@ def render(scene: Scene, camera: Camera, cam_from_world: np.ndarray, ss: int = 2
     mapy = offsets[tex, 1] + np.clip(t_coord - 0.5, -0.5, tht - 0.5)
     mapx[~hit] = -10.0
     mapy[~hit] = -10.0
-    img = cv2.remap(atlas, mapx.reshape(H, W), mapy.reshape(H, W), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    img = cv2.remap(
+        atlas,
+        mapx.reshape(H, W),
+        mapy.reshape(H, W),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0),
+    )
     shade = np.where(hit, scene.face_shade[f], 0).astype(np.float32)
     img = img.astype(np.float32) * shade.reshape(H, W, 1)
     if ss > 1:

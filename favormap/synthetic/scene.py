@@ -84,8 +84,10 @@ class Scene:
             import open3d as o3d
 
             rc = o3d.t.geometry.RaycastingScene()
-            rc.add_triangles(o3d.core.Tensor(np.ascontiguousarray(self.vertices, dtype=np.float32)),
-                             o3d.core.Tensor(np.ascontiguousarray(self.triangles, dtype=np.uint32)))
+            rc.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(self.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(self.triangles, dtype=np.uint32)),
+            )
             self._raycaster = rc
         return self._raycaster
 
@@ -196,8 +198,19 @@ def make_room(seed: int = 0, texels_per_unit: float = 400.0) -> Scene:
 @functools.lru_cache(maxsize=2)
 def _cached_room(seed: int, texels_per_unit: float) -> Scene:
     scene = _build_room(seed, texels_per_unit)
-    for name in ("vertices", "triangles", "tri_face", "face_origin", "face_u", "face_v", "face_size", "face_normal",
-                 "face_tex", "face_shade", "bounds"):
+    for name in (
+        "vertices",
+        "triangles",
+        "tri_face",
+        "face_origin",
+        "face_u",
+        "face_v",
+        "face_size",
+        "face_normal",
+        "face_tex",
+        "face_shade",
+        "bounds",
+    ):
         getattr(scene, name).flags.writeable = False
     for t in scene.textures:
         t.flags.writeable = False
@@ -226,11 +239,18 @@ def _build_room(seed: int, texels_per_unit: float) -> Scene:
     crate = (0.85 + jit(0.05), 0.65 + jit(0.05), 0.7 + jit(0.05))
     crate_xy = (-1.0 + jit(0.05), 0.85 + jit(0.05))
     boxes.append(b.box(crate_xy, crate, yaw=np.radians(jit(3))))
-    boxes.append(b.box((crate_xy[0] + 0.1, crate_xy[1] - 0.05), (0.35, 0.3, 0.25 + jit(0.03)), z0=crate[2],
-                       yaw=np.radians(20 + jit(5))))
+    boxes.append(
+        b.box(
+            (crate_xy[0] + 0.1, crate_xy[1] - 0.05),
+            (0.35, 0.3, 0.25 + jit(0.03)),
+            z0=crate[2],
+            yaw=np.radians(20 + jit(5)),
+        )
+    )
     boxes.append(b.box((1.15 + jit(0.05), 1.0 + jit(0.05)), (0.45, 0.4, 1.35 + jit(0.05)), yaw=np.radians(jit(4))))
-    boxes.append(b.box((0.15 + jit(0.05), 0.35 + jit(0.05)), (0.5, 0.45, 0.42 + jit(0.04)),
-                       yaw=np.radians(32 + jit(5))))
+    boxes.append(
+        b.box((0.15 + jit(0.05), 0.35 + jit(0.05)), (0.5, 0.45, 0.42 + jit(0.04)), yaw=np.radians(32 + jit(5)))
+    )
     # a panel on the far wall: its back face lies on the wall and is skipped
     boxes.append(b.box((0.1 + jit(0.05), y1 - 0.03), (1.1, 0.06, 0.7), z0=1.25 + jit(0.05), skip=("bottom", "+y")))
     return b.build((ROOM_MIN, ROOM_MAX), boxes, seed)

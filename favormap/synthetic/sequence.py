@@ -13,9 +13,21 @@ from .render import render
 from .scene import Scene, make_room
 
 
-def write_sequence(root, n_frames: int = 30, width: int = 640, height: int = 480, fov_deg: float = 60.0,
-                   seed: int = 0, path: str = "orbit", depth: bool = False, ss: int = 2,
-                   poses=None, scene: Scene | None = None, step: float = 0.07, camera: Camera | None = None) -> Sequence:
+def write_sequence(
+    root,
+    n_frames: int = 30,
+    width: int = 640,
+    height: int = 480,
+    fov_deg: float = 60.0,
+    seed: int = 0,
+    path: str = "orbit",
+    depth: bool = False,
+    ss: int = 2,
+    poses=None,
+    scene: Scene | None = None,
+    step: float = 0.07,
+    camera: Camera | None = None,
+) -> Sequence:
     """Render a posed sequence of the room into ``root`` in the plain favormap layout:
     ``root/images/000000.png ...`` and ``root/sequence.json`` (one PINHOLE camera, id 0); with
     ``depth``, also ``root/depth/000000.npy ...`` (float32 z-depth, inf where nothing is hit).
@@ -48,8 +60,15 @@ def write_sequence(root, n_frames: int = 30, width: int = 640, height: int = 480
             np.save(root / dname, d)
             depth_files.append(dname)
         frames.append(Frame(name, root / name, 0, T))
-    extra = {"synthetic": {"scene": "room", "seed": int(seed), "path": "custom" if custom else path,
-                           "fov_deg": float(fov_deg), "ss": int(ss)}}
+    extra = {
+        "synthetic": {
+            "scene": "room",
+            "seed": int(seed),
+            "path": "custom" if custom else path,
+            "fov_deg": float(fov_deg),
+            "ss": int(ss),
+        }
+    }
     if depth:
         extra["depth"] = depth_files
     seq = Sequence(root, favormap_layout.NAME, {0: camera}, frames, extra)

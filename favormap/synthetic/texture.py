@@ -11,13 +11,20 @@ import numpy as np
 _ATLAS_WIDTH = 4096
 _ATLAS_PAD = 2
 
-_FONTS = [cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
-          cv2.FONT_HERSHEY_TRIPLEX, cv2.FONT_HERSHEY_PLAIN, cv2.FONT_HERSHEY_SCRIPT_SIMPLEX]
+_FONTS = [
+    cv2.FONT_HERSHEY_SIMPLEX,
+    cv2.FONT_HERSHEY_DUPLEX,
+    cv2.FONT_HERSHEY_COMPLEX,
+    cv2.FONT_HERSHEY_TRIPLEX,
+    cv2.FONT_HERSHEY_PLAIN,
+    cv2.FONT_HERSHEY_SCRIPT_SIMPLEX,
+]
 _CHARS = string.ascii_letters + string.digits + "#%&@?+"
 
 
-def _smooth_noise(h: int, w: int, rng: np.random.Generator, base, amplitude: float, finest: float = 2.5,
-                  decay: float = 0.72) -> np.ndarray:
+def _smooth_noise(
+    h: int, w: int, rng: np.random.Generator, base, amplitude: float, finest: float = 2.5, decay: float = 0.72
+) -> np.ndarray:
     """Multi-octave smooth colour noise ``base + amplitude * noise`` as (h,w,3) uint8, the noise
     with zero mean and unit std: white noise added at every level of a pyramid that is upsampled
     by 2 per level (coarsest cell ~ half the texture, finest ~``finest`` texels), each octave with
@@ -39,8 +46,7 @@ def _smooth_noise(h: int, w: int, rng: np.random.Generator, base, amplitude: flo
     # finest grid -> texels: one grid cell is ``finest`` texels; random sub-cell offset
     oy, ox = rng.uniform(0, 1, 2)
     A = np.array([[1 / finest, 0, ox], [0, 1 / finest, oy]], np.float32)
-    return cv2.warpAffine(small, A, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REFLECT)
+    return cv2.warpAffine(small, A, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
 
 
 def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_unit: float = 400.0) -> np.ndarray:
@@ -103,8 +109,14 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
                 cv2.polylines(img, [pts], True, col, thick, aa)
         elif kind < 0.85:
             dx, dy = np.cos(a) * r * 1.5, np.sin(a) * r * 1.5
-            cv2.line(img, (int(cx - dx), int(cy - dy)), (int(cx + dx), int(cy + dy)), col,
-                     1 + int(u_all[i] * max(1.0, r / 5)), aa)
+            cv2.line(
+                img,
+                (int(cx - dx), int(cy - dy)),
+                (int(cx + dx), int(cy + dy)),
+                col,
+                1 + int(u_all[i] * max(1.0, r / 5)),
+                aa,
+            )
         else:
             cv2.circle(img, (int(cx), int(cy)), max(1, int(r)), col, thick, aa)
 
@@ -120,10 +132,18 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     tcol = colours(m)
     pos = 0
     for i in range(m):
-        s = "".join(_CHARS[c] for c in chars[pos:pos + lens[i]])
+        s = "".join(_CHARS[c] for c in chars[pos : pos + lens[i]])
         pos += lens[i]
-        cv2.putText(img, s, (int(ox[i]), int(oy[i])), _FONTS[int(fonts[i])], float(scales[i]), tuple(tcol[i]),
-                    int(thicks[i]), aa)
+        cv2.putText(
+            img,
+            s,
+            (int(ox[i]), int(oy[i])),
+            _FONTS[int(fonts[i])],
+            float(scales[i]),
+            tuple(tcol[i]),
+            int(thicks[i]),
+            aa,
+        )
     return img
 
 
@@ -145,6 +165,8 @@ def _pack_atlas(textures: list) -> tuple[np.ndarray, np.ndarray]:
     atlas = np.zeros((y + shelf_h, width, 3), np.uint8)
     for i, (x, y) in places.items():
         th, tw = textures[i].shape[:2]
-        atlas[y:y + th + 2 * p, x:x + tw + 2 * p] = cv2.copyMakeBorder(textures[i], p, p, p, p, cv2.BORDER_REPLICATE)
+        atlas[y : y + th + 2 * p, x : x + tw + 2 * p] = cv2.copyMakeBorder(
+            textures[i], p, p, p, p, cv2.BORDER_REPLICATE
+        )
         offsets[i] = (x + p, y + p)
     return atlas, offsets

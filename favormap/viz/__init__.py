@@ -21,15 +21,19 @@ __all__ = ["add_rerun_args", "recording_from_args", "rerun_requested", "DEFAULT_
 def add_rerun_args(parser: argparse.ArgumentParser, spawn_by_default: bool = False) -> None:
     """Add ``--rerun``, ``--rerun-save FILE`` and ``--rerun-connect URL`` to a subcommand parser."""
     g = parser.add_argument_group("rerun visualisation (see docs/rerun.md)")
-    g.add_argument("--rerun", action="store_true",
-                   help="spawn a rerun viewer and stream to it" + (" (the default)" if spawn_by_default else ""))
+    g.add_argument(
+        "--rerun",
+        action="store_true",
+        help="spawn a rerun viewer and stream to it" + (" (the default)" if spawn_by_default else ""),
+    )
     g.add_argument("--rerun-save", metavar="FILE.rrd", help="write a rerun recording to this file")
-    g.add_argument("--rerun-connect", metavar="URL",
-                   help=f"stream to a running rerun viewer, e.g. {DEFAULT_URL}")
+    g.add_argument("--rerun-connect", metavar="URL", help=f"stream to a running rerun viewer, e.g. {DEFAULT_URL}")
 
 
 def rerun_requested(args) -> bool:
-    return bool(getattr(args, "rerun", False) or getattr(args, "rerun_save", None) or getattr(args, "rerun_connect", None))
+    return bool(
+        getattr(args, "rerun", False) or getattr(args, "rerun_save", None) or getattr(args, "rerun_connect", None)
+    )
 
 
 def recording_from_args(args, app_id: str, map_=None, spawn: bool = False):
@@ -53,6 +57,12 @@ def recording_from_args(args, app_id: str, map_=None, spawn: bool = False):
         methods = ["rendered"] + ([] if getattr(args, "no_baseline", False) else ["mean"])
     elif kind == "localize":
         methods = [getattr(args, "descriptors", None) or "rendered"]
-    return Recording(app_id, kind=kind, spawn=bool(spawn or getattr(args, "rerun", False)),
-                     save=getattr(args, "rerun_save", None), connect=getattr(args, "rerun_connect", None),
-                     map_=map_, methods=methods)
+    return Recording(
+        app_id,
+        kind=kind,
+        spawn=bool(spawn or getattr(args, "rerun", False)),
+        save=getattr(args, "rerun_save", None),
+        connect=getattr(args, "rerun_connect", None),
+        map_=map_,
+        methods=methods,
+    )

@@ -92,8 +92,15 @@ def frustum_segments(cam_from_world: np.ndarray, Ks: np.ndarray, sizes: np.ndarr
     if n == 0:
         return np.zeros((0, 2, 3))
     w, h = sizes[:, 0].astype(np.float64), sizes[:, 1].astype(np.float64)
-    px = np.stack([np.stack([np.zeros(n), np.zeros(n)], 1), np.stack([w, np.zeros(n)], 1),
-                   np.stack([w, h], 1), np.stack([np.zeros(n), h], 1)], 1)  # (n, 4, 2)
+    px = np.stack(
+        [
+            np.stack([np.zeros(n), np.zeros(n)], 1),
+            np.stack([w, np.zeros(n)], 1),
+            np.stack([w, h], 1),
+            np.stack([np.zeros(n), h], 1),
+        ],
+        1,
+    )  # (n, 4, 2)
     rays = geometry.unproject(np.asarray(Ks)[:, None], px) * depth
     wfc = geometry.inverse(T)
     corners = np.einsum("nij,nkj->nki", wfc[:, :3, :3], rays) + wfc[:, None, :3, 3]
@@ -150,8 +157,11 @@ def _guarded(fn):
             if self.strict:
                 raise
             self._failed = True
-            print(f"favormap: rerun logging failed ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
-                  "continuing without it", file=sys.stderr)
+            print(
+                f"favormap: rerun logging failed ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+                "continuing without it",
+                file=sys.stderr,
+            )
             return None
 
     return wrapper
@@ -161,8 +171,19 @@ class RecordingBase:
     """Sinks, lifecycle, timelines and the map view; the per-command logs are mixins over it
     (:mod:`.build_log`, :mod:`.localize_log`, :mod:`.ops_log`), put together in :mod:`.recording`."""
 
-    def __init__(self, app_id: str, kind: str = "view", *, spawn: bool = False, save=None, connect: str | None = None,
-                 map_=None, methods: list[str] | None = None, port: int = DEFAULT_PORT, strict: bool | None = None):
+    def __init__(
+        self,
+        app_id: str,
+        kind: str = "view",
+        *,
+        spawn: bool = False,
+        save=None,
+        connect: str | None = None,
+        map_=None,
+        methods: list[str] | None = None,
+        port: int = DEFAULT_PORT,
+        strict: bool | None = None,
+    ):
         self.kind = kind
         self.methods = list(methods or ["rendered"])
         self.strict = (os.environ.get("FAVORMAP_RERUN_STRICT", "") not in ("", "0")) if strict is None else strict
@@ -215,8 +236,11 @@ class RecordingBase:
             if self.strict:
                 raise
             ok = False
-            print(f"favormap: warning: the rerun recording was not fully delivered "
-                  f"({str(e).splitlines()[0] if str(e) else type(e).__name__})", file=sys.stderr)
+            print(
+                f"favormap: warning: the rerun recording was not fully delivered "
+                f"({str(e).splitlines()[0] if str(e) else type(e).__name__})",
+                file=sys.stderr,
+            )
         finally:
             self.rec.disconnect()
         return ok
@@ -252,20 +276,29 @@ class RecordingBase:
         if vc is not None and path == "world/map":
             self.rec.log("world", vc, static=True)
         depth_range = getattr(m, "depth_range", None)
-        depth = frustum_depth(T, None if depth_range is None or len(depth_range) == 0 else np.asarray(depth_range)[:, 0])
+        depth = frustum_depth(
+            T, None if depth_range is None or len(depth_range) == 0 else np.asarray(depth_range)[:, 0]
+        )
         if path == "world/map":
             self._map_positions = P
             self._map_max_side = int(getattr(m, "max_side", 640) or 0)
             self._depth = depth
             ids = np.asarray(getattr(m, "frame_camera_ids", []))
             cams = getattr(m, "cameras", {}) or {}
-            self._map_camera = cams.get(int(ids[0])) if len(ids) and int(ids[0]) in cams else next(iter(cams.values()), None)
+            self._map_camera = (
+                cams.get(int(ids[0])) if len(ids) and int(ids[0]) in cams else next(iter(cams.values()), None)
+            )
         vals = q if color_by == "quality" else np.asarray(m.track_length, np.float64)
-        self.rec.log(f"{path}/landmarks", rr.Points3D(P, colors=colormap(vals), radii=rr.Radius.ui_points(2.0)), static=True)
+        self.rec.log(
+            f"{path}/landmarks", rr.Points3D(P, colors=colormap(vals), radii=rr.Radius.ui_points(2.0)), static=True
+        )
         if voxels and len(P):
             half = np.repeat(np.asarray(m.voxel_size, np.float64)[:, None] / 2, 3, axis=1)
-            self.rec.log(f"{path}/voxels", rr.Boxes3D(centers=P, half_sizes=half, colors=colormap(q),
-                                                      radii=rr.Radius.ui_points(0.5)), static=True)
+            self.rec.log(
+                f"{path}/voxels",
+                rr.Boxes3D(centers=P, half_sizes=half, colors=colormap(q), radii=rr.Radius.ui_points(0.5)),
+                static=True,
+            )
         if len(T):
             cams = getattr(m, "cameras", {}) or {}
             ids = np.asarray(getattr(m, "frame_camera_ids", np.zeros(len(T), int)))
@@ -274,32 +307,60 @@ class RecordingBase:
                 fallback = next(iter(wcams.values()))
                 wc = [wcams.get(int(i), fallback) for i in ids]
                 self._log_path(path, T, np.stack([c.K for c in wc]), np.array([[c.width, c.height] for c in wc]), depth)
-        info = m.info() if hasattr(m, "info") else {"num_landmarks": len(P), "num_frames": len(T), "extractor": getattr(m, "extractor", "?")}
+        info = (
+            m.info()
+            if hasattr(m, "info")
+            else {"num_landmarks": len(P), "num_frames": len(T), "extractor": getattr(m, "extractor", "?")}
+        )
         rows = [(k, v) for k, v in info.items() if not isinstance(v, (dict, list))]
         rows.append(("landmark colours", color_by.replace("_", " ") + " (viridis, 2nd-98th percentile)"))
         if len(q):
-            rows.append(("voxel colours", f"quality = PSNR dB, {np.percentile(q, 2):.1f} (dark) .. {np.percentile(q, 98):.1f} (yellow)"))
+            rows.append(
+                (
+                    "voxel colours",
+                    f"quality = PSNR dB, {np.percentile(q, 2):.1f} (dark) .. {np.percentile(q, 98):.1f} (yellow)",
+                )
+            )
         doc_path = "map" if path == "world/map" else f"map/{path.split('/')[-1]}"
-        self.rec.log(doc_path, rr.TextDocument(markdown_table(rows, ("", "")), media_type=rr.MediaType.MARKDOWN), static=True)
+        self.rec.log(
+            doc_path, rr.TextDocument(markdown_table(rows, ("", "")), media_type=rr.MediaType.MARKDOWN), static=True
+        )
 
-    def _log_path(self, path: str, T: np.ndarray, Ks: np.ndarray, sizes: np.ndarray, depth: float, line: bool = True) -> None:
+    def _log_path(
+        self, path: str, T: np.ndarray, Ks: np.ndarray, sizes: np.ndarray, depth: float, line: bool = True
+    ) -> None:
         """Static camera path: a line through the centres and (at most MAX_FRUSTUMS) wireframe frustums."""
         if line:
             c = geometry.camera_centers(T)
-            self.rec.log(f"{path}/trajectory", rr.LineStrips3D([c], colors=[GREY], radii=rr.Radius.ui_points(1.0)), static=True)
+            self.rec.log(
+                f"{path}/trajectory", rr.LineStrips3D([c], colors=[GREY], radii=rr.Radius.ui_points(1.0)), static=True
+            )
         sel = np.unique(np.linspace(0, len(T) - 1, min(len(T), MAX_FRUSTUMS)).round().astype(int))
         seg = frustum_segments(T[sel], Ks[sel], sizes[sel], depth)
-        self.rec.log(f"{path}/trajectory/frustums", rr.LineStrips3D(seg, colors=[GREY], radii=rr.Radius.ui_points(0.75)), static=True)
+        self.rec.log(
+            f"{path}/trajectory/frustums",
+            rr.LineStrips3D(seg, colors=[GREY], radii=rr.Radius.ui_points(0.75)),
+            static=True,
+        )
 
     # -- generic ------------------------------------------------------------------------------------
     @_guarded
     def log_text(self, path: str, text: str, markdown: bool = True) -> None:
         self._at()
-        self.rec.log(path, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN if markdown else rr.MediaType.TEXT), static=True)
+        self.rec.log(
+            path,
+            rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN if markdown else rr.MediaType.TEXT),
+            static=True,
+        )
 
     @_guarded
     def log_points(self, path: str, positions, color=(240, 60, 50), radius: float = 3.0) -> None:
         """Static 3D points, e.g. the landmarks ``prune`` removed."""
         self._at()
-        self.rec.log(path, rr.Points3D(np.asarray(positions, np.float64).reshape(-1, 3), colors=[color],
-                                       radii=rr.Radius.ui_points(radius)), static=True)
+        self.rec.log(
+            path,
+            rr.Points3D(
+                np.asarray(positions, np.float64).reshape(-1, 3), colors=[color], radii=rr.Radius.ui_points(radius)
+            ),
+            static=True,
+        )

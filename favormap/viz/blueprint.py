@@ -15,8 +15,10 @@ def build_blueprint() -> rrb.Blueprint:
                     rrb.TimeSeriesView(origin="train/loss", name="loss (timeline: iteration)"),
                     rrb.TimeSeriesView(origin="train/psnr", name="PSNR dB (timeline: iteration)"),
                 ),
-                rrb.Horizontal(rrb.TextDocumentView(origin="build/timings", name="timings"),
-                               rrb.TextDocumentView(origin="build/stats", name="statistics")),
+                rrb.Horizontal(
+                    rrb.TextDocumentView(origin="build/timings", name="timings"),
+                    rrb.TextDocumentView(origin="build/stats", name="statistics"),
+                ),
                 row_shares=[3, 2, 2],
             ),
             column_shares=[3, 2],
@@ -28,11 +30,15 @@ def build_blueprint() -> rrb.Blueprint:
 
 def localize_blueprint(methods: list[str], with_errors: bool) -> rrb.Blueprint:
     images = [rrb.Spatial2DView(origin=f"world/query/{m}/estimate", name=f"query ({m})") for m in methods]
-    plots = [rrb.TimeSeriesView(origin="metrics/inliers", name="inliers"),
-             rrb.TimeSeriesView(origin="metrics/similarity", name="match similarity")]
+    plots = [
+        rrb.TimeSeriesView(origin="metrics/inliers", name="inliers"),
+        rrb.TimeSeriesView(origin="metrics/similarity", name="match similarity"),
+    ]
     if with_errors:
-        plots = [rrb.TimeSeriesView(origin="metrics/translation_error", name="translation error"),
-                 rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="rotation error (deg)")] + plots
+        plots = [
+            rrb.TimeSeriesView(origin="metrics/translation_error", name="translation error"),
+            rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="rotation error (deg)"),
+        ] + plots
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(origin="world", name="map & poses"),

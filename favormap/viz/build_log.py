@@ -104,30 +104,46 @@ class BuildLog(RecordingBase):
         lengths = lms.tracks.lengths.astype(np.float64)
         lo, hi = (float(lengths.min()), float(np.percentile(lengths, 98))) if len(lengths) else (0.0, 1.0)
         self._at()
-        self.rec.log("world/map/landmarks", rr.Points3D(lms.positions, colors=colormap(lengths, lo, hi),
-                                                        radii=rr.Radius.ui_points(2.0)), static=True)
+        self.rec.log(
+            "world/map/landmarks",
+            rr.Points3D(lms.positions, colors=colormap(lengths, lo, hi), radii=rr.Radius.ui_points(2.0)),
+            static=True,
+        )
         if self._frame_scale is not None and len(lms):
             # now that the scene depth is known, redraw the frustums at 1/5 of the median viewing distance
             centers = geometry.camera_centers(self._frame_T)[lms.tracks.frame_idx]
             dist = np.linalg.norm(lms.positions[lms.tracks.track_of_obs] - centers, axis=1)
             self._depth = frustum_depth(self._frame_T, dist)
-            self._log_path("world/map", self._frame_T, np.stack([c.K for c in self._frame_cams]),
-                           np.array([[c.width, c.height] for c in self._frame_cams]), self._depth, line=False)
+            self._log_path(
+                "world/map",
+                self._frame_T,
+                np.stack([c.K for c in self._frame_cams]),
+                np.array([[c.width, c.height] for c in self._frame_cams]),
+                self._depth,
+                line=False,
+            )
             for i, (K, w, h) in enumerate(self._frame_pinholes):
                 self._at("frame", i)
                 self.rec.log("world/camera", _pinhole(K, w, h, self._depth))
             obs_colors = colormap(lengths[lms.tracks.track_of_obs], lo, hi)
-            self._per_frame_points("world/camera/image/landmarks", lms.tracks.frame_idx, lms.tracks.xy, obs_colors, 3.5,
-                                   len(ff.features))
+            self._per_frame_points(
+                "world/camera/image/landmarks", lms.tracks.frame_idx, lms.tracks.xy, obs_colors, 3.5, len(ff.features)
+            )
 
     def _per_frame_points(self, path, frame_idx, xy, colors, radius, n_frames) -> None:
         order = np.argsort(frame_idx, kind="stable")
         bounds = np.searchsorted(np.asarray(frame_idx)[order], np.arange(n_frames + 1))
         for f in range(n_frames):
-            sel = order[bounds[f]:bounds[f + 1]]
+            sel = order[bounds[f] : bounds[f + 1]]
             self._at("frame", f)
-            self.rec.log(path, rr.Points2D(np.asarray(xy, np.float64)[sel] * self._frame_scale[f], colors=colors[sel],
-                                           radii=rr.Radius.ui_points(radius)))
+            self.rec.log(
+                path,
+                rr.Points2D(
+                    np.asarray(xy, np.float64)[sel] * self._frame_scale[f],
+                    colors=colors[sel],
+                    radii=rr.Radius.ui_points(radius),
+                ),
+            )
 
     @_guarded
     def log_train_step(self, iteration: int, loss: float, psnr: float) -> None:
@@ -147,13 +163,26 @@ class BuildLog(RecordingBase):
         P = np.asarray(m.positions, np.float64)
         if len(P):
             half = np.repeat(np.asarray(m.voxel_size, np.float64)[:, None] / 2, 3, axis=1)
-            self.rec.log("world/map/voxels", rr.Boxes3D(centers=P, half_sizes=half, colors=colormap(m.quality),
-                                                        radii=rr.Radius.ui_points(0.5)), static=True)
+            self.rec.log(
+                "world/map/voxels",
+                rr.Boxes3D(centers=P, half_sizes=half, colors=colormap(m.quality), radii=rr.Radius.ui_points(0.5)),
+                static=True,
+            )
         rows = [(k, f"{v:.3f}") for k, v in timings.items()] + [("**total**", f"**{sum(timings.values()):.3f}**")]
-        self.rec.log("build/timings", rr.TextDocument("### seconds per stage\n\n" + markdown_table(rows, ("stage", "s")),
-                                                      media_type=rr.MediaType.MARKDOWN), static=True)
+        self.rec.log(
+            "build/timings",
+            rr.TextDocument(
+                "### seconds per stage\n\n" + markdown_table(rows, ("stage", "s")), media_type=rr.MediaType.MARKDOWN
+            ),
+            static=True,
+        )
         st = (getattr(m, "provenance", None) or {}).get("stats", {})
         if st:
             rows = [(k, f"{v:.4g}" if isinstance(v, float) else v) for k, v in st.items()]
-            self.rec.log("build/stats", rr.TextDocument("### build statistics\n\n" + markdown_table(rows, ("", "")),
-                                                        media_type=rr.MediaType.MARKDOWN), static=True)
+            self.rec.log(
+                "build/stats",
+                rr.TextDocument(
+                    "### build statistics\n\n" + markdown_table(rows, ("", "")), media_type=rr.MediaType.MARKDOWN
+                ),
+                static=True,
+            )

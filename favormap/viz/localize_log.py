@@ -45,8 +45,16 @@ class LocalizeLog(RecordingBase):
         return prepare_image(img, cam, self._map_max_side or None)
 
     @_guarded
-    def log_localization(self, index: int, image, result, prior: np.ndarray, camera=None, gt: np.ndarray | None = None,
-                         method: str | None = None) -> None:
+    def log_localization(
+        self,
+        index: int,
+        image,
+        result,
+        prior: np.ndarray,
+        camera=None,
+        gt: np.ndarray | None = None,
+        method: str | None = None,
+    ) -> None:
         """One query (timeline ``query``): prior, the pose after each iteration, the final pose with the
         query image, its keypoints and the matches (inliers green, outliers red), the inlier
         landmarks in 3D, per-match similarity when the result carries it, and per-query metrics."""
@@ -67,19 +75,30 @@ class LocalizeLog(RecordingBase):
         its = list(result.iterations)
         path = ([prior] if prior is not None else []) + [np.asarray(it.cam_from_world) for it in its]
         centers = geometry.camera_centers(np.stack(path)) if path else np.zeros((0, 3))
-        self.rec.log(f"{base}/iterations", rr.LineStrips3D([centers], colors=[SERIES.get(method, (70, 130, 255))],
-                                                           radii=rr.Radius.ui_points(1.5)))
+        self.rec.log(
+            f"{base}/iterations",
+            rr.LineStrips3D([centers], colors=[SERIES.get(method, (70, 130, 255))], radii=rr.Radius.ui_points(1.5)),
+        )
         for k, it in enumerate(its, 1):
             shade = int(80 + 150 * k / max(len(its), 1))
-            self.rec.log(f"{base}/iterations/{k}", _transform(np.asarray(it.cam_from_world)),
-                         _pinhole(K, w, h, depth * 0.8, (60, 90, shade)))
+            self.rec.log(
+                f"{base}/iterations/{k}",
+                _transform(np.asarray(it.cam_from_world)),
+                _pinhole(K, w, h, depth * 0.8, (60, 90, shade)),
+            )
         # final estimate with the query image and the 2D matches
         final = np.asarray(result.cam_from_world, np.float64)
-        self.rec.log(f"{base}/estimate", _transform(final), _pinhole(K, w, h, depth, INLIER if result.success else OUTLIER))
+        self.rec.log(
+            f"{base}/estimate", _transform(final), _pinhole(K, w, h, depth, INLIER if result.success else OUTLIER)
+        )
         self.rec.log(f"{base}/estimate/image", enc)
         kp = np.zeros((0, 2)) if result.keypoints is None else np.asarray(result.keypoints, np.float64) * s
         self.rec.log(f"{base}/estimate/image/keypoints", rr.Points2D(kp, colors=[GREY], radii=rr.Radius.ui_points(1.5)))
-        matches = np.zeros((0, 2), np.int64) if result.matches is None else np.asarray(result.matches, np.int64).reshape(-1, 2)
+        matches = (
+            np.zeros((0, 2), np.int64)
+            if result.matches is None
+            else np.asarray(result.matches, np.int64).reshape(-1, 2)
+        )
         inl = np.zeros(len(matches), bool)
         if result.inlier_mask is not None and len(result.inlier_mask) == len(matches):
             inl = np.asarray(result.inlier_mask, bool)
@@ -93,30 +112,51 @@ class LocalizeLog(RecordingBase):
             for flag in (True, False):
                 sel = (inl == flag) & front
                 strips[flag] = np.stack([q[sel], uv[sel]], 1)
-            self.rec.log(f"{base}/inliers", rr.Points3D(self._map_positions[matches[inl, 0]], colors=[INLIER],
-                                                        radii=rr.Radius.ui_points(4.0)))
+            self.rec.log(
+                f"{base}/inliers",
+                rr.Points3D(self._map_positions[matches[inl, 0]], colors=[INLIER], radii=rr.Radius.ui_points(4.0)),
+            )
         else:
             self.rec.log(f"{base}/inliers", rr.Points3D(np.zeros((0, 3))))
-        self.rec.log(f"{base}/estimate/image/inliers", rr.LineStrips2D(strips[True], colors=[INLIER], radii=rr.Radius.ui_points(1.0)))
-        self.rec.log(f"{base}/estimate/image/outliers", rr.LineStrips2D(strips[False], colors=[OUTLIER], radii=rr.Radius.ui_points(1.0)))
+        self.rec.log(
+            f"{base}/estimate/image/inliers",
+            rr.LineStrips2D(strips[True], colors=[INLIER], radii=rr.Radius.ui_points(1.0)),
+        )
+        self.rec.log(
+            f"{base}/estimate/image/outliers",
+            rr.LineStrips2D(strips[False], colors=[OUTLIER], radii=rr.Radius.ui_points(1.0)),
+        )
         if sim is not None:
-            self.rec.log(f"{base}/estimate/image/similarity",
-                         rr.Points2D(kp[matches[:, 1]], colors=colormap(sim, 0.5, 1.0), radii=rr.Radius.ui_points(3.0),
-                                     labels=[f"{v:.2f}" for v in sim], show_labels=False))
+            self.rec.log(
+                f"{base}/estimate/image/similarity",
+                rr.Points2D(
+                    kp[matches[:, 1]],
+                    colors=colormap(sim, 0.5, 1.0),
+                    radii=rr.Radius.ui_points(3.0),
+                    labels=[f"{v:.2f}" for v in sim],
+                    show_labels=False,
+                ),
+            )
         # per-query metrics
         color = SERIES.get(method, (70, 130, 255))
         last = its[-1] if its else None
-        for name, val in (("inliers", result.num_inliers), ("matches", result.num_matches),
-                          ("visible", last.num_visible if last else 0),
-                          ("time_ms", 1000 * sum(result.timings.values()))):
+        for name, val in (
+            ("inliers", result.num_inliers),
+            ("matches", result.num_matches),
+            ("visible", last.num_visible if last else 0),
+            ("time_ms", 1000 * sum(result.timings.values())),
+        ):
             self._series(f"metrics/{name}/{method}", method, color)
             self.rec.log(f"metrics/{name}/{method}", rr.Scalars(float(val)))
         if sim is not None and len(sim):
             self._series(f"metrics/similarity/{method}", method, color)
             self.rec.log(f"metrics/similarity/{method}", rr.Scalars(float(np.median(sim))))
         name = Path(str(image)).name if not isinstance(image, np.ndarray) else f"query {index}"
-        status = f"localized, {result.num_inliers} inliers / {result.num_matches} matches" if result.success else \
-            f"NOT localized: {result.message}"
+        status = (
+            f"localized, {result.num_inliers} inliers / {result.num_matches} matches"
+            if result.success
+            else f"NOT localized: {result.message}"
+        )
         if gt is not None:
             dt, dr = geometry.pose_error(final, np.asarray(gt, np.float64))
             pt, pr = geometry.pose_error(prior, np.asarray(gt, np.float64)) if prior is not None else (None, None)
@@ -126,7 +166,9 @@ class LocalizeLog(RecordingBase):
                 if prior_val is not None:
                     self._series(f"metrics/{metric}/prior", "prior", SERIES["prior"])
                     self.rec.log(f"metrics/{metric}/prior", rr.Scalars(prior_val))
-            status += f"; error {dt:.4f} / {dr:.2f} deg" + (f" (prior {pt:.4f} / {pr:.2f} deg)" if pt is not None else " (no prior)")
+            status += f"; error {dt:.4f} / {dr:.2f} deg" + (
+                f" (prior {pt:.4f} / {pr:.2f} deg)" if pt is not None else " (no prior)"
+            )
         self.rec.log(f"log/{method}", rr.TextLog(f"{name}: {status}", level="INFO" if result.success else "WARN"))
 
     def log_eval_query(self, method: str, index: int, outcome, frame=None, camera=None) -> None:

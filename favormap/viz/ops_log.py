@@ -38,11 +38,24 @@ class MapOpsLog(RecordingBase):
                     rows.append((Path(str(p)).name, len(mi), int(hit.sum())))
             colors = np.where((src >= 0)[:, None], id_colors(np.maximum(src, 0) + 1), np.array(GREY, np.uint8))
             self._at()
-            self.rec.log("world/map/sources", rr.Points3D(np.asarray(out.positions, np.float64), colors=colors.astype(np.uint8),
-                                                          radii=rr.Radius.ui_points(2.5)), static=True)
+            self.rec.log(
+                "world/map/sources",
+                rr.Points3D(
+                    np.asarray(out.positions, np.float64),
+                    colors=colors.astype(np.uint8),
+                    radii=rr.Radius.ui_points(2.5),
+                ),
+                static=True,
+            )
             rows.append(("regenerated ids", "", int((src < 0).sum())))
-            self.rec.log("map/sources", rr.TextDocument("### merged from\n\n" + markdown_table(rows, ("map", "landmarks", "in output")),
-                                                        media_type=rr.MediaType.MARKDOWN), static=True)
+            self.rec.log(
+                "map/sources",
+                rr.TextDocument(
+                    "### merged from\n\n" + markdown_table(rows, ("map", "landmarks", "in output")),
+                    media_type=rr.MediaType.MARKDOWN,
+                ),
+                static=True,
+            )
 
     @_guarded
     def log_prune(self, input_path, output_path) -> None:
@@ -53,5 +66,8 @@ class MapOpsLog(RecordingBase):
             self.log_map(out)
             gone = ~np.isin(src.ids, out.ids)
             self.log_points("world/removed", np.asarray(src.positions)[gone], OUTLIER, 2.0)
-            self.log_text("map/removed", f"### pruned\n\nkept {len(out)} of {len(src)} landmarks, removed {int(gone.sum())} "
-                                         "(red points in the 3D view: `world/removed`)")
+            self.log_text(
+                "map/removed",
+                f"### pruned\n\nkept {len(out)} of {len(src)} landmarks, removed {int(gone.sum())} "
+                "(red points in the 3D view: `world/removed`)",
+            )

@@ -23,5 +23,16 @@ class Recording(BuildLog, LocalizeLog, MapOpsLog, RecordingBase):
     (an .rrd file), ``connect`` (a gRPC URL), ``spawn`` (start a local viewer); any combination."""
 
 
-__all__ = ["Recording", "analytics_opt_in", "colormap", "frustum_depth", "frustum_segments", "id_colors",
-           "markdown_table", "rerun_executable", "spawn_viewer", "view_coordinates", "viewer_environment"]
+__all__ = [
+    "Recording",
+    "analytics_opt_in",
+    "colormap",
+    "frustum_depth",
+    "frustum_segments",
+    "id_colors",
+    "markdown_table",
+    "rerun_executable",
+    "spawn_viewer",
+    "view_coordinates",
+    "viewer_environment",
+]

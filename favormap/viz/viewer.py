@@ -65,8 +65,11 @@ def _check_url(url: str) -> None:
     except ValueError:
         raise InputError(f"--rerun-connect: bad port in {url!r}") from None
     if not _port_open(port, u.hostname, timeout=1.0):
-        print(f"favormap: warning: no rerun viewer listens at {url} yet (start one with `rerun`); "
-              "data logged before it starts may be lost", file=sys.stderr)
+        print(
+            f"favormap: warning: no rerun viewer listens at {url} yet (start one with `rerun`); "
+            "data logged before it starts may be lost",
+            file=sys.stderr,
+        )
 
 
 def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: float = 30.0) -> None:
@@ -81,27 +84,38 @@ def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: fl
         return  # a viewer (or another rerun server) is already listening: reuse it
     exe = rerun_executable()
     if exe is None:
-        raise InputError("the rerun viewer executable was not found (it ships with rerun-sdk); "
-                         "use --rerun-save FILE.rrd and open the file with `rerun FILE.rrd`")
+        raise InputError(
+            "the rerun viewer executable was not found (it ships with rerun-sdk); "
+            "use --rerun-save FILE.rrd and open the file with `rerun FILE.rrd`"
+        )
     err = tempfile.TemporaryFile()
     try:
-        proc = subprocess.Popen([exe, "--port", str(port), "--memory-limit", memory_limit, "--expect-data-soon",
-                                 "--hide-welcome-screen"], env=viewer_environment(), stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+        proc = subprocess.Popen(
+            [exe, "--port", str(port), "--memory-limit", memory_limit, "--expect-data-soon", "--hide-welcome-screen"],
+            env=viewer_environment(),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            start_new_session=True,
+        )
         t_end = time.monotonic() + wait_s
         while time.monotonic() < t_end:
             if proc.poll() is not None:
                 err.seek(0)
                 lines = [ln for ln in err.read().decode(errors="replace").splitlines() if "rror" in ln]
                 why = lines[-1].strip()[:300] if lines else f"exit code {proc.returncode}"
-                raise InputError(f"the rerun viewer could not start ({why}); use --rerun-save FILE.rrd "
-                                 "(or --rerun-connect URL of a viewer running elsewhere)")
+                raise InputError(
+                    f"the rerun viewer could not start ({why}); use --rerun-save FILE.rrd "
+                    "(or --rerun-connect URL of a viewer running elsewhere)"
+                )
             if _port_open(port):
                 return
             time.sleep(0.1)
         # neither listening nor exited (e.g. a loaded machine without a display): do not stream into nothing
         proc.kill()
-        raise InputError(f"the rerun viewer could not start (no connection on port {port} within {wait_s:.0f} s); "
-                         "use --rerun-save FILE.rrd (or --rerun-connect URL of a viewer running elsewhere)")
+        raise InputError(
+            f"the rerun viewer could not start (no connection on port {port} within {wait_s:.0f} s); "
+            "use --rerun-save FILE.rrd (or --rerun-connect URL of a viewer running elsewhere)"
+        )
     finally:
         err.close()

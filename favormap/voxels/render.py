@@ -39,7 +39,7 @@ def trilinear_stencil(points: torch.Tensor, R: int) -> torch.Tensor:
     nodes = torch.arange(R, dtype=points.dtype, device=points.device)
     hat = (1.0 - (g[..., None] - nodes).abs()).clamp_min(0.0)  # (..., 3, R)
     w = hat[..., 0, :, None, None] * hat[..., 1, None, :, None] * hat[..., 2, None, None, :]
-    return w.reshape(points.shape[:-1] + (R ** 3,))
+    return w.reshape(points.shape[:-1] + (R**3,))
 
 
 def ray_stencils(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: int):
@@ -121,7 +121,9 @@ def to_local(points_world: torch.Tensor, centers: torch.Tensor, sizes: torch.Ten
     return (points_world - centers.view(shape)) / sizes.view(shape[:-1] + (1,)) + 0.5
 
 
-def render_from_camera(descriptors, density_raw, centers, sizes, camera_center, n_samples: int = 16, normalize: bool = True):
+def render_from_camera(
+    descriptors, density_raw, centers, sizes, camera_center, n_samples: int = 16, normalize: bool = True
+):
     """Render each landmark's descriptor along the ray from ``camera_center`` through its centre
     (paper sec. 3.3, localization). descriptors (L, R^3, C), density_raw (L, R^3), centers (L, 3),
     sizes (L,), camera_center (3,). Returns (L, C)."""

@@ -32,8 +32,8 @@ and "reference" (the budget of the reference implementation, 2,000 iterations x 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
@@ -82,7 +82,7 @@ class VoxelConfig:
     device: str = "cpu"
 
     @classmethod
-    def preset(cls, quality: str = "fast", **overrides) -> "VoxelConfig":
+    def preset(cls, quality: str = "fast", **overrides) -> VoxelConfig:
         """A config of a quality preset (``QUALITY_PRESETS``) with some fields overridden."""
         if quality not in QUALITY_PRESETS:
             raise ValueError(f"unknown voxel quality {quality!r} (choose from {', '.join(QUALITY_PRESETS)})")
@@ -103,8 +103,14 @@ QUALITY_PRESETS: dict[str, dict] = {
     # the reference implementation's budget (utiasSTARS/FaVoR configs/default_base.py: N_iters 2000,
     # N_rand 1024, lr decay 0.1 per 10,000 steps, TV from step 1500; box side 4 * 3 px * l / f),
     # keeping this implementation's ray mix (half the rays through the centre, prior rays half as many)
-    "reference": dict(iterations=2000, rays_per_landmark=1024, prior_rays=512, box_factor=12.0,
-                      lr_final=0.1 ** (2000 / 10000), tv_from=0.75),
+    "reference": dict(
+        iterations=2000,
+        rays_per_landmark=1024,
+        prior_rays=512,
+        box_factor=12.0,
+        lr_final=0.1 ** (2000 / 10000),
+        tv_from=0.75,
+    ),
 }
 
 
@@ -147,8 +153,8 @@ class _BatchedAdam:
     @torch.no_grad()
     def step(self, lr_scale=1.0):
         self.t += 1
-        c1 = 1 - self.b1 ** self.t
-        c2 = 1 - self.b2 ** self.t
+        c1 = 1 - self.b1**self.t
+        c2 = 1 - self.b2**self.t
         for p, m, v, lr, f in zip(self.params, self.m, self.v, self.lrs, self.factors):
             g = p.grad
             m.mul_(self.b1).add_(g, alpha=1 - self.b1)
@@ -160,22 +166,28 @@ class _BatchedAdam:
 
 def _tv(x: torch.Tensor, R: int) -> torch.Tensor:
     g = x.view(x.shape[0], R, R, R, -1)
-    return ((g[:, 1:] - g[:, :-1]) ** 2).mean() + ((g[:, :, 1:] - g[:, :, :-1]) ** 2).mean() + ((g[:, :, :, 1:] - g[:, :, :, :-1]) ** 2).mean()
+    return (
+        ((g[:, 1:] - g[:, :-1]) ** 2).mean()
+        + ((g[:, :, 1:] - g[:, :, :-1]) ** 2).mean()
+        + ((g[:, :, :, 1:] - g[:, :, :, :-1]) ** 2).mean()
+    )
 
 
 def _visibility(data, origins_l, dirs_all, R, cfg, device) -> torch.Tensor:
     """(L, R^3) number of training observations whose patch rays touch each node."""
     L = len(data.centers)
-    counts = torch.zeros(L, R ** 3, device=device)
+    counts = torch.zeros(L, R**3, device=device)
     O = len(data.obs_landmark)
     chunk = max(1, 60000 // dirs_all.shape[1])
     lm = torch.as_tensor(data.obs_landmark, device=device).long()
     for s in range(0, O, chunk):
         sl = slice(s, min(O, s + chunk))
-        idx, w, _, hit = ray_corners(origins_l[sl][:, None, :].expand(-1, dirs_all.shape[1], -1), dirs_all[sl], R, cfg.samples)
+        idx, w, _, hit = ray_corners(
+            origins_l[sl][:, None, :].expand(-1, dirs_all.shape[1], -1), dirs_all[sl], R, cfg.samples
+        )
         n = idx.shape[0]
         used = ((w > 0) & hit[..., None, None]).float().reshape(n, -1)  # (n, P*8*N)
-        touched = torch.zeros(n, R ** 3, device=device).scatter_add_(1, idx.reshape(n, -1), used)
+        touched = torch.zeros(n, R**3, device=device).scatter_add_(1, idx.reshape(n, -1), used)
         counts.index_add_(0, lm[sl], (touched > 0).float())
     return counts
 
@@ -214,7 +226,10 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
         v = torch.cos(theta[ls]) * u0 + torch.sin(theta[ls]) * t
         ang = torch.rad2deg(torch.acos(torch.einsum("lvd,lod->lvo", v, U).clamp(-1, 1)))
         ang = torch.where(valid[:, None, :], ang, torch.full_like(ang, 1e4))
-        w = torch.exp(-0.5 * ((ang - ang.amin(-1, keepdim=True)) / max(cfg.prior_kernel_deg, 1e-3)) ** 2) * valid[:, None, :]
+        w = (
+            torch.exp(-0.5 * ((ang - ang.amin(-1, keepdim=True)) / max(cfg.prior_kernel_deg, 1e-3)) ** 2)
+            * valid[:, None, :]
+        )
         tgt = F.normalize(torch.bmm(w, D), dim=-1)
         tau = cfg.prior_mean_deg if cfg.prior_mean_deg is not None else PRIOR_MEAN_DEG_OTHER
         if tau > 0:
@@ -227,7 +242,9 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
     return torch.cat(out_o), torch.cat(out_d), torch.cat(out_t)
 
 
-def train_voxels(data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, float, float], None] | None = None) -> VoxelGrids:
+def train_voxels(
+    data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, float, float], None] | None = None
+) -> VoxelGrids:
     dev = torch.device(cfg.device)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     R, C = cfg.resolution, data.targets.shape[-1]
@@ -250,15 +267,15 @@ def train_voxels(data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, 
     if cfg.init not in ("mean", "zero"):
         raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero)")
     init = mean_desc if cfg.init == "mean" else torch.zeros_like(mean_desc)
-    desc = init[:, None, :].repeat(1, R ** 3, 1).contiguous().requires_grad_(True)
+    desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
     raw0 = math.log(math.expm1(cfg.density_init))
-    dens = torch.full((L, R ** 3), raw0, **f32).requires_grad_(True)
+    dens = torch.full((L, R**3), raw0, **f32).requires_grad_(True)
 
     if cfg.pervoxel_lr:
         vis = _visibility(data, origins_l, dirs_all, R, cfg, dev)
         factor = vis / vis.amax(1, keepdim=True).clamp_min(1.0)
     else:
-        factor = torch.ones(L, R ** 3, **f32)
+        factor = torch.ones(L, R**3, **f32)
     opt = _BatchedAdam([desc, dens], [cfg.lr_descriptors, cfg.lr_density], [factor, factor])
 
     K, Kp = cfg.rays_per_landmark, cfg.prior_rays
@@ -318,7 +335,9 @@ def train_voxels(data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, 
 
 
 @torch.no_grad()
-def render_training_rays(data: TrainingRays, desc: torch.Tensor, dens: torch.Tensor, cfg: VoxelConfig, obs_index: np.ndarray | None = None):
+def render_training_rays(
+    data: TrainingRays, desc: torch.Tensor, dens: torch.Tensor, cfg: VoxelConfig, obs_index: np.ndarray | None = None
+):
     """Rendered descriptors (O', S*S, C) of the training patches (all or ``obs_index``)."""
     dev = desc.device
     R = round(desc.shape[1] ** (1 / 3))

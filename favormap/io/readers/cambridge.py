@@ -28,7 +28,16 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import cam_from_world_from_center, quat_to_rotmat
 from ..types import Frame, Sequence
-from .common import checked_quaternion, fit_camera, guarded, image_size, make_camera, posix_relpath, read_single_camera_text, read_text
+from .common import (
+    checked_quaternion,
+    fit_camera,
+    guarded,
+    image_size,
+    make_camera,
+    posix_relpath,
+    read_single_camera_text,
+    read_text,
+)
 
 NAME = "cambridge"
 SPLIT_FILES = (("train", "dataset_train.txt"), ("test", "dataset_test.txt"))

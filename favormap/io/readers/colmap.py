@@ -31,7 +31,8 @@ MODEL_DIRS = ("sparse/0", "sparse", "colmap/sparse/0", ".")
 # -- the reader ----------------------------------------------------------------------------------
 def _has_model(d: Path) -> bool:
     return any((d / f"cameras.{e}").is_file() for e in ("bin", "txt")) and any(
-        (d / f"images.{e}").is_file() for e in ("bin", "txt"))
+        (d / f"images.{e}").is_file() for e in ("bin", "txt")
+    )
 
 
 def find_model(root: Path) -> Path | None:
@@ -51,8 +52,9 @@ def read(root: Path) -> Sequence:
     root = Path(root)
     model_dir = find_model(root)
     if model_dir is None:
-        raise SequenceError(f"no COLMAP model (cameras.bin/txt + images.bin/txt) in {root} "
-                            f"(looked in {', '.join(MODEL_DIRS)})")
+        raise SequenceError(
+            f"no COLMAP model (cameras.bin/txt + images.bin/txt) in {root} (looked in {', '.join(MODEL_DIRS)})"
+        )
     import pycolmap
 
     try:
@@ -81,8 +83,10 @@ def read(root: Path) -> Sequence:
             c = rec.cameras[cid]
             model = c.model.name
             if model not in SUPPORTED_MODELS:
-                raise SequenceError(f"{model_dir}: camera {cid} has unsupported model {model} "
-                                    f"(supported: {', '.join(SUPPORTED_MODELS)})")
+                raise SequenceError(
+                    f"{model_dir}: camera {cid} has unsupported model {model} "
+                    f"(supported: {', '.join(SUPPORTED_MODELS)})"
+                )
             cameras[cid] = make_camera(model, c.width, c.height, np.array(c.params), f"{model_dir}: camera {cid}")
         T = checked_pose(from_rigid3d(im.cam_from_world()), f"{model_dir}: image {im.name}")
         path = image_dir / im.name

@@ -53,9 +53,16 @@ def report_rotations(devs: list | None, what: str) -> None:
     if not projected:
         return
     worst, where = max(projected, key=lambda d: d[0])
-    log.info("%s: %d of %d rotations were not exactly orthonormal and were projected onto SO(3) "
-             "(largest deviation |R^T R - I| = %.1e at %s; tolerance %.0e)", what, len(projected), len(devs),
-             worst, where, ROTATION_TOL)
+    log.info(
+        "%s: %d of %d rotations were not exactly orthonormal and were projected onto SO(3) "
+        "(largest deviation |R^T R - I| = %.1e at %s; tolerance %.0e)",
+        what,
+        len(projected),
+        len(devs),
+        worst,
+        where,
+        ROTATION_TOL,
+    )
 
 
 def _record(dev: float, where: str) -> None:
@@ -68,9 +75,14 @@ def checked_rotation(R, where: str) -> np.ndarray:
     """``R`` projected onto SO(3) when it deviates by at most ``ROTATION_TOL``; SequenceError otherwise."""
     dev = rotation_deviation(R)
     if not dev <= ROTATION_TOL:
-        why = "determinant <= 0 (a reflection or a degenerate matrix)" if dev == float("inf") else f"max |R^T R - I| = {dev:.1e}"
-        raise SequenceError(f"{where}: pose is not a rigid transform (rotation not orthonormal: {why}; "
-                            f"tolerance {ROTATION_TOL:.0e})")
+        why = (
+            "determinant <= 0 (a reflection or a degenerate matrix)"
+            if dev == float("inf")
+            else f"max |R^T R - I| = {dev:.1e}"
+        )
+        raise SequenceError(
+            f"{where}: pose is not a rigid transform (rotation not orthonormal: {why}; tolerance {ROTATION_TOL:.0e})"
+        )
     _record(dev, where)
     return nearest_rotation(R) if dev > 0 else np.asarray(R, dtype=np.float64)
 
@@ -82,8 +94,12 @@ def checked_quaternion(q, where: str) -> np.ndarray:
     dev = quaternion_deviation(q)
     if not dev <= ROTATION_TOL:
         n = np.linalg.norm(q)
-        raise SequenceError(f"{where}: not a unit quaternion (norm {n:.6g}; the rotation deviates by {dev:.1e}, "
-                            f"tolerance {ROTATION_TOL:.0e})" if n > 1e-12 else f"{where}: zero quaternion")
+        raise SequenceError(
+            f"{where}: not a unit quaternion (norm {n:.6g}; the rotation deviates by {dev:.1e}, "
+            f"tolerance {ROTATION_TOL:.0e})"
+            if n > 1e-12
+            else f"{where}: zero quaternion"
+        )
     _record(dev, where)
     return q / np.linalg.norm(q)
 
@@ -164,8 +180,9 @@ def read_cameras_text(path: Path) -> dict[int, Camera]:
                 cam_id, tok = int(tok[0]), tok[1:]
             model = tok[0].upper()
             if model not in SUPPORTED_MODELS:
-                raise SequenceError(f"{where}: unsupported camera model {tok[0]!r} "
-                                    f"(supported: {', '.join(SUPPORTED_MODELS)})")
+                raise SequenceError(
+                    f"{where}: unsupported camera model {tok[0]!r} (supported: {', '.join(SUPPORTED_MODELS)})"
+                )
             width, height = float(tok[1]), float(tok[2])
             params = [float(x) for x in tok[3:]]
         except IndexError:

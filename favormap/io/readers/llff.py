@@ -27,7 +27,7 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, world_from_cam_llff_to_opencv
 from ..types import Camera, Frame, Sequence
-from .common import guarded, checked_pose, image_size, make_camera, posix_relpath
+from .common import checked_pose, guarded, image_size, make_camera, posix_relpath
 
 NAME = "llff"
 FILENAME = "poses_bounds.npy"
@@ -62,7 +62,12 @@ def read(root: Path) -> Sequence:
         arr = np.load(path, allow_pickle=False)
     except Exception as e:  # np.load raises OSError, ValueError, EOFError, ... on broken files
         raise SequenceError(f"cannot read {path}: {type(e).__name__}: {e}") from None
-    if not isinstance(arr, np.ndarray) or arr.ndim != 2 or arr.shape[1] != 17 or not np.issubdtype(arr.dtype, np.number):
+    if (
+        not isinstance(arr, np.ndarray)
+        or arr.ndim != 2
+        or arr.shape[1] != 17
+        or not np.issubdtype(arr.dtype, np.number)
+    ):
         raise SequenceError(f"{path}: expected an N x 17 numeric array, got {getattr(arr, 'shape', None)}")
     if arr.shape[0] == 0:
         raise SequenceError(f"{path}: no poses")

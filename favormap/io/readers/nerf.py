@@ -37,15 +37,31 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, world_from_cam_opencv_to_opengl, world_from_cam_opengl_to_opencv
 from ..types import Camera, Frame, Sequence
-from .common import guarded, checked_pose, image_size, make_camera, posix_relpath
+from .common import checked_pose, guarded, image_size, make_camera, posix_relpath
 
 NAME = "nerf"
 FILENAME = "transforms.json"
 DESCRIPTOR_FILES = (FILENAME, "transforms_*.json")
 SPLITS = ("train", "val", "test")
 _EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
-_INTRINSIC_KEYS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y", "cx", "cy", "w", "h",
-                   "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye", "camera_model")
+_INTRINSIC_KEYS = (
+    "fl_x",
+    "fl_y",
+    "camera_angle_x",
+    "camera_angle_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
+    "is_fisheye",
+    "camera_model",
+)
 
 
 def _split_files(root: Path) -> list[tuple[str, Path]]:
@@ -97,8 +113,10 @@ def _num(d: dict, key: str, where: str) -> float | None:
 def _camera(d: dict, where: str, first_image_size) -> Camera:
     """Camera from the merged (top level + frame) intrinsics dict ``d``."""
     if d.get("is_fisheye") or str(d.get("camera_model", "OPENCV")).upper() not in ("OPENCV", "PINHOLE"):
-        raise SequenceError(f"{where}: unsupported camera model {d.get('camera_model', 'fisheye')!r} "
-                            "(only perspective OPENCV/PINHOLE cameras are supported)")
+        raise SequenceError(
+            f"{where}: unsupported camera model {d.get('camera_model', 'fisheye')!r} "
+            "(only perspective OPENCV/PINHOLE cameras are supported)"
+        )
     w, h = _num(d, "w", where), _num(d, "h", where)
     if w is None or h is None:
         w, h = first_image_size()
@@ -205,8 +223,16 @@ def read(root: Path) -> Sequence:
 def _intrinsics(cam: Camera) -> dict:
     fx, fy = cam.focal
     cx, cy = cam.principal_point
-    d = {"camera_angle_x": 2 * math.atan(cam.width / (2 * fx)), "camera_angle_y": 2 * math.atan(cam.height / (2 * fy)),
-         "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(cam.width), "h": int(cam.height)}
+    d = {
+        "camera_angle_x": 2 * math.atan(cam.width / (2 * fx)),
+        "camera_angle_y": 2 * math.atan(cam.height / (2 * fy)),
+        "fl_x": fx,
+        "fl_y": fy,
+        "cx": cx,
+        "cy": cy,
+        "w": int(cam.width),
+        "h": int(cam.height),
+    }
     dist = cam.opencv_distortion()
     if np.any(dist[5:] != 0):
         raise SequenceError(f"camera model {cam.model} with k4..k6 cannot be written to {FILENAME}")

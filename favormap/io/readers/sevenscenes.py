@@ -33,7 +33,16 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse
 from ..types import Camera, Frame, Sequence
-from .common import checked_pose, fit_camera, guarded, image_size, make_camera, posix_relpath, read_single_camera_text, read_text
+from .common import (
+    checked_pose,
+    fit_camera,
+    guarded,
+    image_size,
+    make_camera,
+    posix_relpath,
+    read_single_camera_text,
+    read_text,
+)
 
 NAME = "7scenes"
 DEFAULT_CAMERA = Camera("PINHOLE", 640, 480, [585.0, 585.0, 320.0, 240.0])
@@ -150,7 +159,9 @@ def read(root: Path) -> Sequence:
         frames.append(Frame(name, img, 0, inverse(world_from_cam)))
         split.append("train" if train and seq_no in train else "test" if test and seq_no in test else "other")
     if skipped:
-        log.warning("7scenes: skipped %d frame(s) of %s whose pose has inf/nan, e.g. %s", len(skipped), root, skipped[0])
+        log.warning(
+            "7scenes: skipped %d frame(s) of %s whose pose has inf/nan, e.g. %s", len(skipped), root, skipped[0]
+        )
     if not frames:
         raise SequenceError(f"every pose file of {root} has inf/nan values; no usable frame")
     extra = {"skipped": skipped}
@@ -181,6 +192,8 @@ def write(seq: Sequence, root: Path) -> list[Path]:
     if cam.is_pinhole:
         cam_path.write_text("".join(" ".join(repr(float(v)) for v in row) + "\n" for row in cam.K))
     else:
-        cam_path.write_text(f"1 {cam.model} {cam.width} {cam.height} " + " ".join(repr(float(v)) for v in cam.params) + "\n")
+        cam_path.write_text(
+            f"1 {cam.model} {cam.width} {cam.height} " + " ".join(repr(float(v)) for v in cam.params) + "\n"
+        )
     written.append(cam_path)
     return written

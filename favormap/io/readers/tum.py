@@ -34,7 +34,15 @@ import numpy as np
 from ...errors import SequenceError
 from ...geometry import inverse, pose_from_quat_t
 from ..types import Camera, Frame, Sequence
-from .common import checked_quaternion, fit_camera, guarded, image_size, posix_relpath, read_single_camera_text, text_rows
+from .common import (
+    checked_quaternion,
+    fit_camera,
+    guarded,
+    image_size,
+    posix_relpath,
+    read_single_camera_text,
+    text_rows,
+)
 
 NAME = "tum"
 DESCRIPTOR_FILES = ("rgb.txt", "groundtruth.txt")
@@ -46,10 +54,18 @@ def _cv_to_colmap(fx, fy, cx, cy):
 
 
 DEFAULT_CAMERAS = {
-    "1": Camera("FULL_OPENCV", 640, 480,
-                _cv_to_colmap(517.3, 516.5, 318.6, 255.3) + [0.2624, -0.9531, -0.0054, 0.0026, 1.1633, 0, 0, 0]),
-    "2": Camera("FULL_OPENCV", 640, 480,
-                _cv_to_colmap(520.9, 521.0, 325.1, 249.7) + [0.2312, -0.7849, -0.0033, -0.0001, 0.9172, 0, 0, 0]),
+    "1": Camera(
+        "FULL_OPENCV",
+        640,
+        480,
+        _cv_to_colmap(517.3, 516.5, 318.6, 255.3) + [0.2624, -0.9531, -0.0054, 0.0026, 1.1633, 0, 0, 0],
+    ),
+    "2": Camera(
+        "FULL_OPENCV",
+        640,
+        480,
+        _cv_to_colmap(520.9, 521.0, 325.1, 249.7) + [0.2312, -0.7849, -0.0033, -0.0001, 0.9172, 0, 0, 0],
+    ),
     "3": Camera("PINHOLE", 640, 480, _cv_to_colmap(535.4, 539.2, 320.1, 247.6)),
     None: Camera("PINHOLE", 640, 480, _cv_to_colmap(525.0, 525.0, 319.5, 239.5)),
 }
