@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 # the forms a pose can be given in (favormap.io.posefile.convert_pose reads each); here so that --help
 # imports nothing heavy
 SOURCES = {
@@ -53,5 +55,5 @@ def run(args) -> int:
             write_pose(tmp, cam_from_world)
         print(f"wrote {out} (world_from_cam, OpenCV axes): localize --prior {out}")
     else:
-        np.savetxt(__import__("sys").stdout, inverse(cam_from_world), fmt="%.12g")
+        np.savetxt(sys.stdout, inverse(cam_from_world), fmt="%.12g")
     return 0
