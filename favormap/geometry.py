@@ -10,7 +10,6 @@ Conventions (pycolmap's):
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 # OpenGL / NeRF camera axes (x right, y up, z backward) -> OpenCV axes.
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -115,11 +114,15 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 def quat_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
     """Quaternion(s) (x, y, z, w), normalised here -> rotation matrix(es) (...,3,3)."""
     q = np.asarray(q_xyzw, dtype=np.float64)
+    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
+
     return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
+    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
+
     q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return q if q[3] >= 0 else -q
 
@@ -134,11 +137,15 @@ def pose_from_quat_t(q_xyzw, t) -> np.ndarray:
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rotation matrix of ``angle_rad`` about ``axis`` (right-handed)."""
     axis = np.asarray(axis, dtype=np.float64)
+    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
+
     return Rotation.from_rotvec(axis / np.linalg.norm(axis) * float(angle_rad)).as_matrix()
 
 
 def slerp(R0: np.ndarray, R1: np.ndarray, w: float) -> np.ndarray:
     """The rotation a fraction ``w`` of the way from ``R0`` to ``R1`` along the shorter arc."""
+    from scipy.spatial.transform import Rotation, Slerp  # lazy: map-reading commands import no scipy
+
     return Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R0, R1])))([float(w)]).as_matrix()[0]
 
 
