@@ -134,10 +134,13 @@ def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_pat
     assert vs_nearest >= -0.003, summary
 
 
-def test_sparse_rendering_equals_dense_rendering():
+def test_rendering_equals_explicit_sample_interpolation():
+    """The composite-stencil renderer equals interpolating every sample's descriptor and density
+    from its 8 cube corners and alpha-compositing them (paper eqs. 3-5), for several grid sizes,
+    with a ray that misses the cube rendering to zero."""
     import torch.nn.functional as F
 
-    from favormap.voxels.render import ray_corners, ray_stencils, render, render_sparse
+    from favormap.voxels.render import box_intersections, ray_stencils, render
 
     g = torch.Generator().manual_seed(0)
     for R in (2, 3, 5):
@@ -148,10 +151,50 @@ def test_sparse_rendering_equals_dense_rendering():
         d[:, -1] = torch.tensor([1.0, 0.0, 0.0])
         desc, dens = torch.randn(G, R**3, C, generator=g), torch.randn(G, R**3, generator=g)
         a, op_a = render(desc, dens, *ray_stencils(o, d, R, N))
-        b, op_b = render_sparse(desc, dens, *ray_corners(o, d, R, N))
-        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
-        torch.testing.assert_close(op_a, op_b, atol=1e-5, rtol=1e-5)
-        assert torch.all(b[:, -1] == 0)
+        # explicit: sample points, corner lookup, alpha compositing
+        du = F.normalize(d, dim=-1)
+        tn, tf, hit = box_intersections(o, du)
+        span = (tf - tn).clamp_min(0)
+        t = tn[..., None] + span[..., None] * (torch.arange(N) + 0.5) / N
+        p = (o[..., None, :] + t[..., None] * du[..., None, :]).clamp(0, 1) * (R - 1)
+        i0 = p.floor().clamp(0, R - 2).long()
+        f = p - i0
+        vals, sig = torch.zeros(G, K, N, C), torch.zeros(G, K, N)
+        for cx in (0, 1):
+            for cy in (0, 1):
+                for cz in (0, 1):
+                    c = torch.tensor([cx, cy, cz])
+                    wgt = torch.where(c.bool(), f, 1 - f).prod(-1)
+                    node = ((i0 + c) * torch.tensor([R * R, R, 1])).sum(-1)
+                    for gi in range(G):
+                        vals[gi] += wgt[gi, ..., None] * desc[gi][node[gi]]
+                        sig[gi] += wgt[gi] * dens[gi][node[gi]]
+        alpha = 1 - torch.exp(-F.softplus(sig) * (span / N)[..., None])
+        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1 - alpha[..., :-1] + 1e-10], -1), -1)
+        wt = trans * alpha * hit[..., None]
+        torch.testing.assert_close(a, (wt[..., None] * vals).sum(-2), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(op_a, wt.sum(-1), atol=1e-5, rtol=1e-5)
+        assert torch.all(a[:, -1] == 0) and torch.all(op_a[:, -1] == 0)
+
+
+def test_training_losses_equal_the_losses_of_rendered_descriptors():
+    """The training loss works on composite stencils (p.t = a (D t), |p|^2 = a D D^T a): it must
+    equal the squared distance and cosine of the explicitly rendered descriptors."""
+    import torch.nn.functional as F
+
+    from favormap.voxels.train import _losses
+
+    g = torch.Generator().manual_seed(1)
+    G, K1, K2, R3, C = 4, 5, 3, 27, 16
+    a = torch.rand(G, K1 + K2, R3, generator=g) / R3
+    D = torch.randn(G, R3, C, generator=g)
+    t1 = F.normalize(torch.randn(G, K1, C, generator=g), dim=-1)
+    t2 = 0.5 * F.normalize(torch.randn(G, K2, C, generator=g), dim=-1)
+    t = torch.cat([t1, t2], 1)
+    se, cos = _losses(a, D, [t1, t2], (t * t).sum(-1))
+    p = torch.bmm(a, D)
+    torch.testing.assert_close(se, ((p - t) ** 2).sum(-1), atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(cos, F.cosine_similarity(p, t, dim=-1), atol=1e-5, rtol=1e-4)
 
 
 def test_quality_presets_and_cli_flags():

@@ -1,10 +1,17 @@
 """OpenCV SIFT (128 channels, no weights), RootSIFT-normalised.
 
-Keypoints are described with their own scale and orientation, as in any SIFT pipeline (the
-structure baseline, COLMAP). To sample descriptors at arbitrary positions (the S x S training
-patches around a landmark's observation), a point takes the scale and orientation of the nearest
-detected keypoint within ``support_px`` pixels (so a patch around a keypoint is described in that
-keypoint's frame and matches it), and a fixed upright ``size`` elsewhere."""
+Keypoints are detected and described in one pass, each in its own scale, orientation and pyramid
+level (octave and layer), as in any SIFT pipeline (the structure baseline, COLMAP). To sample
+descriptors at arbitrary positions (the S x S training patches around a landmark's observation), a
+point takes the scale, orientation and pyramid level of the nearest detected keypoint within
+``support_px`` pixels (so a patch around a keypoint is described in that keypoint's frame and
+matches it), and a fixed upright ``size`` at the pyramid level of that size elsewhere.
+
+Describing a keypoint at its own pyramid level instead of the first one (what OpenCV's ``compute``
+does with keypoints that carry no octave) keeps the descriptor scale-invariant; measured on fox
+frame pairs 15-20 frames apart (mutual + ratio 0.8, correct = within 2 px of the epipolar line,
+/tmp script in the issue-11 note): 36 -> 50 and 47 -> 74 correct matches per pair, and one pass
+instead of two per query image."""
 
 from __future__ import annotations
 
@@ -23,6 +30,25 @@ class _SiftState:
     xy: np.ndarray  # (N, 2) keypoints, COLMAP convention
     size: np.ndarray  # (N,) OpenCV keypoint size
     angle: np.ndarray  # (N,) OpenCV keypoint angle (deg)
+    octave: np.ndarray  # (N,) OpenCV's packed octave / layer of each keypoint
+
+
+# nOctaveLayers and sigma of cv2.SIFT_create's defaults (used to place a size in the pyramid)
+_LAYERS, _SIGMA = 3, 1.6
+# a keypoint on the upsampled first octave (-1, layer 1): added to every compute() call so that
+# OpenCV always builds the pyramid from the upsampled image, as detection does, and a descriptor
+# does not depend on which other points are described with it
+_ANCHOR_OCTAVE = (-1 & 255) | (1 << 8)
+
+
+def octave_of_size(size: np.ndarray) -> np.ndarray:
+    """OpenCV's packed octave (octave & 255 | layer << 8) of keypoints of diameter ``size`` (px):
+    the inverse of detection's size = 2 sigma 2^(octave + layer / nOctaveLayers)."""
+    total = np.log2(np.maximum(np.asarray(size, np.float64), 1e-6) / (2 * _SIGMA)) * _LAYERS
+    octave = np.floor((total - 0.5) / _LAYERS).astype(np.int64)
+    layer = np.clip(np.round(total - _LAYERS * octave), 1, _LAYERS).astype(np.int64)
+    octave = np.maximum(octave, -1)
+    return (octave & 255) | (layer << 8)
 
 
 @register("sift")
@@ -40,53 +66,65 @@ class SIFTExtractor(Extractor):
 
     def extract(self, image: np.ndarray) -> Features:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        kps = self._sift.detect(gray, None)
-        kps = sorted(kps, key=lambda k: -k.response)[: self.max_keypoints]
-        xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        kps, desc = self._sift.detectAndCompute(gray, None)
+        if desc is None or not len(kps):
+            kps, desc = (), np.zeros((0, 128), np.float32)
+        order = np.argsort([-k.response for k in kps], kind="stable")[: self.max_keypoints]
+        xy = np.array([kps[i].pt for i in order], np.float32).reshape(-1, 2)
         # several detections at one position (different orientations): keep the strongest
-        _, uniq = np.unique(np.round(xy, 1), axis=0, return_index=True)
-        uniq.sort()
+        _, first = np.unique(np.round(xy, 1), axis=0, return_index=True)
+        uniq = order[np.sort(first)]
         state = _SiftState(
             gray,
-            xy[uniq] + 0.5,
+            np.array([kps[i].pt for i in uniq], np.float32).reshape(-1, 2) + 0.5,
             np.array([kps[i].size for i in uniq], np.float32),
             np.array([kps[i].angle for i in uniq], np.float32),
+            np.array([kps[i].octave for i in uniq], np.int64),
         )
         scores = np.array([kps[i].response for i in uniq], np.float32)
-        feats = Features(state.xy, scores, None, (image.shape[1], image.shape[0]), state)
-        feats.descriptors = self._describe(state, state.xy, state.size, state.angle)
-        return feats
+        return Features(state.xy, scores, _root_sift(desc[uniq]), (image.shape[1], image.shape[0]), state)
 
     def sample(self, features: Features, points: np.ndarray) -> np.ndarray:
         st: _SiftState = features.dense
         pts = np.asarray(points, np.float32).reshape(-1, 2)
         size = np.full(len(pts), self.size, np.float32)
         angle = np.zeros(len(pts), np.float32)
+        octave = np.full(len(pts), int(octave_of_size(self.size)), np.int64)
         if len(pts) and len(st.xy):
             d = torch.cdist(torch.as_tensor(pts), torch.as_tensor(st.xy))
             dist, nn = d.min(1)
             near = (dist <= self.support_px).numpy()
             nn = nn.numpy()
-            size[near], angle[near] = st.size[nn[near]], st.angle[nn[near]]
-        return self._describe(st, pts, size, angle)
+            size[near], angle[near], octave[near] = st.size[nn[near]], st.angle[nn[near]], st.octave[nn[near]]
+        return self._describe(st, pts, size, angle, octave)
 
-    def _describe(self, st: _SiftState, pts: np.ndarray, size: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    def _describe(
+        self, st: _SiftState, pts: np.ndarray, size: np.ndarray, angle: np.ndarray, octave: np.ndarray
+    ) -> np.ndarray:
         if len(pts) == 0:
             return np.zeros((0, 128), np.float32)
         h, w = st.gray.shape
         p = np.asarray(pts, np.float32) - 0.5
         p[:, 0] = np.clip(p[:, 0], 0, w - 1)
         p[:, 1] = np.clip(p[:, 1], 0, h - 1)
-        kps = [cv2.KeyPoint(float(x), float(y), float(s), float(a)) for (x, y), s, a in zip(p, size, angle)]
-        kps_out, desc = self._sift.compute(st.gray, kps)
-        if desc is None or len(kps_out) != len(kps):  # OpenCV dropped some: recompute one by one
+        kps = [
+            cv2.KeyPoint(float(x), float(y), float(s), float(a), 0, int(o))
+            for (x, y), s, a, o in zip(p, size, angle, octave)
+        ]
+        anchor = cv2.KeyPoint(w / 2, h / 2, 2 * _SIGMA, 0, 0, _ANCHOR_OCTAVE)
+        kps_out, desc = self._sift.compute(st.gray, kps + [anchor])
+        if desc is None or len(kps_out) != len(kps) + 1:  # OpenCV dropped some: recompute one by one
             desc = np.zeros((len(kps), 128), np.float32)
             for i, k in enumerate(kps):
-                _, d = self._sift.compute(st.gray, [k])
-                if d is not None and len(d):
+                _, d = self._sift.compute(st.gray, [k, anchor])
+                if d is not None and len(d) == 2:
                     desc[i] = d[0]
-        desc = desc.astype(np.float32)
-        desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-8)  # RootSIFT
-        desc = np.sqrt(desc)
-        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-8)
-        return desc
+        return _root_sift(desc[: len(kps)])
+
+
+def _root_sift(desc: np.ndarray) -> np.ndarray:
+    """RootSIFT: L1-normalise, square root, (L2-normalise against rounding)."""
+    desc = np.asarray(desc, np.float32).reshape(-1, 128)
+    desc = desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-8)
+    desc = np.sqrt(desc)
+    return desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-8)

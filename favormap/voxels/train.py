@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .render import ray_corners, render_sparse, to_local
+from .render import composite, ray_stencils, render, to_local
 
 
 @dataclass
@@ -182,13 +182,11 @@ def _visibility(data, origins_l, dirs_all, R, cfg, device) -> torch.Tensor:
     lm = torch.as_tensor(data.obs_landmark, device=device).long()
     for s in range(0, O, chunk):
         sl = slice(s, min(O, s + chunk))
-        idx, w, _, hit = ray_corners(
+        st, _, hit = ray_stencils(
             origins_l[sl][:, None, :].expand(-1, dirs_all.shape[1], -1), dirs_all[sl], R, cfg.samples
         )
-        n = idx.shape[0]
-        used = ((w > 0) & hit[..., None, None]).float().reshape(n, -1)  # (n, P*8*N)
-        touched = torch.zeros(n, R**3, device=device).scatter_add_(1, idx.reshape(n, -1), used)
-        counts.index_add_(0, lm[sl], (touched > 0).float())
+        touched = ((st > 0) & hit[..., None, None]).flatten(1, 2).any(1)  # (n, R^3)
+        counts.index_add_(0, lm[sl], touched.float())
     return counts
 
 
@@ -242,6 +240,21 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
     return torch.cat(out_o), torch.cat(out_d), torch.cat(out_t)
 
 
+def _losses(a: torch.Tensor, desc: torch.Tensor, targets: list[torch.Tensor], target_sq: torch.Tensor):
+    """Squared L2 distance and cosine similarity (G, K) of the rendered descriptors a @ desc to the
+    targets, without forming the rendered descriptors: with p = a D and D the (R^3, C) node
+    descriptors, p.t = a (D t) and |p|^2 = a (D D^T) a. The per-ray tensors are (G, K, R^3)
+    instead of (G, K, C), which takes the C-wide elementwise work of the loss (and of its
+    gradient) out of the training loop. ``targets``: (G, K_i, C) blocks, concatenated along K."""
+    dt = torch.cat([torch.bmm(desc, t.transpose(1, 2)) for t in targets], 2)  # (G, R^3, K)
+    dot = (a * dt.transpose(1, 2)).sum(-1)
+    gram = torch.bmm(desc, desc.transpose(1, 2))  # (G, R^3, R^3)
+    p_sq = (torch.bmm(a, gram) * a).sum(-1)
+    se = (p_sq - 2 * dot + target_sq).clamp_min(0.0)
+    cos = dot / (p_sq.clamp_min(1e-16) * target_sq.clamp_min(1e-16)).sqrt().clamp_min(1e-8)
+    return se, cos
+
+
 def train_voxels(
     data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, float, float], None] | None = None
 ) -> VoxelGrids:
@@ -258,6 +271,7 @@ def train_voxels(
     dirs_all = torch.as_tensor(data.ray_dirs, **f32)
     targets = torch.as_tensor(data.targets, **f32)
 
+    target_sq = (targets * targets).sum(-1)  # (O, P) |target|^2 (1 for unit descriptors)
     counts = torch.bincount(obs_lm, minlength=L)
     first = torch.cumsum(counts, 0) - counts
 
@@ -281,6 +295,7 @@ def train_voxels(
     K, Kp = cfg.rays_per_landmark, cfg.prior_rays
     if Kp > 0:
         pb_o, pb_d, pb_t = _prior_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, gen)
+        pb_sq = (pb_t * pb_t).sum(-1)
     ray_w = torch.cat([torch.ones(K, **f32), torch.full((Kp,), cfg.prior_weight, **f32)])
     norm = float(L * ray_w.sum())  # loss = weighted mean over all rays of all landmarks
     group = max(1, cfg.max_batch_rays // (K + Kp))
@@ -299,17 +314,18 @@ def train_voxels(
             gs = slice(g0, min(L, g0 + group))
             o = origins_l[obs[gs]]  # (G,K,3)
             d = dirs_all[obs[gs], pix[gs]]
-            tgt = targets[obs[gs], pix[gs]]
+            tgts = [targets[obs[gs], pix[gs]]]  # (G,K,C)
+            tn2 = target_sq[obs[gs], pix[gs]]
             if Kp > 0:
                 sg = sel[gs]
                 o = torch.cat([o, torch.gather(pb_o[gs], 1, sg[..., None].expand(-1, -1, 3))], 1)
                 d = torch.cat([d, torch.gather(pb_d[gs], 1, sg[..., None].expand(-1, -1, 3))], 1)
-                tgt = torch.cat([tgt, torch.gather(pb_t[gs], 1, sg[..., None].expand(-1, -1, C))], 1)
-            idx, w, delta, hit = ray_corners(o, d, R, cfg.samples)
-            pred, opacity = render_sparse(desc[gs], dens[gs], idx, w, delta, hit)
+                tgts.append(torch.gather(pb_t[gs], 1, sg[..., None].expand(-1, -1, C)))
+                tn2 = torch.cat([tn2, torch.gather(pb_sq[gs], 1, sg)], 1)
+            st, delta, hit = ray_stencils(o, d, R, cfg.samples)
+            a, opacity = composite(st, delta, dens[gs], hit)  # (G,K,R^3): pred = a @ desc
+            se, cos = _losses(a, desc[gs], tgts, tn2)
             m = hit.float() * ray_w
-            se = ((pred - tgt) ** 2).sum(-1)
-            cos = F.cosine_similarity(pred, tgt, dim=-1, eps=1e-8)
             op = opacity.clamp(1e-6, 1 - 1e-6)
             ent = -(op * op.log() + (1 - op) * (1 - op).log())
             loss = ((cfg.mse_weight * se + cfg.cosine_weight * (1 - cos) + cfg.entropy_weight * ent) * m).sum() / norm
@@ -335,36 +351,46 @@ def train_voxels(
 
 
 @torch.no_grad()
-def render_training_rays(
-    data: TrainingRays, desc: torch.Tensor, dens: torch.Tensor, cfg: VoxelConfig, obs_index: np.ndarray | None = None
+def _training_ray_chunks(
+    data: TrainingRays, desc: torch.Tensor, obs_index: np.ndarray, samples: int, chunk: int = 2048
 ):
-    """Rendered descriptors (O', S*S, C) of the training patches (all or ``obs_index``)."""
+    """Per chunk of observations: (positions in ``obs_index``, their landmarks, stencil geometry of
+    their S*S patch rays as :func:`ray_stencils` returns it)."""
     dev = desc.device
     R = round(desc.shape[1] ** (1 / 3))
-    idx = np.arange(len(data.obs_landmark)) if obs_index is None else np.asarray(obs_index)
-    out = torch.zeros(len(idx), data.ray_dirs.shape[1], desc.shape[-1])
-    chunk = 2048
-    for s in range(0, len(idx), chunk):
-        sel = idx[s : s + chunk]
+    for s in range(0, len(obs_index), chunk):
+        sel = obs_index[s : s + chunk]
         lm = torch.as_tensor(data.obs_landmark[sel], device=dev).long()
         c = torch.as_tensor(data.centers[data.obs_landmark[sel]], dtype=torch.float32, device=dev)
         sz = torch.as_tensor(data.sizes[data.obs_landmark[sel]], dtype=torch.float32, device=dev)
         o = to_local(torch.as_tensor(data.obs_origin[sel], dtype=torch.float32, device=dev)[:, None, :], c, sz)
         d = torch.as_tensor(data.ray_dirs[sel], dtype=torch.float32, device=dev)
-        corners, w, delta, hit = ray_corners(o.expand(-1, d.shape[1], -1), d, R, cfg.samples)
-        pred, _ = render_sparse(desc[lm], dens[lm], corners, w, delta, hit)
-        out[s : s + len(sel)] = pred.cpu()
+        yield slice(s, s + len(sel)), lm, ray_stencils(o.expand(-1, d.shape[1], -1), d, R, samples)
+
+
+@torch.no_grad()
+def render_training_rays(
+    data: TrainingRays, desc: torch.Tensor, dens: torch.Tensor, cfg: VoxelConfig, obs_index: np.ndarray | None = None
+):
+    """Rendered descriptors (O', S*S, C) of the training patches (all or ``obs_index``)."""
+    idx = np.arange(len(data.obs_landmark)) if obs_index is None else np.asarray(obs_index)
+    out = torch.zeros(len(idx), data.ray_dirs.shape[1], desc.shape[-1])
+    for sl, lm, geom in _training_ray_chunks(data, desc, idx, cfg.samples):
+        out[sl] = render(desc[lm], dens[lm], *geom)[0].cpu()
     return out
 
 
+@torch.no_grad()
 def evaluate(data: TrainingRays, desc, dens, cfg: VoxelConfig):
-    """Per-landmark training PSNR (MAX = 2) and mean cosine similarity."""
-    pred = render_training_rays(data, desc, dens, cfg)
-    tgt = torch.as_tensor(data.targets, dtype=torch.float32)
-    L = len(data.centers)
+    """Per-landmark training PSNR (MAX = 2) and mean cosine similarity of the rendered patches."""
+    L, O, C = len(data.centers), len(data.obs_landmark), desc.shape[-1]
+    se, cos = torch.zeros(O), torch.zeros(O)
+    for sl, lm, (st, delta, hit) in _training_ray_chunks(data, desc, np.arange(O), cfg.samples):
+        a, _ = composite(st, delta, dens[lm], hit)
+        tgt = torch.as_tensor(data.targets[sl], dtype=torch.float32, device=desc.device)
+        s_, c_ = _losses(a, desc[lm], [tgt], (tgt * tgt).sum(-1))
+        se[sl], cos[sl] = (s_.mean(-1) / C).cpu(), c_.mean(-1).cpu()  # per observation (se per element)
     lm = torch.as_tensor(data.obs_landmark).long()
-    se = ((pred - tgt) ** 2).mean(-1).mean(-1)  # per observation, per element
-    cos = F.cosine_similarity(pred, tgt, dim=-1).mean(-1)
     n = torch.bincount(lm, minlength=L).clamp_min(1).float()
     mse = torch.zeros(L).index_add_(0, lm, se) / n
     cs = torch.zeros(L).index_add_(0, lm, cos) / n
