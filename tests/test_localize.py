@@ -172,6 +172,47 @@ def test_matching_keeps_best_above_threshold():
     assert m.tolist() == [[0, 0], [1, 1]]
 
 
+def test_search_by_projection_matches_like_full_matching_within_the_radius():
+    """match_near compares only pairs within the radius: with a radius covering the image it gives
+    exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only
+    where the keypoint lies near the landmark's projection."""
+    import torch
+    from scipy.spatial import cKDTree
+
+    from favormap.localize.localizer import match_near
+
+    g = torch.Generator().manual_seed(0)
+    L, Q, C = 300, 500, 32
+    rend = torch.nn.functional.normalize(torch.randn(L, C, generator=g), dim=-1)
+    kq = torch.randperm(Q, generator=g)[:L]
+    query = torch.nn.functional.normalize(torch.randn(Q, C, generator=g), dim=-1)
+    query[kq] = torch.nn.functional.normalize(rend + 0.05 * torch.randn(L, C, generator=g), dim=-1)
+    rng = np.random.default_rng(0)
+    kp = rng.uniform(0, 640, (Q, 2))
+    uv = kp[kq.numpy()] + rng.normal(0, 2.0, (L, 2))
+    uv[::7] = rng.uniform(0, 640, (len(uv[::7]), 2))  # projections far from their keypoint
+    tree = cKDTree(kp)
+    full = match_descriptors(rend, query, 0.7, mutual=True)
+    wide = match_near(rend, query, uv, tree, 2000.0, 0.7, mutual=True)
+    assert sorted(map(tuple, wide.tolist())) == sorted(map(tuple, full.tolist()))
+    near = match_near(rend, query, uv, tree, 8.0, 0.7, mutual=True)
+    assert len(near) > 0.7 * L
+    assert np.all(np.linalg.norm(kp[near[:, 1]] - uv[near[:, 0]], axis=1) <= 8.0)
+    assert len(np.unique(near[:, 0])) == len(near) and len(np.unique(near[:, 1])) == len(near)
+
+
+def test_search_by_projection_localizes(small_map, queries):
+    _, path = small_map
+    rng = np.random.default_rng(0)
+    loc = Localizer(path, LocalizeConfig(iterations=3, search_radius_px=16.0))
+    errs = []
+    for img, T in queries:
+        res = loc.localize(img, perturb_pose(T, 0.3, 15.0, rng))
+        assert res.success, res.message
+        errs.append(pose_error(res.cam_from_world, T))
+    assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
+
+
 def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_path, capsys):
     from favormap.cli import main
 

@@ -58,6 +58,9 @@ VARIANTS = {
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
     "rendered guided-3px": ("rendered", {"guided_radius_px": 3.0, "guided_ransac_px": 3.0}),
+    "rendered search-8px": ("rendered", {"search_radius_px": 8.0}),
+    "rendered search-16px": ("rendered", {"search_radius_px": 16.0}),
+    "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),

@@ -60,6 +60,10 @@ class LocalizeConfig:
         0.0  # > 0: a final step matches each landmark to query keypoints this close to its projection
     )
     guided_ransac_px: float = 2.0  # RANSAC threshold of that step
+    # > 0: after the first successful iteration, a landmark is matched only against query keypoints
+    # this close to its projection from the current estimate (search by projection; the first
+    # iteration, from the prior, searches the whole image)
+    search_radius_px: float = 0.0
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     stop_translation: float = 1e-4  # relative to the median landmark distance
@@ -149,6 +153,48 @@ def match_descriptors(
         ok &= sim.argmax(0)[best] == torch.arange(len(rendered), device=sim.device)
     idx = torch.nonzero(ok).squeeze(1)
     return torch.stack([idx, best[idx]], 1).cpu().numpy()
+
+
+def match_near(
+    rendered: torch.Tensor,
+    query: torch.Tensor,
+    uv: np.ndarray,
+    keypoint_tree,
+    radius: float,
+    threshold: float,
+    mutual: bool = True,
+) -> np.ndarray:
+    """:func:`match_descriptors` restricted to pairs whose query keypoint lies within ``radius``
+    pixels of the landmark's projection ``uv`` (L, 2) (``keypoint_tree``: a scipy cKDTree of the
+    query keypoints): the best query keypoint near each landmark, kept when its cosine reaches
+    ``threshold`` and (``mutual``) the landmark is also the best among those near that keypoint.
+    Only the candidate pairs are compared, not the full similarity matrix."""
+    from scipy.spatial import cKDTree
+
+    if len(rendered) == 0 or keypoint_tree.n == 0:
+        return np.zeros((0, 2), np.int64)
+    ok = np.all(np.isfinite(uv), axis=1)
+    rows_ok = np.flatnonzero(ok)
+    pairs = cKDTree(uv[ok]).sparse_distance_matrix(keypoint_tree, radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros((0, 2), np.int64)
+    li = torch.as_tensor(rows_ok[pairs["i"]], device=rendered.device)
+    kj = torch.as_tensor(pairs["j"].astype(np.int64), device=rendered.device)
+    sim = (rendered[li] * query[kj]).sum(-1)
+    neg = torch.full((), -3.0, dtype=sim.dtype, device=sim.device)
+    best_l = torch.full((len(rendered),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(0, li, sim, "amax")
+    keep = (sim == best_l[li]) & (sim >= threshold)
+    if mutual:
+        best_k = torch.full((len(query),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(
+            0, kj, torch.where(keep, sim, neg), "amax"
+        )
+        keep &= sim == best_k[kj]
+    out = torch.stack([li[keep], kj[keep]], 1).cpu().numpy()
+    # ties (equal similarity): one pair per landmark and per keypoint
+    _, first = np.unique(out[:, 0], return_index=True)
+    out = out[np.sort(first)]
+    _, first = np.unique(out[:, 1], return_index=True)
+    return out[np.sort(first)]
 
 
 class Localizer:
@@ -311,7 +357,13 @@ class Localizer:
             rows = self._visible(q, pose, t)
             rend = self.source(rows, pose, t)
             s = time.perf_counter()
-            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+            if cfg.search_radius_px > 0 and last is not None:
+                uv = project(q.cam.K, pose, self.map.positions[rows])
+                m = match_near(
+                    rend, q.desc, uv, q.keypoints_tree(), cfg.search_radius_px, cfg.match_threshold, cfg.mutual
+                )
+            else:
+                m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
             sims = (rend[m[:, 0]] * q.desc[m[:, 1]]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
             t["matching"] += time.perf_counter() - s
             ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
@@ -458,6 +510,15 @@ class _Query:
     feats: object
     desc: torch.Tensor
     cam: Camera
+    _tree: object = None
+
+    def keypoints_tree(self):
+        """scipy cKDTree of the query keypoints (built on first use)."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(np.asarray(self.feats.keypoints, np.float64).reshape(-1, 2))
+        return self._tree
 
 
 def localize(
