@@ -217,6 +217,15 @@ def test_quality_presets_and_cli_flags():
     )
     cfg = cli_build.config_from_args(args).voxel
     assert (cfg.iterations, cfg.rays_per_landmark, cfg.box_factor, cfg.resolution) == (50, 1024, 12.0, 3)
+    # flags left out take BuildConfig's defaults; given ones override them
+    from favormap.build import BuildConfig
+
+    plain = cli_build.config_from_args(ap.parse_args(["build", "seq", "-o", "x.h5"]))
+    assert (plain.min_track, plain.max_landmarks) == (BuildConfig().min_track, BuildConfig().max_landmarks)
+    given = cli_build.config_from_args(
+        ap.parse_args(["build", "seq", "-o", "x.h5", "--min-track", "6", "--max-landmarks", "700"])
+    )
+    assert (given.min_track, given.max_landmarks) == (6, 700)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
     assert cli_build.config_from_args(args).voxel == VoxelConfig(device="cpu")
 

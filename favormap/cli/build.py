@@ -39,8 +39,9 @@ def register(sub):
         help="feature extractor (sift, xfeat, disk; default sift; disk needs favormap[disk])",
     )
     p.add_argument("--max-keypoints", type=int, default=2048)
-    p.add_argument("--min-track", type=int, default=5, help="shortest track that becomes a landmark (default 5)")
-    p.add_argument("--max-landmarks", type=int, default=1500, help="landmark budget (default 1500)")
+    # None: BuildConfig's default (not repeated here: this module is imported for --help, BuildConfig's isn't)
+    p.add_argument("--min-track", type=int, default=None, help="shortest track that becomes a landmark (default 3)")
+    p.add_argument("--max-landmarks", type=int, default=None, help="landmark budget (default 3000)")
     p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
     p.add_argument(
         "--quality",
@@ -97,16 +98,16 @@ def config_from_args(args):
         if v is not None
     }
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
+    given = {k: getattr(args, k) for k in ("min_track", "max_landmarks") if getattr(args, k) is not None}
     return BuildConfig(
         extractor=args.extractor,
         max_keypoints=args.max_keypoints,
         max_side=args.resize,
-        min_track=args.min_track,
-        max_landmarks=args.max_landmarks,
         max_reproj_px=args.max_reproj,
         train_batch=args.train_batch,
         voxel=vox,
         threads=getattr(args, "threads", None),
+        **given,
     )
 
 
