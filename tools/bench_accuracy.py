@@ -62,6 +62,7 @@ VARIANTS = {
     "rendered search-16px": ("rendered", {"search_radius_px": 16.0}),
     "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
+    "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),
     "rendered global-ratio-0.9": ("rendered", {"global_ratio": 0.9}),
@@ -180,6 +181,8 @@ def localizer_config(overrides: dict):
     from favormap.localize import LocalizeConfig, SuccessChecks
 
     over = dict(overrides)
+    if isinstance(over.get("checks"), dict):
+        over["checks"] = SuccessChecks(**over["checks"])
     if over.get("checks") == "none":
         over["checks"] = SuccessChecks(
             min_inliers=12, min_inlier_ratio=0.0, max_iteration_change=(np.inf, np.inf), min_visible_inliers=0.0

@@ -41,7 +41,11 @@ class SuccessChecks:
     """What a pose must satisfy to be reported as a success (chosen on tools/bench_accuracy.py)."""
 
     min_inliers: int = 20
-    min_inlier_ratio: float = 0.2  # inliers / matches of the final iteration
+    # inliers / matches of the final iteration. 0.1 (was 0.2): at views extrapolated from the mapping
+    # path most mutual matches are wrong and correct poses have 12-20 % inliers (fox extrapolation: 2 of
+    # 10 correct poses refused at 0.2, none at 0.1, 0 false successes in every split and prior mode of
+    # tools/bench_accuracy.py); an image of another scene gets ~3 % (5-6 of ~190) and fails min_inliers
+    min_inlier_ratio: float = 0.1
     max_iteration_change: tuple[float, float] = (0.05, 2.0)  # last two estimates: (x median landmark depth, deg)
     min_visible_inliers: float = 0.8  # share of inlier landmarks visible from the final pose
 
