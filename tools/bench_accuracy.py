@@ -63,6 +63,9 @@ VARIANTS = {
     "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
     "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
+    "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
+    "rendered 2-iterations": ("rendered", {"iterations": 2}),
+    "rendered 2048-keypoints 2-iterations": ("rendered", {"max_keypoints": 2048, "iterations": 2}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),
     "rendered global-ratio-0.9": ("rendered", {"global_ratio": 0.9}),
