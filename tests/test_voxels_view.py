@@ -111,8 +111,9 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
             "sift",
             marks=pytest.mark.xfail(
                 strict=True,
-                reason="target not met for SIFT: rendered vs mean descriptor -0.0048 (>= 10 deg), -0.0016 (all) "
-                "on this scene; SIFT's track mean already predicts extrapolated views as well as the grid",
+                reason="target not met for SIFT: rendered vs mean descriptor -0.0025 (>= 10 deg), +0.0002 (all), "
+                "vs nearest view +0.0074 on this scene (2026-11-26, own-pyramid-level SIFT; before: -0.0048, "
+                "-0.0016); SIFT's track mean already predicts extrapolated views as well as the grid",
             ),
         ),
     ],
