@@ -106,10 +106,10 @@ class ExtractorSpec:
 
     name: str
     max_keypoints: int = 2048
-    device: str | None = None
 
     def create(self, device: str | None = None) -> Extractor:
-        return _cached_extractor(self.name, self.max_keypoints, device or self.device)
+        """The extractor on ``device`` (None or "cpu": the CPU)."""
+        return _cached_extractor(self.name, self.max_keypoints, None if device in (None, "cpu") else device)
 
     @property
     def uses_device(self) -> bool:
@@ -275,9 +275,14 @@ class TrainTask:
 
 
 def train_batch(task: TrainTask, device: str | None = None, report=None) -> VoxelGrids:
-    cfg = task.config if device is None else replace(task.config, device=device)
+    cfg = task.config
     iters = cfg.iterations
-    g = train_voxels(task.rays, cfg, progress=(lambda it, loss, psnr: report((it + 1) / iters)) if report else None)
+    g = train_voxels(
+        task.rays,
+        cfg,
+        progress=(lambda it, loss, psnr: report((it + 1) / iters)) if report else None,
+        device=device or "cpu",
+    )
     return VoxelGrids(g.descriptors.cpu(), g.density.cpu(), g.psnr, g.cosine, g.history)
 
 
@@ -379,9 +384,13 @@ def build_map(
     observer: BuildObserver | None = None,
     executor: Executor | None = None,
     ray: str | None = None,
+    device: str = "cpu",
 ) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
-    reports progress; ``observer`` sees every stage's result (visualisation, debugging).
+    reports progress; ``observer`` sees every stage's result (visualisation, debugging). ``device``
+    ("cpu", "cuda", ...) is where voxel training and a torch extractor run; the map does not depend
+    on it beyond floating-point noise (tests/test_cuda.py). An explicit ``executor`` decides devices
+    itself (``LocalExecutor(device)``; Ray: the GPUs it assigns).
 
     Feature extraction (per frame), descriptor patches (per frame) and voxel training (per batch of
     ``config.train_batch`` landmarks) run on ``executor`` (default: this process). ``ray`` ("auto" or
@@ -394,10 +403,10 @@ def build_map(
             raise ValueError("build_map: give either executor or ray, not both")
         from .distributed import RayExecutor
 
-        with RayExecutor(ray, gpus=config.voxel.device != "cpu") as ex:
+        with RayExecutor(ray, gpus=device != "cpu") as ex:
             return build_map(seq, config, progress, observer, executor=ex)
     configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
-    executor = executor or LocalExecutor()
+    executor = executor or LocalExecutor(device)
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)
@@ -406,9 +415,7 @@ def build_map(
             voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)),
         )
     images = [] if obs.wants_images else None
-    extractor = ExtractorSpec(
-        config.extractor, config.max_keypoints, config.voxel.device if config.voxel.device != "cpu" else None
-    )
+    extractor = ExtractorSpec(config.extractor, config.max_keypoints)
     with pr.stage("extract"):
         ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor)
     obs.on_frames(seq, ff, images)

@@ -9,8 +9,9 @@ their results in order; the build code is the same whichever executor runs it:
 - :class:`favormap.distributed.RayExecutor`: as Ray tasks on a Ray cluster (``pip install
   favormap[distributed]``), the driver only tracking, triangulating and writing.
 
-``device`` (None: as the task's own config says) is where an executor puts a task that can use a
-GPU; ``report(fraction)`` reports progress inside one task (a no-op where nobody listens).
+``device`` is where an executor puts a task that can use a GPU (the executor decides: the local
+executor's own device, or the GPU Ray gave the task); ``report(fraction)`` reports progress inside
+one task (a no-op where nobody listens).
 """
 
 from __future__ import annotations
@@ -52,15 +53,22 @@ class Executor:
 
 
 class LocalExecutor(Executor):
-    """Every task in this process, one after the other (torch and OpenCV use their own threads)."""
+    """Every task in this process, one after the other (torch and OpenCV use their own threads);
+    tasks that can use a GPU run on ``device``."""
 
     name = "local"
+
+    def __init__(self, device: str = "cpu"):
+        self.device = device
+
+    def describe(self) -> dict:
+        return {"name": self.name, "device": self.device}
 
     def map(self, fn, tasks, total, gpu=False, progress=None):
         out = []
         for i, t in enumerate(tasks):
             report = (lambda f, i=i: progress(i + f)) if progress else None
-            out.append(fn(t, report=report))
+            out.append(fn(t, device=self.device if gpu else "cpu", report=report))
             if progress:
                 progress(i + 1)
         return out

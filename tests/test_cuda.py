@@ -20,9 +20,7 @@ def maps(small_sequence):
 
     out = {}
     for dev in ("cpu", "cuda"):
-        cfg = small_build_config(max_landmarks=300)
-        cfg.voxel.device = dev
-        out[dev] = build_map(small_sequence, cfg)
+        out[dev] = build_map(small_sequence, small_build_config(max_landmarks=300), device=dev)
     return out
 
 

@@ -228,7 +228,7 @@ def test_quality_presets_and_cli_flags():
     )
     assert (given.min_track, given.max_landmarks) == (6, 700)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
-    assert cli_build.config_from_args(args).voxel == VoxelConfig(device="cpu")
+    assert cli_build.config_from_args(args).voxel == VoxelConfig()
 
 
 def test_reference_preset_trains_in_memory_bounded_groups():

@@ -142,7 +142,7 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
     return Split("orbit", mapping, queries, nearest_view_angle(queries, mapping))
 
 
-def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = ""):
+def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = "", device: str = "cpu"):
     from favormap.build import build_map
     from favormap.mapfile import write_map
 
@@ -152,7 +152,7 @@ def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str 
     if reuse and path.exists() and stamp.exists() and stamp.read_text() == key:
         return path, None
     t = time.perf_counter()
-    write_map(build_map(split.mapping, build_cfg), path)
+    write_map(build_map(split.mapping, build_cfg, device=device), path)
     stamp.write_text(key)
     return path, time.perf_counter() - t
 
@@ -219,7 +219,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
 
     workdir = Path(args.workdir)
     rows = []
-    path, build_s = build_or_load(split, workdir, build_cfg, args.reuse, tag)
+    path, build_s = build_or_load(split, workdir, build_cfg, args.reuse, tag, args.device)
     m = Map.open(path)
     extent = extent or scene_extent(m.positions)
     print(
@@ -428,7 +428,6 @@ def main():
             from favormap.voxels import VoxelConfig
 
             build_cfg.voxel = VoxelConfig.preset(args.quality)
-        build_cfg.voxel.device = args.device
         for k in ("min_track", "max_landmarks"):
             if getattr(args, k) is not None:
                 setattr(build_cfg, k, getattr(args, k))

@@ -58,11 +58,10 @@ def main():
         from favormap.voxels import VoxelConfig
 
         cfg.voxel = VoxelConfig.preset(args.quality)
-    cfg.voxel.device = args.device
     if args.iterations:
         cfg.voxel.iterations = args.iterations
     t = time.perf_counter()
-    m = build_map(seq, cfg)
+    m = build_map(seq, cfg, device=args.device)
     out = Path(tmp.name) / "bench.h5"
     tw = time.perf_counter()
     write_map(m, out)

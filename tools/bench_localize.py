@@ -38,9 +38,7 @@ def main():
     if path is None:
         path = Path(tmp.name) / "room.h5"
         t = time.perf_counter()
-        cfg = BuildConfig(max_landmarks=1500)
-        cfg.voxel.device = args.device
-        write_map(build_map(seq, cfg), path)
+        write_map(build_map(seq, BuildConfig(max_landmarks=1500), device=args.device), path)
         print(f"built map in {time.perf_counter() - t:.1f} s")
     scene = make_room(0)
     cam = seq.cameras[0]

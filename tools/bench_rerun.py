@@ -86,7 +86,7 @@ def hook_seconds(seq: Path, rrd: Path, args) -> tuple[float, float]:
     cfg = BuildConfig(
         max_side=args.resize,
         max_landmarks=args.max_landmarks,
-        voxel=VoxelConfig(iterations=args.iterations, device="cpu"),
+        voxel=VoxelConfig(iterations=args.iterations),
     )
     seq_ = read_sequence(seq)
     t0 = time.perf_counter()

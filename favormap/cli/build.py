@@ -97,7 +97,7 @@ def config_from_args(args):
         for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations))
         if v is not None
     }
-    vox = VoxelConfig.preset(getattr(args, "quality", "fast"), device=auto_device(args.device), **over)
+    vox = VoxelConfig.preset(getattr(args, "quality", "fast"), **over)
     given = {k: getattr(args, k) for k in ("min_track", "max_landmarks") if getattr(args, k) is not None}
     return BuildConfig(
         extractor=args.extractor,
@@ -173,7 +173,14 @@ def run(args) -> int:
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap build")
     try:
-        m = build_map(seq, config, progress=bars, observer=rec.build_observer() if rec else None, executor=executor)
+        m = build_map(
+            seq,
+            config,
+            progress=bars,
+            observer=rec.build_observer() if rec else None,
+            executor=executor,
+            device=auto_device(args.device),
+        )
     finally:
         bars.close()
         if rec is not None:

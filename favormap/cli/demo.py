@@ -54,10 +54,10 @@ def run(args) -> int:
     seq = write_sequence(work / "room", n_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
     held = [i for i in range(len(seq)) if i % 5 == 2]
     train = [i for i in range(len(seq)) if i % 5 != 2]
-    cfg = BuildConfig(voxel=VoxelConfig(iterations=args.iterations, device=device))
+    cfg = BuildConfig(voxel=VoxelConfig(iterations=args.iterations))
     bars = StageBars(args.quiet)
     try:
-        m = build_map(seq.subset(train), cfg, progress=bars)
+        m = build_map(seq.subset(train), cfg, progress=bars, device=device)
     finally:
         bars.close()
     path = work / "room.h5"

@@ -79,7 +79,6 @@ class VoxelConfig:
     # -- execution ----------------------------------------------------------------------------
     max_batch_rays: int = 1 << 18  # rays rendered per forward pass (landmark groups; memory bound)
     seed: int = 0
-    device: str = "cpu"
 
     @classmethod
     def preset(cls, quality: str = "fast", **overrides) -> VoxelConfig:
@@ -256,9 +255,13 @@ def _losses(a: torch.Tensor, desc: torch.Tensor, targets: list[torch.Tensor], ta
 
 
 def train_voxels(
-    data: TrainingRays, cfg: VoxelConfig, progress: Callable[[int, float, float], None] | None = None
+    data: TrainingRays,
+    cfg: VoxelConfig,
+    progress: Callable[[int, float, float], None] | None = None,
+    device: str | torch.device = "cpu",
 ) -> VoxelGrids:
-    dev = torch.device(cfg.device)
+    """Train every landmark's grids on ``device`` (the result stays there)."""
+    dev = torch.device(device)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     R, C = cfg.resolution, data.targets.shape[-1]
     L, P = len(data.centers), data.ray_dirs.shape[1]
