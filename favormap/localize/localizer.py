@@ -31,7 +31,7 @@ from ..geometry import from_rigid3d, pose_error, project
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
-from ..threads import configure_threads
+from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, make_source
 
@@ -265,6 +265,7 @@ class Localizer:
         """Localize one query image. Without a prior, a coarse pose is found first by matching
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
         cfg = self.config
+        rebalance()  # thread pools follow the machine's load (favormap.threads; at most every few seconds)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
