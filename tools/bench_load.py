@@ -142,26 +142,37 @@ def _summary(k: int, lat: list[float], ok: int, wall: float, rss_mb: float, mode
     }
 
 
-def bench_clients_processes(map_path: Path, qspec: Path, k: int, per_client: int, threads: int | None) -> dict:
-    spec = json.dumps({"map": str(map_path), "queries": str(qspec), "n": per_client, "threads": threads})
+def _spawn_ready(script: str, spec: str, n: int, what: str) -> list:
+    """``n`` child processes running ``script`` with ``spec``, each past its set-up (it printed "ready")."""
     procs = [
         subprocess.Popen(
-            [sys.executable, "-c", CLIENT, str(ROOT), spec],
+            [sys.executable, "-c", script, str(ROOT), spec],
             env=ENV,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
-        for _ in range(k)
+        for _ in range(n)
     ]
     for p in procs:
         if p.stdout.readline().strip() != "ready":
-            raise SystemExit(f"bench_load: client failed: {p.stderr.read()[-800:]}")
-    t0 = time.perf_counter()
+            raise SystemExit(f"bench_load: {what} failed: {p.stderr.read()[-800:]}")
+    return procs
+
+
+def _go(procs: list) -> None:
+    """Start the measured part in every child at once."""
     for p in procs:
         p.stdin.write("go\n")
         p.stdin.flush()
+
+
+def bench_clients_processes(map_path: Path, qspec: Path, k: int, per_client: int, threads: int | None) -> dict:
+    spec = json.dumps({"map": str(map_path), "queries": str(qspec), "n": per_client, "threads": threads})
+    procs = _spawn_ready(CLIENT, spec, k, "client")
+    t0 = time.perf_counter()
+    _go(procs)
     res = [json.loads(p.stdout.readline()) for p in procs]
     wall = time.perf_counter() - t0
     for p in procs:
@@ -227,23 +238,8 @@ def bench_readers_writers(
     with_writers: bool,
 ) -> dict:
     spec = json.dumps({"map": str(map_path), "queries": str(qspec), "seconds": seconds, "threads": threads})
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", READER, str(ROOT), spec],
-            env=ENV,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for _ in range(readers)
-    ]
-    for p in procs:
-        if p.stdout.readline().strip() != "ready":
-            raise SystemExit(f"bench_load: reader failed: {p.stderr.read()[-800:]}")
-    for p in procs:
-        p.stdin.write("go\n")
-        p.stdin.flush()
+    procs = _spawn_ready(READER, spec, readers, "reader")
+    _go(procs)
     writes, bad = 0, []
     t0 = time.perf_counter()
     while with_writers and time.perf_counter() - t0 < seconds:
