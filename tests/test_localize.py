@@ -213,6 +213,21 @@ def test_search_by_projection_localizes(small_map, queries):
     assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
 
 
+def test_guided_final_step_localizes(small_map, queries):
+    """The optional guided step (search by projection from the final estimate, then PnP at a tight
+    threshold) keeps the pose accurate and reports itself as a "guided" iteration."""
+    _, path = small_map
+    rng = np.random.default_rng(0)
+    loc = Localizer(path, LocalizeConfig(iterations=3, guided_radius_px=3.0, guided_ransac_px=3.0))
+    errs = []
+    for img, T in queries:
+        res = loc.localize(img, perturb_pose(T, 0.3, 15.0, rng))
+        assert res.success, res.message
+        assert res.iterations[-1].kind == "guided"
+        errs.append(pose_error(res.cam_from_world, T))
+    assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
+
+
 def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_path, capsys):
     from favormap.cli import main
 

@@ -189,13 +189,10 @@ def match_near(
     li = torch.as_tensor(rows_ok[pairs["i"]], device=rendered.device)
     kj = torch.as_tensor(pairs["j"].astype(np.int64), device=rendered.device)
     sim = (rendered[li] * query[kj]).sum(-1)
-    neg = torch.full((), -3.0, dtype=sim.dtype, device=sim.device)
     best_l = torch.full((len(rendered),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(0, li, sim, "amax")
     keep = (sim == best_l[li]) & (sim >= threshold)
-    if mutual:
-        best_k = torch.full((len(query),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(
-            0, kj, torch.where(keep, sim, neg), "amax"
-        )
+    if mutual:  # the landmark is also the keypoint's best among all landmarks near it
+        best_k = torch.full((len(query),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(0, kj, sim, "amax")
         keep &= sim == best_k[kj]
     out = torch.stack([li[keep], kj[keep]], 1).cpu().numpy()
     # ties (equal similarity): one pair per landmark and per keypoint
@@ -402,13 +399,9 @@ class Localizer:
         rend = self.source(rows, pose, t)
         s = time.perf_counter()
         uv = project(q.cam.K, pose, self.map.positions[rows])
-        kp = torch.as_tensor(q.feats.keypoints, dtype=torch.float32, device=rend.device)
-        near = torch.cdist(torch.as_tensor(uv, dtype=torch.float32, device=rend.device), kp) <= cfg.guided_radius_px
-        sim = torch.where(near, rend @ q.desc.T, torch.full((), -2.0, device=rend.device))
-        best_sim, best = sim.max(1)
-        ok = (best_sim >= cfg.match_threshold) & (sim.argmax(0)[best] == torch.arange(len(rows), device=rend.device))
-        idx = torch.nonzero(ok).squeeze(1).cpu().numpy()
-        kidx = best.cpu().numpy()[idx]
+        m = match_near(rend, q.desc, uv, q.keypoints_tree(), cfg.guided_radius_px, cfg.match_threshold, mutual=True)
+        idx, kidx = m[:, 0], m[:, 1]
+        sims = (rend[idx] * q.desc[kidx]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t, cfg.guided_ransac_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -424,7 +417,7 @@ class Localizer:
         return dict(
             matches=np.c_[rows[idx], kidx],
             inliers=np.asarray(ans["inlier_mask"], bool),
-            similarity=best_sim.cpu().numpy()[idx],
+            similarity=sims,
         )
 
     def _result(
