@@ -199,7 +199,8 @@ def match_near(
     _, first = np.unique(out[:, 0], return_index=True)
     out = out[np.sort(first)]
     _, first = np.unique(out[:, 1], return_index=True)
-    return out[np.sort(first)]
+    out = out[np.sort(first)]
+    return out[np.argsort(out[:, 0], kind="stable")]  # by landmark, as match_descriptors (RANSAC sees the same order)
 
 
 class Localizer:
