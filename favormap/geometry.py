@@ -112,18 +112,42 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def quat_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
-    """Quaternion(s) (x, y, z, w), normalised here -> rotation matrix(es) (...,3,3)."""
+    """Quaternion(s) (x, y, z, w), normalised here -> rotation matrix(es) (...,3,3). (NumPy: the
+    localization path imports no scipy.)"""
     q = np.asarray(q_xyzw, dtype=np.float64)
-    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
-
-    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )  # fmt: skip
+    return R.reshape(q.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
-    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
-
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method: the
+    largest of the four diagonal combinations sets the well-conditioned component)."""
+    m = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    tr = np.trace(m)
+    cand = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
+    k = int(np.argmax(cand))
+    if k == 0:
+        r = np.sqrt(1.0 + tr) * 2
+        q = [(m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r, 0.25 * r]
+    elif k == 1:
+        r = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * r, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r, (m[2, 1] - m[1, 2]) / r]
+    elif k == 2:
+        r = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / r, 0.25 * r, (m[1, 2] + m[2, 1]) / r, (m[0, 2] - m[2, 0]) / r]
+    else:
+        r = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, 0.25 * r, (m[1, 0] - m[0, 1]) / r]
+    q = np.asarray(q) / np.linalg.norm(q)
     return q if q[3] >= 0 else -q
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -153,6 +154,7 @@ def others_busy(since: _Sample, now: _Sample) -> float | None:
 
 _start = _Sample()  # at import: the CLI imports this module first, so the window spans its imports
 _lock = threading.Lock()
+_torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
@@ -209,6 +211,8 @@ def configure_threads(threads: int | None = None) -> int:
     global _applied, _auto, _last
     with _lock:
         if threads is None and _applied is not None:
+            if not _torch_sized and "torch" in sys.modules:  # torch was imported since: size its pool too
+                _set_pools(_applied, first=False)
             return _applied
 
         n, auto, now = _resolve(threads)
@@ -237,15 +241,20 @@ def rebalance() -> int | None:
 
 
 def _set_pools(n: int, first: bool) -> None:
-    import torch
-
-    if torch.get_num_threads() != n:
-        torch.set_num_threads(n)
-    if first:
-        try:
-            torch.set_num_interop_threads(1)
-        except RuntimeError:  # inter-op pool already started (set by the caller or used): leave it
-            pass
+    """Size OpenCV's pool, and torch's when torch is loaded: a command that never needs torch (a
+    one-shot localization against a SIFT map) does not pay its ~2 s import; one that imports it
+    later gets the count when it calls :func:`configure_threads` again."""
+    global _torch_sized
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+        if first or not _torch_sized:
+            try:
+                torch.set_num_interop_threads(1)
+            except RuntimeError:  # inter-op pool already started (set by the caller or used): leave it
+                pass
+        _torch_sized = True
     try:
         import cv2
 

@@ -139,3 +139,28 @@ def test_voxel_training_fits_patches():
     assert grids.descriptors.shape == (L, 27, C)
     assert np.all(grids.cosine > 0.9) and np.all(grids.psnr > 20)
     assert grids.history[-1][1] < grids.history[0][1]  # loss went down
+
+
+def test_quaternions_match_scipy_including_half_turns():
+    """The NumPy quaternion conversions (the localization path imports no scipy) agree with scipy's
+    Rotation on random rotations and on the half turns where the trace-based formula breaks down."""
+    from scipy.spatial.transform import Rotation
+
+    from favormap.geometry import quat_to_rotmat, rotmat_to_quat
+
+    rots = Rotation.concatenate(
+        [
+            Rotation.random(500, random_state=3),
+            Rotation.from_rotvec(np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.6, 0.8, 0], [0, 0, 0.0]])),
+        ]
+    )
+    mats = rots.as_matrix()
+    for R in mats:
+        q = rotmat_to_quat(R)
+        assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        assert np.allclose(quat_to_rotmat(q), R, atol=1e-12)
+        ref = Rotation.from_matrix(R).as_quat()
+        assert np.allclose(q, ref, atol=1e-9) or np.allclose(q, -ref, atol=1e-9)
+    qs = rots.as_quat() * 3.0  # not normalised: quat_to_rotmat normalises
+    assert np.allclose(quat_to_rotmat(qs), mats, atol=1e-12)
+    assert quat_to_rotmat(qs.reshape(5, 101, 4)).shape == (5, 101, 3, 3)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from favormap import visibility
 from favormap.geometry import camera_centers, look_at, perturb_pose
 from favormap.io import Camera
 from favormap.ops.spatial import occluded
@@ -18,7 +19,7 @@ from favormap.visibility import (
     visible_rows,
 )
 
-BACKENDS = pytest.mark.parametrize("backend", sorted(KD_BACKENDS))
+BACKENDS = pytest.mark.parametrize("backend", sorted(KD_BACKENDS))  # auto, numpy, open3d, scipy
 
 
 def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
@@ -243,6 +244,122 @@ def test_visible_rows_small_and_degenerate_maps(n, backend):
     idx = SpatialIndex(P, backend=backend)
     got = visible_rows(idx, cam, np.eye(4), vd, va, dr)
     np.testing.assert_array_equal(got, brute_visible(P, vd, va, dr, cam, np.eye(4), ViewLimits()))
+
+
+def random_landmarks(rng, L, extent):
+    """Random positions, view directions, view angles and depth ranges (0.5 % seen from far)."""
+    P = rng.uniform(-extent, extent, (L, 3))
+    vd = rng.normal(size=(L, 3))
+    vd /= np.linalg.norm(vd, axis=1, keepdims=True)
+    va = rng.uniform(10, 60, L).astype(np.float32)
+    lo = rng.uniform(1, 3, L)
+    dr = np.c_[lo, lo + rng.uniform(0.5, 3, L)].astype(np.float32)
+    far = rng.random(L) < 0.005
+    dr[far, 1] = rng.uniform(20, 60, far.sum())
+    return P, vd, va, dr
+
+
+def test_numpy_scan_returns_the_same_rows_as_scipy():
+    """The brute-force backend against cKDTree: identical radius rows (also for radii at a point's
+    distance, where rounding decides), k-NN rows and distances, frustum and visibility rows."""
+    rng = np.random.default_rng(7)
+    P, vd, va, dr = random_landmarks(rng, 6000, 15.0)
+    scan, tree = SpatialIndex(P, backend="numpy"), SpatialIndex(P, backend="scipy")
+    assert isinstance(scan._tree, visibility._NumpyScan) and isinstance(tree._tree, visibility._ScipyTree)
+    for i in range(40):
+        c = rng.uniform(-16, 16, 3)
+        r = rng.uniform(0.1, 8) if i % 2 else float(np.sqrt(np.sum((P[i] - c) ** 2)))  # on a point
+        np.testing.assert_array_equal(scan.radius(c, r), tree.radius(c, r))
+        for k in (1, 7):
+            np.testing.assert_array_equal(scan.knn(c, k)[0], tree.knn(c, k)[0])
+            np.testing.assert_array_equal(scan.knn(c, k)[1], tree.knn(c, k)[1])
+    Q = rng.uniform(-16, 16, (700, 3))
+    for k in (1, 5, 6001):
+        (r1, d1), (r2, d2) = scan.knn_batch(Q, k), tree.knn_batch(Q, k)
+        np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(d1, d2)
+    cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
+    for _ in range(20):
+        T = random_pose(rng, 15)
+        depth = rng.uniform(1, 20)
+        np.testing.assert_array_equal(scan.frustum(cam, T, depth), tree.frustum(cam, T, depth))
+        np.testing.assert_array_equal(visible_rows(scan, cam, T, vd, va, dr), visible_rows(tree, cam, T, vd, va, dr))
+    assert len(scan.prepare_visibility(dr, 2.0, vd, va).tiers) > 1  # several trees were compared
+
+
+def test_numpy_scan_knn_ties_and_chunks(monkeypatch):
+    """Duplicated points: the distances equal cKDTree's, tied rows come lowest first (a stable
+    sort by distance); a tiny chunk size (many chunks) changes nothing."""
+    rng = np.random.default_rng(8)
+    P = np.repeat(rng.uniform(-1, 1, (40, 3)), 3, axis=0)
+    P[::7] = P[0]  # one point many times: ties across the k-th neighbour
+    Q = np.vstack([rng.uniform(-1, 1, (200, 3)), P[:5]])
+    scan = SpatialIndex(P, backend="numpy")
+    D2 = np.sum((Q[:, None] - P[None]) ** 2, axis=2)
+    for k in (1, 2, 4, 17):
+        rows, dist = scan.knn_batch(Q, k)
+        np.testing.assert_array_equal(dist, SpatialIndex(P, backend="scipy").knn_batch(Q, k)[1])
+        np.testing.assert_array_equal(rows, np.argsort(D2, axis=1, kind="stable")[:, :k])
+        monkeypatch.setattr(visibility, "_SCAN_CHUNK_BYTES", 100)
+        small = SpatialIndex(P, backend="numpy")
+        np.testing.assert_array_equal(small.knn_batch(Q, k)[0], rows)
+        np.testing.assert_array_equal(small.radius(Q[0], 0.5), scan.radius(Q[0], 0.5))
+        monkeypatch.undo()
+
+
+def test_auto_backend_picks_the_scan_for_small_trees(monkeypatch):
+    """ "auto" (the default) scans up to BRUTE_FORCE_MAX points and builds a cKDTree above, deciding
+    per tree: each visibility tier on its own size. Explicit backends are kept whatever the size."""
+    assert SpatialIndex(np.zeros((3, 3))).backend == "auto"
+    assert 20_000 <= visibility.BRUTE_FORCE_MAX <= 200_000
+    monkeypatch.setattr(visibility, "BRUTE_FORCE_MAX", 1000)
+    rng = np.random.default_rng(9)
+    P, vd, va, dr = random_landmarks(rng, 5000, 10.0)
+    assert isinstance(SpatialIndex(P[:1000])._tree, visibility._NumpyScan)
+    assert isinstance(SpatialIndex(P[:1001])._tree, visibility._ScipyTree)
+    assert isinstance(SpatialIndex(P[:10], backend="scipy")._tree, visibility._ScipyTree)
+    assert isinstance(SpatialIndex(P[:10], backend="open3d")._tree, visibility._Open3DTree)
+    assert isinstance(SpatialIndex(P, backend="numpy")._tree, visibility._NumpyScan)
+    idx = SpatialIndex(P)
+    tiers = [t for t in idx.prepare_visibility(dr, 2.0, vd, va).tiers if t["tree"] is not None]
+    kinds = {isinstance(t["tree"], visibility._NumpyScan) for t in tiers}
+    assert kinds == {True, False}  # tiers of both sizes here
+    for t in tiers:
+        want = visibility._NumpyScan if len(t["rows"]) <= 1000 else visibility._ScipyTree
+        assert type(t["tree"]) is want
+    cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
+    for _ in range(10):
+        T = random_pose(rng, 10)
+        want = brute_visible(P, vd, va, dr, cam, T, ViewLimits())
+        np.testing.assert_array_equal(visible_rows(idx, cam, T, vd, va, dr), want)
+
+
+def test_small_maps_do_not_import_scipy_spatial():
+    """Importing scipy.spatial costs ~0.5 s of a one-shot localization: a small index (the default
+    "auto" backend) answers radius, k-NN, frustum and visibility queries without it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from favormap.io import Camera\n"
+        "from favormap.visibility import SpatialIndex, visible_rows\n"
+        "rng = np.random.default_rng(0)\n"
+        "L = 1000\n"
+        "P = rng.uniform(-1, 1, (L, 3)) + [0, 0, 3]\n"
+        "vd = np.tile([0, 0, -1.0], (L, 1))\n"
+        "dr = np.tile([1.0, 4.0], (L, 1))\n"
+        "idx = SpatialIndex(P)\n"
+        "cam = Camera('PINHOLE', 64, 48, [40, 40, 32, 24])\n"
+        "n = [len(idx.radius([0, 0, 3], 0.5)), len(idx.knn([0, 0, 3], 5)[0]), len(idx.frustum(cam, np.eye(4), 5))]\n"
+        "n.append(len(visible_rows(idx, cam, np.eye(4), vd, np.full(L, 30.0), dr)))\n"
+        "print(*n, 'scipy.spatial' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    *n, imported = out.stdout.split()
+    assert all(int(x) > 0 for x in n), out.stdout
+    assert imported == "False"
 
 
 def test_unknown_backend_is_refused():

@@ -12,10 +12,13 @@ import pytest
 HEAVY = ("torch", "open3d", "pycolmap", "cv2", "h5py", "scipy", "rerun", "trimesh", "numpy", "tqdm")
 
 
-def loaded(argv: list[str]) -> set[str]:
+def loaded(argv: list[str], spatial: bool = False):
+    """Heavy modules a command imports (and, with ``spatial``, also whether scipy.spatial; then the
+    command's output is returned too)."""
+    heavy = HEAVY + (("scipy.spatial",) if spatial else ())
     code = (
         "import sys\nfrom favormap.cli import main\ntry:\n    rc = main(sys.argv[1:])\nexcept SystemExit:\n    rc = 0\n"
-        f"print('LOADED', ','.join(h for h in {HEAVY!r} if h in sys.modules))\nprint('RC', rc)"
+        f"print('LOADED', ','.join(h for h in {heavy!r} if h in sys.modules))\nprint('RC', rc)"
     )
     r = subprocess.run(
         [sys.executable, "-c", code, *argv],
@@ -26,7 +29,8 @@ def loaded(argv: list[str]) -> set[str]:
     )
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("LOADED"))
     assert "Traceback" not in r.stderr, r.stderr
-    return {m for m in line.split(" ", 1)[1].split(",") if m}
+    mods = {m for m in line.split(" ", 1)[1].split(",") if m}
+    return (mods, r.stdout) if spatial else mods
 
 
 def test_help_imports_no_heavy_module():
@@ -42,7 +46,10 @@ def test_map_reading_commands_import_neither_torch_nor_opencv(small_map, cmd):
     assert not mods & {"torch", "cv2", "open3d", "pycolmap", "rerun", "trimesh", "scipy"}, mods
 
 
-def test_localize_does_not_import_open3d_or_the_writer_stack(small_map, small_sequence, tmp_path):
+def test_localize_of_a_sift_map_imports_neither_torch_nor_scipy_spatial(small_map, small_sequence, tmp_path):
+    """On the CPU a SIFT map localizes with OpenCV, NumPy, h5py and pycolmap only: voxels render in
+    NumPy (favormap.voxels.render_numpy), small maps are searched by a scan (favormap.visibility),
+    and torch (~2 s to import), scipy.spatial (~0.5 s), Open3D and the writer stack stay out."""
     import numpy as np
 
     from favormap.geometry import inverse
@@ -51,6 +58,9 @@ def test_localize_does_not_import_open3d_or_the_writer_stack(small_map, small_se
     fr = small_sequence.frames[3]
     prior = tmp_path / "prior.txt"
     np.savetxt(prior, inverse(fr.cam_from_world))
-    mods = loaded(["localize", str(path), str(fr.image_path), "--prior", str(prior)])
-    assert {"torch", "cv2", "h5py"} <= mods
-    assert not mods & {"open3d", "rerun", "trimesh"}, mods
+    mods, out = loaded(
+        ["localize", str(path), str(fr.image_path), "--prior", str(prior), "--device", "cpu"], spatial=True
+    )
+    assert ": localized" in out, out[-500:]
+    assert {"cv2", "h5py", "pycolmap"} <= mods
+    assert not mods & {"torch", "scipy.spatial", "open3d", "rerun", "trimesh"}, mods

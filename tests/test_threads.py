@@ -153,7 +153,13 @@ def test_configure_sizes_torch_and_opencv(restore_pools):
 def test_a_fresh_process_follows_the_rule():
     show = "print(n, torch.get_num_threads(), cv2.getNumThreads(), torch.get_num_interop_threads())"
     env = {k: v for k, v in ENV.items() if k != "OMP_NUM_THREADS"}
-    code = "from favormap.threads import configure_threads; n = configure_threads(); import torch, cv2; " + show
+    # configure_threads does not import torch (a SIFT localization never needs it); a command that
+    # imports torch afterwards calls it again (build_map, the Localizer do) and torch's
+    # pools then follow the count already chosen
+    code = (
+        "import sys; from favormap.threads import configure_threads; n = configure_threads(); "
+        "assert 'torch' not in sys.modules; import torch, cv2; assert configure_threads() == n; " + show
+    )
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     n, t, c, inter = map(int, out.stdout.split())
     assert 1 <= n <= thr.available_cpus() and t == c == n and inter == 1  # how many depends on the machine's load

@@ -82,7 +82,10 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
-        if hasattr(args, "threads"):  # heavy commands: size the thread pools once, before any work
+        # heavy commands: size the thread pools once, before any work; a command whose API object
+        # does it itself at the start of the work (localize: the Localizer) says so, and the load
+        # measurement then spans its imports instead of waiting threads.MIN_WINDOW_S for it
+        if hasattr(args, "threads") and (args.threads is not None or not getattr(args, "threads_by_api", False)):
             threads.configure_threads(args.threads)
         return int(args.func(args) or 0)
     except FavormapError as e:

@@ -6,7 +6,24 @@ import json
 import sys
 
 
+def _gpu_driver_present() -> bool:
+    """An NVIDIA (or ROCm) driver is installed: without one torch cannot see a GPU, and "auto"
+    resolves to the CPU without importing torch (~2 s)."""
+    import glob
+    import os
+
+    return (
+        os.path.exists("/proc/driver/nvidia/version")
+        or bool(glob.glob("/dev/nvidia[0-9]*"))
+        or os.path.exists("/dev/kfd")
+    )
+
+
 def auto_device(name: str | None) -> str:
+    if name in (None, "auto") and not _gpu_driver_present():
+        return "cpu"
+    if name == "cpu":
+        return name
     import torch
 
     if name in (None, "auto"):

@@ -38,6 +38,7 @@ def add_localize_options(p):
     )
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
     add_threads_arg(p)
+    p.set_defaults(threads_by_api=True)  # the Localizer sizes the pools (favormap.threads)
 
 
 def register(sub):

@@ -1,6 +1,29 @@
-"""features: keypoints + descriptors sampled anywhere, behind one small interface."""
+"""features: keypoints + descriptors sampled anywhere, behind one small interface.
 
-from . import disk, sift, xfeat  # noqa: F401  (register the built-in extractors; disk's packages load on use)
-from .base import Extractor, Features, available, create, patch_offsets, register
+The built-in extractors (``disk``, ``sift``, ``xfeat``) are imported on first use, so importing
+this package, and creating and using the SIFT extractor, never imports torch. Their modules and
+``subpixel_offsets`` stay reachable as attributes (``features.sift.octave_of_size``)."""
 
-__all__ = ["Extractor", "Features", "available", "create", "patch_offsets", "register"]
+from __future__ import annotations
+
+import importlib
+
+from .base import Extractor, Features, available, create, extractor_class, patch_offsets, register
+
+__all__ = ["Extractor", "Features", "available", "create", "extractor_class", "patch_offsets", "register"]
+
+_SUBMODULES = ("base", "disk", "heatmap", "sift", "xfeat")
+
+
+def __getattr__(name: str):  # PEP 562: load a built-in extractor's module (and torch, if it needs it) on use
+    if name in _SUBMODULES:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name == "subpixel_offsets":
+        from .heatmap import subpixel_offsets
+
+        return subpixel_offsets
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_SUBMODULES) | {"subpixel_offsets"})

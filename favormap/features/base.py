@@ -7,13 +7,13 @@ pixel convention (centre of the top-left pixel = (0.5, 0.5)). Descriptors are L2
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..errors import InputError
 
@@ -53,28 +53,50 @@ class Extractor(ABC):
         return {"name": self.name, "channels": self.channels, "max_keypoints": self.max_keypoints}
 
 
+# The built-in extractors, by name -> "module:Class". Their modules are imported on first use
+# (create / extractor_class), so that e.g. SIFT never imports torch, which XFeat and DISK need.
+_BUILTIN: dict[str, str] = {
+    "disk": "favormap.features.disk:DISKExtractor",
+    "sift": "favormap.features.sift:SIFTExtractor",
+    "xfeat": "favormap.features.xfeat:XFeatExtractor",
+}
 _REGISTRY: dict[str, Callable[..., Extractor]] = {}
 
 
 def register(name: str):
-    """Class decorator: make an extractor available by name."""
+    """Class decorator: make an extractor available by name (it replaces a built-in of that name)."""
 
     def deco(cls):
         cls.name = name
-        _REGISTRY[name] = cls
+        # a built-in's module imported after a user's extractor took its name leaves the user's one
+        if not (_is_builtin(name, cls) and name in _REGISTRY and not _is_builtin(name, _REGISTRY[name])):
+            _REGISTRY[name] = cls
         return cls
 
     return deco
 
 
+def _is_builtin(name: str, cls) -> bool:
+    return _BUILTIN.get(name) == f"{getattr(cls, '__module__', '')}:{getattr(cls, '__qualname__', '')}"
+
+
 def available() -> list[str]:
-    return sorted(_REGISTRY)
+    return sorted(set(_REGISTRY) | set(_BUILTIN))
+
+
+def extractor_class(name: str) -> Callable[..., Extractor]:
+    """The extractor registered as ``name``, importing a built-in's module on first use."""
+    if name not in _REGISTRY:
+        if name not in _BUILTIN:
+            raise InputError(f"unknown feature extractor {name!r} (available: {', '.join(available())})")
+        module, _, attr = _BUILTIN[name].partition(":")
+        cls = getattr(importlib.import_module(module), attr)  # its @register fills _REGISTRY
+        _REGISTRY.setdefault(name, cls)
+    return _REGISTRY[name]
 
 
 def create(name: str, **kwargs) -> Extractor:
-    if name not in _REGISTRY:
-        raise InputError(f"unknown feature extractor {name!r} (available: {', '.join(available())})")
-    return _REGISTRY[name](**kwargs)
+    return extractor_class(name)(**kwargs)
 
 
 def patch_offsets(size: int) -> np.ndarray:
@@ -84,18 +106,9 @@ def patch_offsets(size: int) -> np.ndarray:
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
 
-def subpixel_offsets(heat: torch.Tensor, kpts: torch.Tensor) -> torch.Tensor:
-    """Sub-pixel refinement of heatmap maxima: a 1D parabola through the peak and its two
-    neighbours along x and along y (offsets clamped to half a pixel). ``kpts`` (N, 2) are integer
-    (x, y) positions in the heatmap's pixels; returns (N, 2) offsets to add to them."""
-    H, W = heat.shape
-    x = kpts[:, 0].long().clamp(1, W - 2)
-    y = kpts[:, 1].long().clamp(1, H - 2)
-    c = heat[y, x]
-    off = []
-    for lo, hi in ((heat[y, x - 1], heat[y, x + 1]), (heat[y - 1, x], heat[y + 1, x])):
-        den = 2 * c - lo - hi
-        d = torch.where(den > 1e-12, 0.5 * (hi - lo) / den.clamp_min(1e-12), torch.zeros_like(c))
-        off.append(d.clamp(-0.5, 0.5))
-    inside = ((kpts[:, 0] >= 1) & (kpts[:, 0] <= W - 2) & (kpts[:, 1] >= 1) & (kpts[:, 1] <= H - 2)).float()
-    return torch.stack(off, 1) * inside[:, None]
+def __getattr__(name: str):  # PEP 562: subpixel_offsets moved to .heatmap (torch), loaded on use
+    if name == "subpixel_offsets":
+        from .heatmap import subpixel_offsets
+
+        return subpixel_offsets
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

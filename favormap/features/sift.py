@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import torch
 
 from .base import Extractor, Features, register
 
@@ -90,12 +89,15 @@ class SIFTExtractor(Extractor):
         size = np.full(len(pts), self.size, np.float32)
         angle = np.zeros(len(pts), np.float32)
         octave = np.full(len(pts), int(octave_of_size(self.size)), np.int64)
-        if len(pts) and len(st.xy):
-            d = torch.cdist(torch.as_tensor(pts), torch.as_tensor(st.xy))
-            dist, nn = d.min(1)
-            near = (dist <= self.support_px).numpy()
-            nn = nn.numpy()
-            size[near], angle[near], octave[near] = st.size[nn[near]], st.angle[nn[near]], st.octave[nn[near]]
+        finite = np.isfinite(pts).all(axis=1)  # NaN / inf points: never near a keypoint
+        if finite.any() and len(st.xy):
+            from scipy.spatial import cKDTree  # not torch: creating and using SIFT never imports torch
+
+            dist, nn = cKDTree(st.xy.astype(np.float64)).query(pts[finite].astype(np.float64), k=1)
+            near = np.zeros(len(pts), bool)
+            near[finite] = dist <= self.support_px
+            nn = nn[near[finite]]
+            size[near], angle[near], octave[near] = st.size[nn], st.angle[nn], st.octave[nn]
         return self._describe(st, pts, size, angle, octave)
 
     def _describe(

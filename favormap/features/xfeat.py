@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import FavormapError
-from .base import Extractor, Features, register, subpixel_offsets
+from .base import Extractor, Features, register
+from .heatmap import subpixel_offsets
 
 
 def _load_model(device: str):

@@ -17,19 +17,22 @@ import time
 from typing import Protocol
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
 from ..geometry import camera_centers
 from ..mapfile import Map
-from ..voxels import render_from_camera
 
 
 class DescriptorSource(Protocol):
     name: str
 
-    def __call__(self, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict) -> torch.Tensor:
-        """Unit descriptors (len(rows), C) of landmark ``rows`` seen from ``cam_from_world``."""
+    def __call__(self, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict) -> np.ndarray:
+        """Unit descriptors (len(rows), C) float32 of landmark ``rows`` seen from ``cam_from_world``."""
+
+
+def unit_rows(x) -> np.ndarray:
+    """Rows scaled to unit L2 norm (float32; all-zero rows stay zero)."""
+    x = np.asarray(x, np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
 def _tick(timings: dict, key: str, since: float) -> float:
@@ -39,6 +42,10 @@ def _tick(timings: dict, key: str, since: float) -> float:
 
 
 class RenderedDescriptors:
+    """FaVoR: rendered from each landmark's voxel grids. On the CPU with NumPy
+    (:mod:`favormap.voxels.render_numpy`: the localizer does not import torch, which takes ~2 s to
+    import); on another ``device`` with torch."""
+
     name = "rendered"
 
     def __init__(self, map_: Map, device: str = "cpu"):
@@ -48,16 +55,27 @@ class RenderedDescriptors:
         s = time.perf_counter()
         desc, dens = self.map.voxels(rows)
         s = _tick(timings, "loading", s)
-        dev = self.device
-        with torch.no_grad():
-            out = render_from_camera(
-                torch.as_tensor(desc, device=dev),
-                torch.as_tensor(dens, device=dev),
-                torch.as_tensor(self.map.positions[rows], dtype=torch.float32, device=dev),
-                torch.as_tensor(self.map.voxel_size[rows], device=dev),
-                torch.as_tensor(camera_centers(cam_from_world), dtype=torch.float32, device=dev),
-                self.map.render_samples,
-            )
+        args = (
+            np.asarray(desc, np.float32),
+            np.asarray(dens, np.float32),
+            np.asarray(self.map.positions[rows], np.float32),
+            np.asarray(self.map.voxel_size[rows], np.float32),
+            np.asarray(camera_centers(cam_from_world), np.float32),
+        )
+        if self.device == "cpu":
+            from ..voxels.render_numpy import render_from_camera_numpy
+
+            out = render_from_camera_numpy(*args, self.map.render_samples)
+        else:
+            import torch
+
+            from ..voxels.render import render_from_camera
+
+            with torch.no_grad():
+                out = render_from_camera(
+                    *(torch.as_tensor(a, device=self.device) for a in args), self.map.render_samples
+                )
+            out = out.cpu().numpy()
         _tick(timings, "rendering", s)
         return out
 
@@ -70,9 +88,9 @@ class MeanDescriptors:
 
     def __call__(self, rows, cam_from_world, timings):
         s = time.perf_counter()
-        d = torch.as_tensor(self.map.mean_descriptors(rows), device=self.device)
+        d = unit_rows(self.map.mean_descriptors(rows))
         _tick(timings, "loading", s)
-        return F.normalize(d, dim=-1)
+        return d
 
 
 class NearestViewDescriptors:
@@ -103,7 +121,7 @@ class NearestViewDescriptors:
         out = np.zeros((len(rows), self.obs_desc.shape[1]), np.float32)
         out[group[keep]] = self.obs_desc[obs[keep]]
         _tick(timings, "loading", s)
-        return F.normalize(torch.as_tensor(out, device=self.device), dim=-1)
+        return unit_rows(out)
 
 
 def observation_descriptors(map_: Map, sequence, extractor=None) -> np.ndarray:

@@ -23,7 +23,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from .. import features as feats_mod
 from ..errors import InputError
@@ -33,7 +32,7 @@ from ..io.images import prepare_query
 from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
-from .descriptors import DescriptorSource, make_source
+from .descriptors import DescriptorSource, make_source, unit_rows
 
 
 @dataclass
@@ -80,7 +79,7 @@ class LocalizeConfig:
     # landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
     # distances (tools/bench_accuracy.py, fox extrapolation: 3/5 localized with 15 deg / 0.5-2x, 5/5 with these)
     view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
-    device: str = "cpu"
+    device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
     seed: int = 0
     threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule)
 
@@ -140,32 +139,55 @@ class LocalizationResult:
 
 
 def match_descriptors(
-    rendered: torch.Tensor, query: torch.Tensor, threshold: float, mutual: bool = False, ratio: float = 1.0
+    rendered: np.ndarray,
+    query: np.ndarray,
+    threshold: float,
+    mutual: bool = False,
+    ratio: float = 1.0,
+    chunk: int = 8192,
 ) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
     query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
     rendered descriptor is also that query descriptor's most similar one, and when the best
-    distance is below ``ratio`` times the second best (Lowe's test on unit vectors)."""
-    if len(rendered) == 0 or len(query) == 0:
+    distance is below ``ratio`` times the second best (Lowe's test on unit vectors).
+
+    NumPy, ``chunk`` rendered rows at a time: memory stays bounded when matching a query against a
+    whole map (the prior-free step); ties go to the lower index."""
+    rendered = np.asarray(rendered, np.float32)
+    query = np.asarray(query, np.float32)
+    L, Q = len(rendered), len(query)
+    if L == 0 or Q == 0:
         return np.zeros((0, 2), np.int64)
-    sim = rendered @ query.T
-    if ratio < 1.0 and sim.shape[1] >= 2:
-        top, arg = sim.topk(2, dim=1)
-        best_sim, best = top[:, 0], arg[:, 0]
-        ok = (2 - 2 * top[:, 0]).clamp_min(0) < ratio**2 * (2 - 2 * top[:, 1]).clamp_min(0)
-    else:
-        best_sim, best = sim.max(1)
-        ok = torch.ones_like(best_sim, dtype=torch.bool)
-    ok &= best_sim >= threshold
+    qt = np.ascontiguousarray(query.T)
+    best = np.empty(L, np.int64)
+    best_sim = np.empty(L, np.float32)
+    second = np.full(L, -np.inf, np.float32)
+    col_best = np.full(Q, -np.inf, np.float32)  # each query descriptor's best similarity
+    for s in range(0, L, chunk):
+        sim = rendered[s : s + chunk] @ qt
+        r = np.arange(len(sim))
+        if mutual:  # max along axis 0 is ~20x faster than argmax along it
+            np.maximum(col_best, sim.max(0), out=col_best)
+        b = sim.argmax(1)
+        best[s : s + len(sim)], best_sim[s : s + len(sim)] = b, sim[r, b]
+        if ratio < 1.0 and Q >= 2:
+            sim[r, b] = -np.inf
+            second[s : s + len(sim)] = sim.max(1)
+    ok = best_sim >= threshold
+    if ratio < 1.0 and Q >= 2:
+        ok &= np.maximum(2 - 2 * best_sim, 0) < ratio**2 * np.maximum(2 - 2 * second, 0)
+    if mutual:  # the rendered row is its query descriptor's best; on a tie the lowest row wins
+        ok &= best_sim >= col_best[best]
+    idx = np.flatnonzero(ok)
     if mutual:
-        ok &= sim.argmax(0)[best] == torch.arange(len(rendered), device=sim.device)
-    idx = torch.nonzero(ok).squeeze(1)
-    return torch.stack([idx, best[idx]], 1).cpu().numpy()
+        _, first = np.unique(best[idx], return_index=True)
+        idx = idx[np.sort(first)]
+    return np.stack([idx, best[idx]], 1).astype(np.int64)
 
 
 def match_near(
-    rendered: torch.Tensor,
-    query: torch.Tensor,
+    rendered: np.ndarray,
+    query: np.ndarray,
     uv: np.ndarray,
     keypoint_tree,
     radius: float,
@@ -179,6 +201,8 @@ def match_near(
     Only the candidate pairs are compared, not the full similarity matrix."""
     from scipy.spatial import cKDTree
 
+    rendered = np.asarray(rendered, np.float32)
+    query = np.asarray(query, np.float32)
     if len(rendered) == 0 or keypoint_tree.n == 0:
         return np.zeros((0, 2), np.int64)
     ok = np.all(np.isfinite(uv), axis=1)
@@ -186,21 +210,28 @@ def match_near(
     pairs = cKDTree(uv[ok]).sparse_distance_matrix(keypoint_tree, radius, output_type="ndarray")
     if len(pairs) == 0:
         return np.zeros((0, 2), np.int64)
-    li = torch.as_tensor(rows_ok[pairs["i"]], device=rendered.device)
-    kj = torch.as_tensor(pairs["j"].astype(np.int64), device=rendered.device)
-    sim = (rendered[li] * query[kj]).sum(-1)
-    best_l = torch.full((len(rendered),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(0, li, sim, "amax")
+    li = rows_ok[pairs["i"]].astype(np.int64)
+    kj = pairs["j"].astype(np.int64)
+    sim = np.einsum("ij,ij->i", rendered[li], query[kj])
+    best_l = np.full(len(rendered), -3.0, np.float32)
+    np.maximum.at(best_l, li, sim)
     keep = (sim == best_l[li]) & (sim >= threshold)
     if mutual:  # the landmark is also the keypoint's best among all landmarks near it
-        best_k = torch.full((len(query),), -3.0, dtype=sim.dtype, device=sim.device).scatter_reduce(0, kj, sim, "amax")
+        best_k = np.full(len(query), -3.0, np.float32)
+        np.maximum.at(best_k, kj, sim)
         keep &= sim == best_k[kj]
-    out = torch.stack([li[keep], kj[keep]], 1).cpu().numpy()
+    out = np.stack([li[keep], kj[keep]], 1)
     # ties (equal similarity): one pair per landmark and per keypoint
     _, first = np.unique(out[:, 0], return_index=True)
     out = out[np.sort(first)]
     _, first = np.unique(out[:, 1], return_index=True)
     out = out[np.sort(first)]
     return out[np.argsort(out[:, 0], kind="stable")]  # by landmark, as match_descriptors (RANSAC sees the same order)
+
+
+def _pair_similarity(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Cosine of the matched pairs ``m`` (K, 2) of unit rows ``a`` and ``b``."""
+    return np.einsum("ij,ij->i", a[m[:, 0]], b[m[:, 1]]) if len(m) else np.zeros(0, np.float32)
 
 
 class Localizer:
@@ -219,7 +250,6 @@ class Localizer:
         self, map_: Map | str, config: LocalizeConfig | None = None, descriptor_source: DescriptorSource | None = None
     ):
         self.config = config or LocalizeConfig()
-        configure_threads(self.config.threads)
         self.map = map_ if isinstance(map_, Map) else Map.open(map_)
         self.extractor = feats_mod.create(
             self.map.extractor,
@@ -234,6 +264,7 @@ class Localizer:
         )
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
+        configure_threads(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
         if self.config.global_ratio is None:
             self.config = dataclasses.replace(self.config, global_ratio=self.extractor.match_ratio)
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
@@ -269,7 +300,7 @@ class Localizer:
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
         feats = self.extractor.extract(img)
-        qdesc = torch.as_tensor(feats.descriptors, device=cfg.device)
+        qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
         q = _Query(feats, qdesc, cam)
 
@@ -326,10 +357,7 @@ class Localizer:
             rows = np.arange(len(self.map))
             if len(rows) > cfg.global_max_landmarks:
                 rows = np.sort(np.argsort(-self.map.track_length, kind="stable")[: cfg.global_max_landmarks])
-            d = torch.nn.functional.normalize(
-                torch.as_tensor(self.map.mean_descriptors(rows), device=cfg.device), dim=-1
-            )
-            self._global = (rows, d)
+            self._global = (rows, unit_rows(self.map.mean_descriptors(rows)))
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
@@ -371,7 +399,7 @@ class Localizer:
                 )
             else:
                 m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
-            sims = (rend[m[:, 0]] * q.desc[m[:, 1]]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
+            sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
             ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
             n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -402,7 +430,7 @@ class Localizer:
         uv = project(q.cam.K, pose, self.map.positions[rows])
         m = match_near(rend, q.desc, uv, q.keypoints_tree(), cfg.guided_radius_px, cfg.match_threshold, mutual=True)
         idx, kidx = m[:, 0], m[:, 1]
-        sims = (rend[idx] * q.desc[kidx]).sum(-1).cpu().numpy() if len(m) else np.zeros(0, np.float32)
+        sims = _pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t, cfg.guided_ransac_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -511,7 +539,7 @@ class Localizer:
 @dataclass
 class _Query:
     feats: object
-    desc: torch.Tensor
+    desc: np.ndarray  # (N, C) float32 unit descriptors
     cam: Camera
     _tree: object = None
 
