@@ -64,6 +64,7 @@ VARIANTS = {
     "rendered no-checks": ("rendered", {"checks": "none"}),
     "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
+    "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),
     "rendered 2048-keypoints 2-iterations": ("rendered", {"max_keypoints": 2048, "iterations": 2}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode

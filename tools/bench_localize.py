@@ -1,15 +1,28 @@
 #!/usr/bin/env python3
-"""Warm per-query localization time, split by stage, on a synthetic room map at 640x480.
+"""Warm per-query localization time, split by stage, on a synthetic room map at 640x480 — and the
+same queries against a map of a million landmarks around that room.
 
-    python tools/bench_localize.py [--map MAP.h5 --sequence SEQ] [--queries 10]
+    python tools/bench_localize.py [--map MAP.h5] [--queries 10] [--large 1000000] [--large-map BIG.h5]
 
 Without --map, renders a 30-frame 640x480 synthetic room, builds a map with up to 1500 landmarks
 and localizes held-out views from priors perturbed by 0.3 units / 15 degrees.
+
+``--large N`` (default 1,000,000; 0: off) also writes a map of N landmarks: the room map plus
+copies of it (landmarks, voxels, view ranges) on a square grid spaced so far apart that none of
+them is visible from the room (a city block of rooms), and localizes the same queries against it.
+Each map is measured in a fresh process, so that the peak RSS is the map's (VmHWM of the process:
+extractor, map metadata, spatial index, voxel cache). The table gives the per-query time, the peak
+RSS, the voxel bytes read per query (lazy loading: only visible landmarks' grids are read) and the
+ratios large / room (target: both <= 2). ``--large-map`` keeps (or reuses) the large map's file.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -18,36 +31,91 @@ from pathlib import Path
 import numpy as np
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--map")
-    ap.add_argument("--queries", type=int, default=10)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--descriptors", default="rendered")
-    args = ap.parse_args()
+def peak_rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
 
-    from favormap.build import BuildConfig, build_map
+
+def rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def write_tiled(src: Path, dst: Path, target: int) -> dict:
+    """The map ``src`` and copies of it, translated on a square grid (copy 0 = the original in place),
+    up to ``target`` landmarks or more. Spacing: the room's extent plus 8 times its largest training
+    distance, so every copy is beyond the reach of the localizer's view limits (4x) from the room."""
+    from favormap.mapfile import Map, new_landmark_ids
+    from favormap.mapfile.writer import MapWriter, map_arrays, map_header
+
+    t = time.perf_counter()
+    m = Map.open(src).load()
+    n = m.num_landmarks
+    copies = max(1, math.ceil(target / n))
+    side = math.ceil(math.sqrt(copies))
+    extent = float(np.ptp(m.positions, axis=0).max())
+    spacing = 2 * extent + 8 * float(m.depth_range[:, 1].max())
+    g = np.array([(i % side, i // side) for i in range(copies)], np.float64) * spacing
+    offsets = np.zeros((copies, 3))
+    offsets[:, 0], offsets[:, 2] = g[:, 0], g[:, 1]
+    arrays = map_arrays(m)
+    streamed = ("voxels/descriptors", "voxels/density", "landmarks/mean_descriptor")
+    L = copies * n
+    with MapWriter(dst, map_header(m), L, m.num_frames) as w:
+        for k, v in arrays.items():
+            if k in streamed:
+                continue
+            v = np.asarray(v) if not isinstance(v, list) else v
+            if k == "landmarks/ids":
+                w.put(k, new_landmark_ids(L))
+            elif k == "landmarks/positions":
+                w.put(k, (v[None] + offsets[:, None]).reshape(-1, 3))
+            elif k == "tracks/landmark_index":
+                w.put(k, (v[None].astype(np.int64) + n * np.arange(copies)[:, None]).ravel())
+            elif k.startswith(("landmarks/", "tracks/")):
+                w.put(k, np.concatenate([v] * copies))
+            else:
+                w.put(k, v)
+        for k in streamed:
+            w.create(k)
+            v = arrays[k]
+            for c in range(copies):
+                w.write_rows(k, c * n, v)
+    return {
+        "landmarks": L,
+        "copies": copies,
+        "spacing": spacing,
+        "write_s": time.perf_counter() - t,
+        "file_gb": dst.stat().st_size / 1e9,
+    }
+
+
+def measure(args) -> dict:
+    """Localize the queries against one map (this process measures only that map)."""
     from favormap.geometry import perturb_pose, pose_error
+    from favormap.io import read_sequence
     from favormap.localize import LocalizeConfig, Localizer
-    from favormap.mapfile import write_map
-    from favormap.synthetic import make_room, random_views_near, render, write_sequence
+    from favormap.synthetic import make_room, random_views_near, render
 
-    tmp = tempfile.TemporaryDirectory()
-    seq = write_sequence(Path(tmp.name) / "room", n_frames=30, width=640, height=480)
-    path = args.map
-    if path is None:
-        path = Path(tmp.name) / "room.h5"
-        t = time.perf_counter()
-        write_map(build_map(seq, BuildConfig(max_landmarks=1500), device=args.device), path)
-        print(f"built map in {time.perf_counter() - t:.1f} s")
+    seq = read_sequence(args.sequence)
     scene = make_room(0)
     cam = seq.cameras[0]
     views = random_views_near([f.cam_from_world for f in seq.frames], args.queries, seed=1, scene=scene)
     images = [render(scene, cam, T)[0] for T in views]
+    rss0 = rss_mb()
+    t = time.perf_counter()
+    loc = Localizer(args.measure, LocalizeConfig(device=args.device, descriptors=args.descriptors))
+    open_s = time.perf_counter() - t
     rng = np.random.default_rng(0)
-    loc = Localizer(path, LocalizeConfig(device=args.device, descriptors=args.descriptors))
-    loc.localize(images[0], perturb_pose(views[0], 0.3, 15, rng))  # warm-up (model, caches)
-    rows, errs, totals = [], [], []
+    loc.localize(images[0], perturb_pose(views[0], 0.3, 15, rng))  # warm-up (model, caches, KD-trees)
+    rows, errs, totals, ok = [], [], [], 0
+    b0 = loc.map.bytes_read
     for img, T in zip(images, views):
         prior = perturb_pose(T, 0.3, 15, rng)
         t = time.perf_counter()
@@ -55,17 +123,105 @@ def main():
         totals.append(time.perf_counter() - t)
         rows.append(res.timings)
         errs.append(pose_error(res.cam_from_world, T))
-    keys = list(rows[0])
-    print(
-        f"map {path}: {len(loc.map)} landmarks; {len(views)} queries 640x480, 3 iterations, device {args.device}, "
-        f"descriptors {args.descriptors}"
-    )
-    print(f"{'stage':<12} {'ms/query':>9}")
-    for k in keys:
-        print(f"{k:<12} {1000 * np.mean([r[k] for r in rows]):>9.1f}")
-    print(f"{'total':<12} {1000 * np.mean(totals):>9.1f}")
+        ok += bool(res.success)
     e = np.array(errs)
-    print(f"median error {np.median(e[:, 0]):.4f} units / {np.median(e[:, 1]):.3f} deg")
+    return {
+        "map": str(args.measure),
+        "landmarks": len(loc.map),
+        "open_s": open_s,
+        "stages_ms": {k: 1000 * float(np.mean([r[k] for r in rows])) for k in rows[0]},
+        "total_ms": 1000 * float(np.mean(totals)),
+        "localized": ok,
+        "queries": len(views),
+        "median_error": [float(np.median(e[:, 0])), float(np.median(e[:, 1]))],
+        "voxel_kb_per_query": (loc.map.bytes_read - b0) / len(views) / 1024,
+        "rss_before_map_mb": rss0,
+        "peak_rss_mb": peak_rss_mb(),
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--map")
+    ap.add_argument("--queries", type=int, default=10)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--descriptors", default="rendered")
+    ap.add_argument("--large", type=int, default=1_000_000, help="landmarks of the large map (0: no large map)")
+    ap.add_argument("--large-map", help="file for the large map (kept; reused when it exists)")
+    ap.add_argument("--measure", help=argparse.SUPPRESS)  # child process: measure this map
+    ap.add_argument("--sequence", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.measure:
+        print(json.dumps(measure(args)))
+        return 0
+
+    from favormap.build import BuildConfig, build_map
+    from favormap.mapfile import write_map
+    from favormap.synthetic import write_sequence
+
+    tmp = tempfile.TemporaryDirectory()
+    seq_dir = Path(tmp.name) / "room"
+    seq = write_sequence(seq_dir, n_frames=30, width=640, height=480)
+    path = args.map
+    if path is None:
+        path = Path(tmp.name) / "room.h5"
+        t = time.perf_counter()
+        write_map(build_map(seq, BuildConfig(max_landmarks=1500), device=args.device), path)
+        print(f"built map in {time.perf_counter() - t:.1f} s")
+    maps = [Path(path)]
+    if args.large:
+        big = Path(args.large_map) if args.large_map else Path(tmp.name) / "large.h5"
+        if not big.exists():
+            info = write_tiled(Path(path), big, args.large)
+            print(
+                f"wrote {big}: {info['landmarks']:,} landmarks ({info['copies']} copies of the map, "
+                f"{info['spacing']:.1f} units apart), {info['file_gb']:.2f} GB in {info['write_s']:.0f} s"
+            )
+        maps.append(big)
+
+    results = []
+    for p in maps:
+        cmd = [
+            sys.executable,
+            __file__,
+            "--measure",
+            str(p),
+            "--sequence",
+            str(seq_dir),
+            "--queries",
+            str(args.queries),
+            "--device",
+            args.device,
+            "--descriptors",
+            args.descriptors,
+        ]
+        out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN_ANALYTICS": "false"})
+        if out.returncode:
+            sys.stderr.write(out.stderr)
+            return 1
+        results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+
+    r0 = results[0]
+    print(
+        f"{args.queries} queries 640x480, 3 iterations, device {args.device}, descriptors {args.descriptors}; "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    stages = list(r0["stages_ms"])
+    print(
+        f"{'landmarks':>10} {'open s':>7}"
+        + "".join(f"{s:>11}" for s in stages)
+        + f"{'ms/query':>10}{'x room':>8}{'peak RSS MB':>13}{'x room':>8}"
+        + f"{'voxel KB/q':>11}{'localized':>10}{'median err':>18}"
+    )
+    for r in results:
+        print(
+            f"{r['landmarks']:>10,} {r['open_s']:>7.2f}"
+            + "".join(f"{r['stages_ms'][s]:>11.1f}" for s in stages)
+            + f"{r['total_ms']:>10.1f}{r['total_ms'] / r0['total_ms']:>8.2f}{r['peak_rss_mb']:>13.0f}"
+            f"{r['peak_rss_mb'] / r0['peak_rss_mb']:>8.2f}{r['voxel_kb_per_query']:>11.0f}"
+            f"{r['localized']:>5}/{r['queries']:<4}{r['median_error'][0]:>9.4f} / {r['median_error'][1]:.3f}°"
+        )
+    return 0
 
 
 if __name__ == "__main__":
