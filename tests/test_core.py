@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from favormap.geometry import camera_centers, look_at
@@ -105,13 +106,13 @@ def test_rendering_depends_on_the_viewing_direction():
     assert plus[0, 0] > plus[0, 1] and minus[0, 1] > minus[0, 0]
 
 
-def test_voxel_training_fits_patches():
-    """End to end on synthetic rays: grids trained jointly reproduce per-landmark targets."""
+def _patch_rays(L=6, C=8, S=5):
+    """TrainingRays of L landmarks seen by 6 cameras: S x S patch rays whose targets are noisy
+    copies of one unit descriptor per landmark."""
     from favormap.features import patch_offsets
-    from favormap.voxels import TrainingRays, VoxelConfig, train_voxels
+    from favormap.voxels import TrainingRays
 
     rng = np.random.default_rng(0)
-    L, C, S = 6, 8, 5
     X, T, K, _ = _scene(n_points=L, n_cams=6)
     offs = patch_offsets(S)
     obs_lm, origins, dirs, targets = [], [], [], []
@@ -127,7 +128,7 @@ def test_voxel_training_fits_patches():
             t = base[j] + 0.1 * rng.normal(size=(len(offs), C))
             targets.append(t / np.linalg.norm(t, axis=1, keepdims=True))
     dist = np.linalg.norm(X[:, None] - camera_centers(T)[None], axis=2).min(1)
-    data = TrainingRays(
+    return TrainingRays(
         X,
         S * dist / 500.0,
         np.array(obs_lm),
@@ -135,10 +136,68 @@ def test_voxel_training_fits_patches():
         np.array(dirs, np.float32),
         np.array(targets, np.float32),
     )
-    grids = train_voxels(data, VoxelConfig(resolution=3, patch_size=S, iterations=150, rays_per_landmark=32))
-    assert grids.descriptors.shape == (L, 27, C)
+
+
+@pytest.mark.parametrize("solver", ["lstsq", "adam"])
+def test_voxel_training_fits_patches(solver):
+    """End to end on synthetic rays: grids trained jointly reproduce per-landmark targets."""
+    from favormap.voxels import VoxelConfig, train_voxels
+
+    data = _patch_rays(L=6, C=8, S=5)
+    cfg = VoxelConfig(resolution=3, patch_size=5, iterations=150, rays_per_landmark=32, solver=solver)
+    grids = train_voxels(data, cfg)
+    assert grids.descriptors.shape == (6, 27, 8)
     assert np.all(grids.cosine > 0.9) and np.all(grids.psnr > 20)
-    assert grids.history[-1][1] < grids.history[0][1]  # loss went down
+    if solver == "adam":
+        assert grids.history[-1][1] < grids.history[0][1]  # loss went down
+
+
+def test_lstsq_solver_is_the_regularised_least_squares_fit():
+    """The closed-form solver's descriptors equal a direct least-squares solve of the stacked,
+    weighted system: every patch ray's composite stencil (fixed uniform density) against its
+    target, the ridge towards the mean descriptor and the smoothness rows of neighbouring nodes."""
+    import torch
+
+    from favormap.voxels import VoxelConfig, train_voxels
+    from favormap.voxels.render import composite, ray_stencils
+
+    S, R = 5, 3
+    data = _patch_rays(L=3, C=4, S=S)
+    cfg = VoxelConfig(resolution=R, patch_size=S, prior_rays=0, lstsq_ridge=0.05, lstsq_tv=0.2, centre_rays=0.5)
+    got = train_voxels(data, cfg).descriptors.double().numpy()
+    P = S * S
+    pix_w = np.full(P, 0.5 / P)
+    pix_w[P // 2] += 0.5
+    idx = np.arange(R**3).reshape(R, R, R)
+    pairs = [
+        (a, b)
+        for ax in range(3)
+        for a, b in zip(np.take(idx, range(R - 1), ax).ravel(), np.take(idx, range(1, R), ax).ravel())
+    ]
+    for j in range(3):
+        obs = np.flatnonzero(data.obs_landmark == j)
+        o = (data.obs_origin[obs] - data.centers[j]) / data.sizes[j] + 0.5
+        st, delta, hit = ray_stencils(
+            torch.tensor(o, dtype=torch.float64)[:, None].expand(-1, P, -1),
+            torch.tensor(data.ray_dirs[obs], dtype=torch.float64),
+            R,
+            cfg.samples,
+        )
+        dens = torch.full((len(obs), R**3), float(np.log(np.expm1(cfg.density_init))), dtype=torch.float64)
+        a = composite(st, delta, dens, hit)[0].numpy().reshape(-1, R**3)
+        w = np.sqrt(np.tile(pix_w, len(obs)) / len(obs))[:, None]
+        t = data.targets[obs].reshape(-1, data.targets.shape[-1]).astype(np.float64)
+        mean = data.targets[obs].mean(1).sum(0)
+        mean /= np.linalg.norm(mean)
+        D = np.zeros((len(pairs), R**3))
+        for k, (u, v) in enumerate(pairs):
+            D[k, u], D[k, v] = 1.0, -1.0
+        rows = np.vstack([w * a, np.sqrt(cfg.lstsq_ridge) * np.eye(R**3), np.sqrt(cfg.lstsq_tv) * D])
+        rhs = np.vstack(
+            [w * t, np.sqrt(cfg.lstsq_ridge) * np.tile(mean, (R**3, 1)), np.zeros((len(pairs), t.shape[1]))]
+        )
+        want = np.linalg.lstsq(rows, rhs, rcond=None)[0]
+        assert np.allclose(got[j], want, atol=2e-4), np.abs(got[j] - want).max()
 
 
 def test_quaternions_match_scipy_including_half_turns():

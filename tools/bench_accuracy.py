@@ -199,8 +199,13 @@ def run_split(split: Split, args, build_cfgs) -> list[dict]:
     rows, extent = [], None
     for cfg in build_cfgs:
         # a map of the build default keeps its old file name (so --reuse finds earlier maps)
-        tag = "" if cfg.extractor == args.default_extractor else f"-{cfg.extractor}"
-        prefix = f"{cfg.extractor} " if len(build_cfgs) > 1 else ""
+        solver = cfg.voxel.solver
+        tag = ("" if cfg.extractor == args.default_extractor else f"-{cfg.extractor}") + (
+            "" if solver == args.default_solver else f"-{solver}"
+        )
+        label = [cfg.extractor] * (len({c.extractor for c in build_cfgs}) > 1)
+        label += [solver] * (len({c.voxel.solver for c in build_cfgs}) > 1)
+        prefix = "".join(f"{w} " for w in label)
         r, extent = run_favormap(split, args, cfg, tag, prefix, extent)
         rows += r
     if args.baseline:
@@ -224,7 +229,8 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     m = Map.open(path)
     extent = extent or scene_extent(m.positions)
     print(
-        f"[{split.name}] {build_cfg.extractor} map {len(m)} landmarks from {len(split.mapping)} frames "
+        f"[{split.name}] {build_cfg.extractor} ({build_cfg.voxel.solver}) map {len(m)} landmarks "
+        f"from {len(split.mapping)} frames "
         f"({'reused' if build_s is None else f'built in {build_s:.0f} s'}), "
         f"{len(split.queries)} queries, scene extent {extent:.3f} units",
         file=sys.stderr,
@@ -255,7 +261,11 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
                 outs.append(o)
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
-            rows[-1].update(extractor=build_cfg.extractor, build_s=None if build_s is None else round(build_s, 1))
+            rows[-1].update(
+                extractor=build_cfg.extractor,
+                solver_tag=f" {build_cfg.voxel.solver}",
+                build_s=None if build_s is None else round(build_s, 1),
+            )
     m.close()
     return rows, extent
 
@@ -391,6 +401,12 @@ def main():
         help="build with this extractor, or several (comma-separated: one map each, one table; "
         "default: the build default)",
     )
+    ap.add_argument(
+        "--solver",
+        default=None,
+        help="voxel training solver, or several (comma-separated: one map each; lstsq | adam; default: the build "
+        "default)",
+    )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
@@ -418,17 +434,21 @@ def main():
     from favormap.build import BuildConfig
 
     args.default_extractor = BuildConfig().extractor
+    args.default_solver = BuildConfig().voxel.solver
     extractors = [e.strip() for e in (args.extractor or args.default_extractor).split(",") if e.strip()]
     bad = [e for e in extractors if e not in features.available()]
     if bad or not extractors:
         ap.error(f"unknown extractor(s) {bad}; known: {features.available()}")
+    solvers = [s.strip() for s in (args.solver or "").split(",") if s.strip()] or [None]
     build_cfgs = []
-    for ex in extractors:
+    for ex, solver in [(e, s) for e in extractors for s in solvers]:
         build_cfg = BuildConfig(extractor=ex)
         if args.quality:
             from favormap.voxels import VoxelConfig
 
             build_cfg.voxel = VoxelConfig.preset(args.quality)
+        if solver:
+            build_cfg.voxel.solver = solver
         for k in ("min_track", "max_landmarks"):
             if getattr(args, k) is not None:
                 setattr(build_cfg, k, getattr(args, k))
@@ -455,11 +475,12 @@ def main():
     for sp in splits:
         rows += run_split(sp, args, build_cfgs)
     print(markdown(rows))
-    builds = {(r["split"], r["extractor"]): r["build_s"] for r in rows if "extractor" in r}
+    builds = {(r["split"], r["extractor"] + r.get("solver_tag", "")): r["build_s"] for r in rows if "extractor" in r}
     print(
         f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {','.join(extractors)}, "
         f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
-        f"{build_cfg.voxel.iterations} training iterations x {build_cfg.voxel.rays_per_landmark} rays, "
+        f"voxel solver {','.join(sorted({c.voxel.solver for c in build_cfgs}))} (adam: "
+        f"{build_cfg.voxel.iterations} iterations x {build_cfg.voxel.rays_per_landmark} rays), "
         f"box factor {build_cfg.voxel.box_factor}, device {args.device}; map builds: "
         + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items())
     )
