@@ -163,7 +163,9 @@ def test_lstsq_solver_is_the_regularised_least_squares_fit():
 
     S, R = 5, 3
     data = _patch_rays(L=3, C=4, S=S)
-    cfg = VoxelConfig(resolution=R, patch_size=S, prior_rays=0, lstsq_ridge=0.05, lstsq_tv=0.2, centre_rays=0.5)
+    cfg = VoxelConfig(
+        resolution=R, patch_size=S, prior_rays=0, lstsq_ridge=0.05, lstsq_tv=0.2, centre_rays=0.5, solver="lstsq"
+    )
     got = train_voxels(data, cfg).descriptors.double().numpy()
     P = S * S
     pix_w = np.full(P, 0.5 / P)

@@ -404,8 +404,8 @@ def main():
     ap.add_argument(
         "--solver",
         default=None,
-        help="voxel training solver, or several (comma-separated: one map each; lstsq | adam; default: the build "
-        "default)",
+        help="voxel training solver, or several (comma-separated: one map each; adam | lstsq; default: the build "
+        "default, adam)",
     )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)

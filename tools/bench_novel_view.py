@@ -105,10 +105,13 @@ BINS = [(0, 10), (10, 20), (20, 40), (40, 180)]
 CACHE_VERSION = 4
 
 # Every variant tried, kept in the table: name -> VoxelConfig overrides on top of the variant's base.
-# "default" is VoxelConfig() (the fast preset) with prior_mean_deg resolved per extractor as in
-# build_map. The others start from PAPER, the training before this benchmark existed (box = S l/f,
-# 200 iterations x 32 patch rays per landmark, no centre rays, no prior).
+# "default" is VoxelConfig() (the fast preset: Adam) with prior_mean_deg resolved per extractor as in
+# build_map (for SIFT = prior16-centre50-k1-mean10); "lstsq" the closed-form solver of the quick
+# preset. The others start from PAPER,
+# the training before this benchmark existed (Adam; box = S l/f, 200 iterations x 32 patch rays per
+# landmark, no centre rays, no prior).
 PAPER = dict(
+    solver="adam",
     box_factor=7.0,
     iterations=200,
     rays_per_landmark=32,
@@ -120,6 +123,12 @@ PAPER = dict(
 _P = dict(PAPER, prior_rays=16)  # with the view-extrapolation prior
 VARIANTS: dict[str, dict] = {
     "default": {},
+    # the closed-form solver (--quality quick) against the default Adam training
+    "lstsq": dict(solver="lstsq"),
+    "lstsq-prior0.5": dict(solver="lstsq", lstsq_prior_weight=0.5),
+    "lstsq-prior1": dict(solver="lstsq", lstsq_prior_weight=1.0),
+    "lstsq-ridge0.1": dict(solver="lstsq", lstsq_ridge=0.1),
+    "lstsq-tv0.01": dict(solver="lstsq", lstsq_tv=0.01),
     "paper": dict(PAPER),
     "box12": dict(PAPER, box_factor=12.0),
     "box12-it600": dict(PAPER, box_factor=12.0, iterations=600),
