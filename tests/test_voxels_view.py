@@ -204,10 +204,11 @@ def test_quality_presets_and_cli_flags():
     from favormap.cli import build as cli_build
     from favormap.voxels import QUALITY_PRESETS, VoxelConfig
 
-    assert set(QUALITY_PRESETS) == {"fast", "reference"}
+    assert set(QUALITY_PRESETS) == {"quick", "fast", "reference"}
     ref = VoxelConfig.preset("reference")
-    assert (ref.iterations, ref.rays_per_landmark, ref.box_factor) == (2000, 1024, 12.0)
-    assert VoxelConfig.preset("fast") == VoxelConfig()
+    assert (ref.iterations, ref.rays_per_landmark, ref.box_factor, ref.solver) == (2000, 1024, 12.0, "adam")
+    assert VoxelConfig.preset("fast") == VoxelConfig() and VoxelConfig().solver == "adam"
+    assert VoxelConfig.preset("quick") == VoxelConfig(solver="lstsq")
     with pytest.raises(ValueError):
         VoxelConfig.preset("slow")
     ap = argparse.ArgumentParser()
@@ -229,6 +230,8 @@ def test_quality_presets_and_cli_flags():
     assert (given.min_track, given.max_landmarks) == (6, 700)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
     assert cli_build.config_from_args(args).voxel == VoxelConfig()
+    args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])
+    assert cli_build.config_from_args(args).voxel.solver == "lstsq"
 
 
 def test_reference_preset_trains_in_memory_bounded_groups():
