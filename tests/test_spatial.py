@@ -183,15 +183,7 @@ def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend):
     """Most landmarks seen from ~2-5 units, 0.5 % from up to 200: the far ones bypass the KD-tree
     sphere (it would otherwise cover everything), and the result is still exact."""
     rng = np.random.default_rng(4)
-    L = 20000
-    P = rng.uniform(-50, 50, (L, 3))
-    vd = rng.normal(size=(L, 3))
-    vd /= np.linalg.norm(vd, axis=1, keepdims=True)
-    va = rng.uniform(10, 60, L).astype(np.float32)
-    lo = rng.uniform(1, 3, L)
-    dr = np.c_[lo, lo + rng.uniform(0.5, 3, L)].astype(np.float32)
-    far = rng.random(L) < 0.005
-    dr[far, 1] = rng.uniform(50, 200, far.sum())
+    P, vd, va, dr = random_landmarks(rng, 20000, 50, far_reach=(50, 200))
     idx = SpatialIndex(P, backend=backend)
     cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
     total = 0
@@ -246,8 +238,9 @@ def test_visible_rows_small_and_degenerate_maps(n, backend):
     np.testing.assert_array_equal(got, brute_visible(P, vd, va, dr, cam, np.eye(4), ViewLimits()))
 
 
-def random_landmarks(rng, L, extent):
-    """Random positions, view directions, view angles and depth ranges (0.5 % seen from far)."""
+def random_landmarks(rng, L, extent, far_reach=(20, 60)):
+    """Random positions, view directions, view angles and depth ranges (0.5 % seen from as far as
+    ``far_reach``)."""
     P = rng.uniform(-extent, extent, (L, 3))
     vd = rng.normal(size=(L, 3))
     vd /= np.linalg.norm(vd, axis=1, keepdims=True)
@@ -255,7 +248,7 @@ def random_landmarks(rng, L, extent):
     lo = rng.uniform(1, 3, L)
     dr = np.c_[lo, lo + rng.uniform(0.5, 3, L)].astype(np.float32)
     far = rng.random(L) < 0.005
-    dr[far, 1] = rng.uniform(20, 60, far.sum())
+    dr[far, 1] = rng.uniform(*far_reach, far.sum())
     return P, vd, va, dr
 
 
