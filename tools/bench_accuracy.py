@@ -407,6 +407,13 @@ def main():
         help="voxel training solver, or several (comma-separated: one map each; adam | lstsq; default: the build "
         "default, adam)",
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="VoxelConfig override for every map built (repeatable; e.g. --set init=lstsq --set iterations=60)",
+    )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
@@ -449,6 +456,11 @@ def main():
             build_cfg.voxel = VoxelConfig.preset(args.quality)
         if solver:
             build_cfg.voxel.solver = solver
+        for kv in args.set:
+            k, v = kv.split("=", 1)
+            if not hasattr(build_cfg.voxel, k):
+                ap.error(f"--set {kv}: VoxelConfig has no field {k!r}")
+            setattr(build_cfg.voxel, k, json.loads(v) if v[:1] in '0123456789-[{tfn".' else v)
         for k in ("min_track", "max_landmarks"):
             if getattr(args, k) is not None:
                 setattr(build_cfg, k, getattr(args, k))

@@ -52,7 +52,7 @@ class VoxelConfig:
     box_factor: float = 7.0  # voxel side = box_factor * min_i l_ij / f_i (paper eq. 2: S; reference code: 12)
     samples: int = 12  # N samples per ray (training and rendering)
     density_init: float = 1.0  # initial sigma per voxel side, uniform
-    init: str = "mean"  # initial node descriptors: "mean" (track mean), "zero"
+    init: str = "mean"  # initial node descriptors (adam): "mean" (track mean), "zero", "lstsq" (the closed form)
     # -- optimisation -----------------------------------------------------------------------
     # "adam": gradient descent on descriptors and densities (the paper's training).
     # "lstsq" (the "quick" preset): densities stay at density_init and the node descriptors are
@@ -298,10 +298,13 @@ def train_voxels(
     # the track's mean descriptor (as the map's mean_descriptor: mean of the patch means)
     mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, targets.mean(1)), dim=-1)
     # init: every node holds the mean descriptor (or zero); uniform density
-    if cfg.init not in ("mean", "zero"):
-        raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero)")
-    init = mean_desc if cfg.init == "mean" else torch.zeros_like(mean_desc)
-    desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
+    if cfg.init not in ("mean", "zero", "lstsq"):
+        raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero, lstsq)")
+    if cfg.init == "lstsq":  # start from the closed-form fit at the initial densities
+        desc = _train_lstsq(data, cfg, None, dev, evaluate_fit=False).descriptors.contiguous().requires_grad_(True)
+    else:
+        init = mean_desc if cfg.init == "mean" else torch.zeros_like(mean_desc)
+        desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
     raw0 = math.log(math.expm1(cfg.density_init))
     dens = torch.full((L, R**3), raw0, **f32).requires_grad_(True)
 
@@ -387,7 +390,9 @@ def _grid_laplacian(R: int, **kw) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _train_lstsq(data: TrainingRays, cfg: VoxelConfig, progress=None, device="cpu") -> VoxelGrids:
+def _train_lstsq(
+    data: TrainingRays, cfg: VoxelConfig, progress=None, device="cpu", evaluate_fit: bool = True
+) -> VoxelGrids:
     """Closed-form training: with the densities fixed, a rendered descriptor is linear in the node
     descriptors, p = a G (a: the ray's composite stencil), so the descriptors minimising
 
@@ -445,6 +450,8 @@ def _train_lstsq(data: TrainingRays, cfg: VoxelConfig, progress=None, device="cp
             B[ls] += torch.bmm(aw, pt[ls])
     A += cfg.lstsq_tv * _grid_laplacian(R, **f32) + cfg.lstsq_ridge * torch.eye(R3, **f32)
     desc = torch.linalg.solve(A, B + cfg.lstsq_ridge * mean_desc[:, None, :])
+    if not evaluate_fit:
+        return VoxelGrids(desc, dens, np.zeros(0, np.float32), np.zeros(0, np.float32), [])
     psnr, cosine = evaluate(data, desc, dens, cfg)
     if progress:
         progress(cfg.iterations - 1, float("nan"), float(np.median(psnr)) if len(psnr) else float("nan"))
