@@ -208,7 +208,7 @@ def test_quality_presets_and_cli_flags():
     ref = VoxelConfig.preset("reference")
     assert (ref.iterations, ref.rays_per_landmark, ref.box_factor, ref.solver) == (2000, 1024, 12.0, "adam")
     assert VoxelConfig.preset("fast") == VoxelConfig() and VoxelConfig().solver == "adam"
-    assert VoxelConfig.preset("quick") == VoxelConfig(solver="lstsq")
+    assert VoxelConfig.preset("quick") == VoxelConfig(solver="lstsq", patch_size=3)
     with pytest.raises(ValueError):
         VoxelConfig.preset("slow")
     ap = argparse.ArgumentParser()
