@@ -64,3 +64,18 @@ def test_localize_of_a_sift_map_imports_neither_torch_nor_scipy_spatial(small_ma
     assert ": localized" in out, out[-500:]
     assert {"cv2", "h5py", "pycolmap"} <= mods
     assert not mods & {"torch", "scipy.spatial", "open3d", "rerun", "trimesh"}, mods
+
+
+def test_auto_device_does_not_import_torch_without_a_gpu_driver():
+    """``--device auto`` (the default) resolves to the CPU without importing torch where no GPU
+    driver is installed; with a driver it asks torch."""
+    code = (
+        "import sys\nfrom favormap.cli.common import _gpu_driver_present, auto_device\n"
+        "print(auto_device('auto'), _gpu_driver_present(), 'torch' in sys.modules)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    device, driver, torch_loaded = r.stdout.split()
+    if driver == "False":
+        assert (device, torch_loaded) == ("cpu", "False")
+    else:
+        assert torch_loaded == "True" and device in ("cpu", "cuda")

@@ -53,7 +53,9 @@ def register(sub):
         "use a GPU)",
     )
     p.add_argument("--grid", type=int, default=None, help="voxel grid resolution R (default: the preset's, 3)")
-    p.add_argument("--patch", type=int, default=None, help="descriptor patch size S (default: the preset's: 7, quick 3)")
+    p.add_argument(
+        "--patch", type=int, default=None, help="descriptor patch size S (default: the preset's: 7, quick 3)"
+    )
     p.add_argument(
         "--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)"
     )

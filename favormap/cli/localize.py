@@ -36,7 +36,11 @@ def add_localize_options(p):
         action="store_true",
         help="never fall back to matching against all landmarks when the prior fails (or is missing)",
     )
-    p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda")
+    p.add_argument(
+        "--device",
+        default="auto",
+        help="auto (a GPU where torch sees one), cpu (NumPy rendering: torch is not loaded for a SIFT map) or cuda",
+    )
     add_threads_arg(p)
     p.set_defaults(threads_by_api=True)  # the Localizer sizes the pools (favormap.threads)
 
