@@ -109,7 +109,8 @@ PRIOR_MEAN_DEG_OTHER = 30.0  # extractors not listed
 QUALITY_PRESETS: dict[str, dict] = {
     # the defaults: the fox (40 frames, 3,000 landmarks) trains in ~2 minutes on 2 CPU cores
     "fast": {},
-    # closed-form descriptors at fixed densities from 3 x 3 patches: speed first. tools/bench_accuracy.py
+    # closed-form descriptors at fixed densities from 3 x 3 patches: speed first (fox build 17.0 s on 2
+    # cores, tools/bench_build.py --quality quick; fast: 155.8 s). tools/bench_accuracy.py
     # --solver lstsq (2026-11-26, medians / p90 in units): 7 x 7 patches hold-out 0.0016 / 0.0059,
     # extrapolation 0.0080 / 0.0139, orbit 0.0005 / 0.0016; 3 x 3 patches 0.0015 / 0.0076, 0.0071 /
     # 0.0168, 0.0005 / 0.0018 (Adam, fast: 0.0015 / 0.0042, 0.0074 / 0.0115, 0.0004 / 0.0016), and the
