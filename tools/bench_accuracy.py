@@ -129,13 +129,15 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
     q = list(random_views_near(poses, 4, seed=5, max_trans=0.03, max_rot_deg=3.0, scene=scene))
     last, first = poses[-1], poses[0]
     sign = 1.0 if np.cross(inverse(poses[-2])[:3, 3] - c, inverse(last)[:3, 3] - c)[2] > 0 else -1.0
-    for deg in (6, 12, 18, 25, 32, 40, 50, 60):
+    for deg in (6, 12, 18, 25, 32, 40, 45, 50, 55, 60, 70):
         q.append(about(last, [0, 0, 1], sign * deg))
     for base in (poses[len(poses) // 3], poses[2 * len(poses) // 3]):
         right = inverse(base)[:3, 0]  # camera x axis in world: tilting about it raises the camera over the scene
         for deg in (8, 15, 25, 35, 45):
             q.append(about(base, right, -deg))
-    for deg in (10, 20):
+    # before the first view too; the views beyond 40 deg (6 here, 2 before 2026-11-26) give that bin
+    # of the angle table more than a couple of queries
+    for deg in (10, 20, 45, 55):
         q.append(about(first, [0, 0, 1], -sign * deg))
     q = [T for T in q if scene.camera_is_valid(inverse(T)[:3, 3])]
     mapping = write_sequence(workdir / "orbit_map", n_frames=n_map, width=width, height=height, scene=scene)
