@@ -71,10 +71,6 @@ def test_unknown_names_raise_input_error():
 
 
 def test_old_attribute_paths_still_work():
-    from favormap.features import base, heatmap
-
-    assert features.subpixel_offsets is heatmap.subpixel_offsets
-    assert base.subpixel_offsets is heatmap.subpixel_offsets
     assert int(features.sift.octave_of_size(12.0)) == int(features.sift.octave_of_size(np.float32(12.0)))
     for name in ("Extractor", "Features", "available", "create", "patch_offsets", "register"):
         assert hasattr(features, name) and name in features.__all__

@@ -330,8 +330,6 @@ def test_auto_backend_picks_the_scan_for_small_trees(monkeypatch):
 def test_small_maps_do_not_import_scipy_spatial():
     """Importing scipy.spatial costs ~0.5 s of a one-shot localization: a small index (the default
     "auto" backend) answers radius, k-NN, frustum and visibility queries without it."""
-    import subprocess
-    import sys
 
     code = (
         "import sys, numpy as np\n"
@@ -348,11 +346,20 @@ def test_small_maps_do_not_import_scipy_spatial():
         "n.append(len(visible_rows(idx, cam, np.eye(4), vd, np.full(L, 30.0), dr)))\n"
         "print(*n, 'scipy.spatial' in sys.modules)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
+    out = _run_child(code)
     *n, imported = out.stdout.split()
     assert all(int(x) > 0 for x in n), out.stdout
     assert imported == "False"
+
+
+def _run_child(code: str):
+    """Run ``code`` in a fresh interpreter (import side effects are per process); it must succeed."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out
 
 
 def test_unknown_backend_is_refused():
@@ -362,8 +369,6 @@ def test_unknown_backend_is_refused():
 
 def test_localization_path_does_not_import_open3d(small_map):
     """The build / localize core runs where Open3D is not installed (e.g. a GPU machine)."""
-    import subprocess
-    import sys
 
     code = (
         "import sys, numpy as np\n"
@@ -376,6 +381,5 @@ def test_localization_path_does_not_import_open3d(small_map):
         "cam = next(iter(loc.map.cameras.values()))\n"
         "print(len(visible_rows(loc.index, cam, T, loc.map.view_dir, loc.map.view_angle, loc.map.depth_range)))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
+    out = _run_child(code)
     assert int(out.stdout.split()[-1]) > 0

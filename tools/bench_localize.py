@@ -29,22 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-
-def peak_rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
+from bench_ops import peak_rss_mb  # tools/ is this script's first path entry
 
 
 def write_tiled(src: Path, dst: Path, target: int) -> dict:
@@ -108,7 +93,6 @@ def measure(args) -> dict:
     cam = seq.cameras[0]
     views = random_views_near([f.cam_from_world for f in seq.frames], args.queries, seed=1, scene=scene)
     images = [render(scene, cam, T)[0] for T in views]
-    rss0 = rss_mb()
     t = time.perf_counter()
     loc = Localizer(args.measure, LocalizeConfig(device=args.device, descriptors=args.descriptors))
     open_s = time.perf_counter() - t
@@ -135,7 +119,6 @@ def measure(args) -> dict:
         "queries": len(views),
         "median_error": [float(np.median(e[:, 0])), float(np.median(e[:, 1]))],
         "voxel_kb_per_query": (loc.map.bytes_read - b0) / len(views) / 1024,
-        "rss_before_map_mb": rss0,
         "peak_rss_mb": peak_rss_mb(),
     }
 

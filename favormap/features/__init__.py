@@ -1,8 +1,8 @@
 """features: keypoints + descriptors sampled anywhere, behind one small interface.
 
 The built-in extractors (``disk``, ``sift``, ``xfeat``) are imported on first use, so importing
-this package, and creating and using the SIFT extractor, never imports torch. Their modules and
-``subpixel_offsets`` stay reachable as attributes (``features.sift.octave_of_size``)."""
+this package, and creating and using the SIFT extractor, never imports torch. Their modules stay
+reachable as attributes (``features.sift.octave_of_size``)."""
 
 from __future__ import annotations
 
@@ -18,12 +18,8 @@ _SUBMODULES = ("base", "disk", "heatmap", "sift", "xfeat")
 def __getattr__(name: str):  # PEP 562: load a built-in extractor's module (and torch, if it needs it) on use
     if name in _SUBMODULES:
         return importlib.import_module(f"{__name__}.{name}")
-    if name == "subpixel_offsets":
-        from .heatmap import subpixel_offsets
-
-        return subpixel_offsets
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_SUBMODULES) | {"subpixel_offsets"})
+    return sorted(set(globals()) | set(_SUBMODULES))

@@ -104,11 +104,3 @@ def patch_offsets(size: int) -> np.ndarray:
     r = (np.arange(size) - (size - 1) / 2.0).astype(np.float32)
     vv, uu = np.meshgrid(r, r, indexing="ij")
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
-
-
-def __getattr__(name: str):  # PEP 562: subpixel_offsets moved to .heatmap (torch), loaded on use
-    if name == "subpixel_offsets":
-        from .heatmap import subpixel_offsets
-
-        return subpixel_offsets
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

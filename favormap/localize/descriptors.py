@@ -83,8 +83,8 @@ class RenderedDescriptors:
 class MeanDescriptors:
     name = "mean"
 
-    def __init__(self, map_: Map, device: str = "cpu"):
-        self.map, self.device = map_, device
+    def __init__(self, map_: Map):
+        self.map = map_
 
     def __call__(self, rows, cam_from_world, timings):
         s = time.perf_counter()
@@ -98,7 +98,7 @@ class NearestViewDescriptors:
 
     name = "nearest"
 
-    def __init__(self, map_: Map, obs_descriptors: np.ndarray, device: str = "cpu"):
+    def __init__(self, map_: Map, obs_descriptors: np.ndarray):
         lm, fr, _ = map_.tracks()
         if len(obs_descriptors) != len(lm):
             raise ValueError(f"{len(obs_descriptors)} observation descriptors for {len(lm)} observations")
@@ -107,7 +107,6 @@ class NearestViewDescriptors:
         self.obs_desc = np.ascontiguousarray(obs_descriptors[order], np.float32)
         self.first = np.searchsorted(self.obs_lm, np.arange(len(map_) + 1))
         self.centers = camera_centers(map_.cam_from_world)
-        self.device = device
 
     def __call__(self, rows, cam_from_world, timings):
         s = time.perf_counter()
@@ -151,9 +150,9 @@ def make_source(
     if name == "rendered":
         return RenderedDescriptors(map_, device)
     if name == "mean":
-        return MeanDescriptors(map_, device)
+        return MeanDescriptors(map_)
     if name == "nearest":
         if obs_descriptors is None:
             raise ValueError("nearest-view descriptors need the observation descriptors (observation_descriptors())")
-        return NearestViewDescriptors(map_, obs_descriptors, device)
+        return NearestViewDescriptors(map_, obs_descriptors)
     raise ValueError(f"unknown descriptor source {name!r} (rendered, mean, nearest)")
