@@ -6,19 +6,23 @@ dataclass to the next; ``build_map`` runs them and records timings and statistic
 
 from __future__ import annotations
 
+import tempfile
 import time
 from collections.abc import Callable
+from collections.abc import Sequence as SequenceABC
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from . import features as feats_mod
-from .errors import FavormapError, SequenceError
+from .errors import FavormapError, InputError, SequenceError
 from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
+from .features.cache import FeatureCache, source_stamp
 from .geometry import camera_centers, direction_cones, project, unproject
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
@@ -62,9 +66,15 @@ class BuildConfig:
 class FrameFeatures:
     """Stage boundary after extraction: features plus the working (undistorted, resized) cameras."""
 
-    features: list[Features]
+    features: SequenceABC[Features]  # a list, or the frames of a FeatureCache (read on access)
     cameras: list[Camera]  # working pinhole camera per frame
     cam_from_world: np.ndarray  # (M, 4, 4)
+    extracted: int | None = None  # frames extracted by this build (None: all; fewer from a feature cache)
+
+    def without_state(self) -> SequenceABC[Features]:
+        """The features without the sampling state where that saves reading (tracking needs none)."""
+        f = self.features
+        return f.without_state() if hasattr(f, "without_state") else f
 
 
 class BuildObserver:
@@ -163,6 +173,41 @@ def extract_frame(task: ExtractTask, device: str | None = None, report=None) -> 
     return ExtractedFrame(f, cam, img if task.keep_image else None)
 
 
+# sequences longer than this keep their features in a temporary on-disk cache (build_map's feature_cache)
+MEMORY_FRAMES = 300
+MAP_CHUNK = 64  # tasks per executor.map call of a streamed stage (results held at once)
+
+
+def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False, progress=None, chunk: int = MAP_CHUNK):
+    """``executor.map`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
+    ``sink(i, result)`` (in order) as its chunk completes: only one chunk of results is ever held."""
+    it = iter(tasks)
+    done = 0
+    while done < total:
+        block = [t for _, t in zip(range(min(chunk, total - done)), it)]
+        if not block:
+            break
+        off = done
+        report = (lambda d, off=off: progress(off + d)) if progress else None
+        out = executor.map(fn, block, len(block), gpu=gpu, progress=report)
+        for k, r in enumerate(out):
+            sink(off + k, r)
+        done += len(block)
+        del out, block
+
+
+def _image_key(path) -> str:
+    return str(Path(path).resolve())
+
+
+def _stamp(path) -> tuple[int, int]:
+    try:
+        return source_stamp(path)
+    except OSError as e:
+        missing = isinstance(e, FileNotFoundError)
+        raise InputError(f"image not found: {path}" if missing else f"cannot read image {path}: {e}") from None
+
+
 def extract_sequence(
     seq: Sequence,
     extractor: Extractor | ExtractorSpec,
@@ -170,8 +215,25 @@ def extract_sequence(
     progress=None,
     keep_images: list | None = None,
     executor: Executor | None = None,
+    cache: FeatureCache | None = None,
 ) -> FrameFeatures:
-    """Features of every frame (one task per frame; the image bytes are read here, lazily)."""
+    """Features of every frame (one task per frame; the image bytes are read here, lazily).
+
+    With ``cache``, each frame's features go to the cache as they arrive and the result reads them
+    back from it on access (memory stays flat in the number of frames); images the cache already
+    holds (same file size and time) are not extracted again."""
+    executor = executor or LocalExecutor()
+    gpu = isinstance(extractor, ExtractorSpec) and extractor.uses_device
+    poses = np.stack([f.cam_from_world for f in seq.frames])
+    if cache is None:
+        todo = list(seq.frames)
+    else:
+        keys = [_image_key(fr.image_path) for fr in seq.frames]
+        todo, seen = [], set()
+        for fr, k in zip(seq.frames, keys):
+            if k not in seen and not cache.has(k, _stamp(fr.image_path)):
+                todo.append(fr)
+            seen.add(k)
     tasks = (
         ExtractTask(
             str(fr.image_path),
@@ -179,20 +241,31 @@ def extract_sequence(
             seq.cameras[fr.camera_id],
             max_side,
             extractor,
-            keep_images is not None,
+            keep_images is not None and cache is None,
         )
-        for fr in seq.frames
+        for fr in todo
     )
-    n = len(seq.frames)
-    gpu = isinstance(extractor, ExtractorSpec) and extractor.uses_device
-    out = (executor or LocalExecutor()).map(
-        extract_frame, tasks, n, gpu=gpu, progress=(lambda d: progress("extract", int(d), n)) if progress else None
-    )
-    if keep_images is not None:
-        keep_images.extend(r.image for r in out)
-    return FrameFeatures(
-        [r.features for r in out], [r.camera for r in out], np.stack([f.cam_from_world for f in seq.frames])
-    )
+    n = len(todo)
+    results: list = []
+
+    def sink(i, r: ExtractedFrame):
+        if cache is None:
+            results.append(r)
+        else:
+            fr = todo[i]
+            cache.put(_image_key(fr.image_path), r.features, r.camera, _stamp(fr.image_path))
+
+    report = (lambda d: progress("extract", int(d), n)) if progress else None
+    map_into(executor, extract_frame, tasks, n, sink, gpu, report)
+    if cache is None:
+        if keep_images is not None:
+            keep_images.extend(r.image for r in results)
+        return FrameFeatures([r.features for r in results], [r.camera for r in results], poses)
+    if keep_images is not None:  # (an observer that shows the images: decoded again, not cached)
+        keep_images.extend(
+            decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], max_side)[0] for fr in seq.frames
+        )
+    return FrameFeatures(cache.view(keys), [cache.camera(k) for k in keys], poses, extracted=n)
 
 
 def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
@@ -247,13 +320,24 @@ def training_rays(
     frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
     tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames)
     n = len(frames)
-    samples = (executor or LocalExecutor()).map(
-        sample_patches, tasks, n, progress=(lambda d: progress("patches", int(d), n)) if progress else None
-    )
-    targets = np.zeros((len(tid), P, samples[0].shape[-1] if samples else 0), np.float32)
-    for f, s in zip(frames, samples):
+    held: list[np.ndarray] = []  # the (O, P, C) targets, made when the first frame's samples arrive
+
+    def sink(k, samples):
+        if not held:
+            held.append(np.zeros((len(tid), P, samples.shape[-1]), np.float32))
+        f = frames[k]
         sel = order[bounds[f] : bounds[f + 1]]
-        targets[sel] = s.reshape(len(sel), P, -1)
+        held[0][sel] = samples.reshape(len(sel), P, -1)
+
+    map_into(
+        executor or LocalExecutor(),
+        sample_patches,
+        tasks,
+        n,
+        sink,
+        progress=(lambda d: progress("patches", int(d), n)) if progress else None,
+    )
+    targets = held[0] if held else np.zeros((len(tid), P, 0), np.float32)
     # ray directions in world
     d_cam = unproject(Ks[fi][:, None], pix)
     d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
@@ -385,6 +469,7 @@ def build_map(
     executor: Executor | None = None,
     ray: str | None = None,
     device: str = "cpu",
+    feature_cache=None,
 ) -> MapData:
     """Run the whole map-building pipeline on a posed sequence. ``progress(stage, done, total)``
     reports progress; ``observer`` sees every stage's result (visualisation, debugging). ``device``
@@ -395,7 +480,13 @@ def build_map(
     Feature extraction (per frame), descriptor patches (per frame) and voxel training (per batch of
     ``config.train_batch`` landmarks) run on ``executor`` (default: this process). ``ray`` ("auto" or
     a cluster address) runs them as Ray tasks instead (:class:`favormap.distributed.RayExecutor`;
-    ``pip install favormap[distributed]``); the map is the same either way."""
+    ``pip install favormap[distributed]``); the map is the same either way.
+
+    ``feature_cache``: where the frames' features live between the stages. A path: that HDF5 file
+    (:mod:`favormap.features.cache`), kept and reused by later builds with the same extractor
+    settings. None (default): in memory up to ``MEMORY_FRAMES`` frames, a temporary cache file above
+    (removed at the end), so that memory does not grow with the sequence. False: in memory. The map
+    is the same either way."""
     config = BuildConfig() if config is None else config
     check_build_input(seq, config)
     if ray is not None:
@@ -404,7 +495,18 @@ def build_map(
         from .distributed import RayExecutor
 
         with RayExecutor(ray, gpus=device != "cpu") as ex:
-            return build_map(seq, config, progress, observer, executor=ex)
+            return build_map(seq, config, progress, observer, executor=ex, feature_cache=feature_cache)
+    cacheable = feats_mod.extractor_class(config.extractor).can_cache()
+    if feature_cache is None and len(seq.frames) > MEMORY_FRAMES and cacheable:
+        with tempfile.TemporaryDirectory(prefix="favormap-features-") as tmp:
+            return build_map(seq, config, progress, observer, executor, None, device, Path(tmp) / "features.h5")
+    if feature_cache not in (None, False):
+        with FeatureCache(feature_cache, config.extractor, config.max_keypoints, config.max_side) as cache:
+            return _build(seq, config, progress, observer, executor, device, cache)
+    return _build(seq, config, progress, observer, executor, device, None)
+
+
+def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
     executor = executor or LocalExecutor(device)
     pr = _Progress(progress)
@@ -417,11 +519,11 @@ def build_map(
     images = [] if obs.wants_images else None
     extractor = ExtractorSpec(config.extractor, config.max_keypoints)
     with pr.stage("extract"):
-        ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor)
+        ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor, cache)
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
         tracks = track_features(
-            ff.features,
+            ff.without_state(),
             ff.cam_from_world,
             ff.cameras,
             config.min_track,
@@ -460,6 +562,7 @@ def build_map(
     mean_desc /= np.maximum(np.linalg.norm(mean_desc, axis=1, keepdims=True), 1e-12)
     stats = {
         "frames": len(seq.frames),
+        "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,
         "tracks": int(len(tracks)),
         "triangulated": int(len(all_lms)),
         "landmarks": int(len(lms)),
@@ -506,6 +609,7 @@ def build_map(
             "stats": stats,
             "training_history": grids.history,
             "executor": executor.describe(),
+            "feature_cache": "memory" if cache is None else str(cache.path),
         },
     )
     obs.on_map(m, pr.timings)

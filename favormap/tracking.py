@@ -8,6 +8,7 @@ frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
 
 from __future__ import annotations
 
+from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,8 +94,13 @@ def mutual_nn(da: torch.Tensor, db: torch.Tensor, min_sim: float) -> tuple[np.nd
     return ia[ok].numpy(), ab[ok].numpy()
 
 
+def _counts(features) -> np.ndarray:
+    counts = getattr(features, "counts", None)  # a feature cache knows them without reading the frames
+    return np.asarray(counts() if callable(counts) else [len(f) for f in features], np.int64)
+
+
 def track_features(
-    features: list[Features],
+    features: SequenceABC[Features],
     cam_from_world: np.ndarray,
     cameras: list[Camera],
     min_track: int = 5,
@@ -102,43 +108,56 @@ def track_features(
     max_epipolar_px: float = 2.0,
     min_similarity: float = 0.7,
 ) -> Tracks:
-    """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras."""
+    """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras.
+
+    ``features`` is read frame by frame (at most ``window + 1`` frames at a time), so it may be a
+    :class:`favormap.features.cache.CachedFrames` of a sequence that does not fit in memory; only the
+    matched keypoints are kept."""
     n = len(features)
-    counts = np.array([len(f) for f in features])
+    counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])
-    # (a copy where the array is read-only, e.g. zero-copy from Ray's object store)
-    desc = [
-        torch.from_numpy(f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()) for f in features
-    ]
-    rows, cols = [], []
+    held: dict[int, tuple[np.ndarray, torch.Tensor]] = {}  # frame -> (keypoints, descriptors)
+
+    def frame(i):
+        if i not in held:
+            f = features[i]
+            d = f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()  # Ray's store: read-only
+            held[i] = (np.asarray(f.keypoints, np.float32), torch.from_numpy(d))
+        return held[i]
+
+    rows, cols, xy_rows, xy_cols = [], [], [], []
     for a in range(n):
+        held.pop(a - 1, None)
         for b in range(a + 1, min(n, a + 1 + window)):
             if counts[a] == 0 or counts[b] == 0:
                 continue
-            ia, ib = mutual_nn(desc[a], desc[b], min_similarity)
+            (ka, da), (kb, db) = frame(a), frame(b)
+            ia, ib = mutual_nn(da, db, min_similarity)
             if len(ia) == 0:
                 continue
             F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
-            ok = epipolar_distance(F, features[a].keypoints[ia], features[b].keypoints[ib]) <= max_epipolar_px
+            ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
             rows.append(base[a] + ia[ok])
             cols.append(base[b] + ib[ok])
-    total = int(base[-1])
-    if not rows:
+            xy_rows.append(ka[ia[ok]])
+            xy_cols.append(kb[ib[ok]])
+    if not rows or not sum(len(r) for r in rows):
         return Tracks(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(total, total))
+    # the graph of matched keypoints only (global keypoint index -> node)
+    ends = np.concatenate(rows + cols)
+    node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
+    node_xy = np.concatenate(xy_rows + xy_cols)[first]
+    del ends, xy_rows, xy_cols
+    m = len(node_id)
+    r, c = inv[: len(inv) // 2], inv[len(inv) // 2 :]
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
     _, label = connected_components(graph, directed=False)
-    node_frame = np.repeat(np.arange(n), counts)
-    node_kp = np.concatenate([np.arange(k) for k in counts])
-    # component sizes and consistency (one keypoint per frame)
-    size = np.bincount(label)
-    used = size[label] >= 2
-    lab, fr = label[used], node_frame[used]
-    pairs = lab.astype(np.int64) * n + fr
+    node_frame = (np.searchsorted(base, node_id, side="right") - 1).astype(np.int64)
+    node_kp = node_id - base[node_frame]
+    # consistency (one keypoint per frame) and length
+    pairs = label.astype(np.int64) * n + node_frame
     uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
     bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
-    ok = used & ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
-    xy = np.concatenate([f.keypoints for f in features if len(f)], 0) if total else np.zeros((0, 2))
-    return Tracks.from_obs(node_frame[ok], node_kp[ok], xy[ok], label[ok])
+    ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
+    return Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])

@@ -3,7 +3,7 @@
 The refinement follows the paper's supplement: the landmark is parameterised by inverse depth
 (alpha, beta, rho) in an anchor camera of its track, the residual is the reprojection error and the
 cost is Geman-McClure (solved by iteratively re-weighted, damped Gauss-Newton steps). Tracks are
-padded to the longest one, so every step is one numpy operation over all tracks.
+not padded: every step is one numpy operation over all observations, sums per track by bincount.
 """
 
 from __future__ import annotations
@@ -50,29 +50,28 @@ class Landmarks:
         return Landmarks(self.positions[idx], tr, self.reproj_errors[keep_obs], self.angles_deg[idx])
 
 
-def _pad(tracks: Tracks, values: np.ndarray, fill=0.0):
-    """Scatter per-observation values into a (T, Lmax, ...) array plus a mask."""
-    T = len(tracks)
-    lens = tracks.lengths
-    Lmax = int(lens.max()) if T else 0
-    tid = tracks.track_of_obs
-    pos = np.arange(len(tid)) - tracks.offsets[tid]
-    out = np.full((T, Lmax) + values.shape[1:], fill, dtype=values.dtype)
-    out[tid, pos] = values
-    mask = np.zeros((T, Lmax), bool)
-    mask[tid, pos] = True
-    return out, mask, (tid, pos)
+def _sum_by_track(values: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
+    """Per-track sums of per-observation ``values`` (O, ...) -> (n, ...) (bincount per entry: unlike
+    ``np.add.at``, fast for millions of observations)."""
+    flat = values.reshape(len(values), -1)
+    out = np.stack([np.bincount(tid, flat[:, k], n) for k in range(flat.shape[1])], 1)
+    return out.reshape((n,) + values.shape[1:])
 
 
-def dlt(P: np.ndarray, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Batched linear triangulation. P: (T, L, 3, 4) projection matrices (pixels), xy: (T, L, 2)."""
-    A1 = xy[..., 0:1] * P[..., 2, :] - P[..., 0, :]
-    A2 = xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]
-    A = np.concatenate([A1, A2], axis=1) * np.concatenate([mask, mask], axis=1)[..., None]
-    # normalise rows for conditioning
-    A = A / np.maximum(np.linalg.norm(A, axis=-1, keepdims=True), 1e-12)
-    _, _, Vt = np.linalg.svd(A)
-    X = Vt[:, -1]
+def dlt(P: np.ndarray, xy: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
+    """Batched linear triangulation of ``n`` tracks. P: (O, 3, 4) projection matrices (pixels) of the
+    observations, xy: (O, 2) their pixels, tid: (O,) their track.
+
+    Each observation gives two rows of the track's DLT system A X = 0 (normalised for conditioning);
+    the solution is the eigenvector of the smallest eigenvalue of A^T A, accumulated per track as a
+    4 x 4 sum, so memory grows with the observations, not with tracks x the longest track."""
+    r1 = xy[:, 0:1] * P[:, 2, :] - P[:, 0, :]
+    r2 = xy[:, 1:2] * P[:, 2, :] - P[:, 1, :]
+    r1 = r1 / np.maximum(np.linalg.norm(r1, axis=1, keepdims=True), 1e-12)
+    r2 = r2 / np.maximum(np.linalg.norm(r2, axis=1, keepdims=True), 1e-12)
+    M = _sum_by_track(r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :], tid, n)
+    _, vecs = np.linalg.eigh(M)
+    X = vecs[:, :, 0]
     return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
 
 
@@ -88,9 +87,8 @@ def triangulate(
     tcw = cam_from_world[fi, :3, 3]
     K = Ks[fi]
     P = K @ cam_from_world[fi, :3, :]  # (O,3,4)
-    Pp, mask, (tid, pos) = _pad(tracks, P)
-    xyp, _, _ = _pad(tracks, tracks.xy)
-    X0 = dlt(Pp, xyp, mask)
+    tid = tracks.track_of_obs
+    X0 = dlt(P, tracks.xy, tid, len(tracks))
 
     # --- anchored inverse-depth parameterisation -------------------------------------------------
     anchor = tracks.frame_idx[tracks.offsets[:-1]]  # first frame of each track
@@ -129,10 +127,8 @@ def triangulate(
         J = np.empty((len(tid), 2, 3))
         J[:, 0] = fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
         J[:, 1] = fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
-        H = np.zeros((len(tracks), 3, 3))
-        g = np.zeros((len(tracks), 3))
-        np.add.at(H, tid, w[:, None, None] * np.einsum("oki,okj->oij", J, J))
-        np.add.at(g, tid, w[:, None] * np.einsum("oki,ok->oi", J, e))
+        H = _sum_by_track(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, len(tracks))
+        g = _sum_by_track(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, len(tracks))
         Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
         try:
             step = -np.linalg.solve(Hd, g[..., None])[..., 0]

@@ -80,6 +80,12 @@ def register(sub):
         "--ray-retries", type=int, default=3, metavar="N", help="re-runs of a Ray task whose worker died (default 3)"
     )
     p.add_argument("--ray-cpus", type=float, default=1, metavar="C", help="CPUs per Ray task (default 1)")
+    p.add_argument(
+        "--feature-cache",
+        metavar="FILE",
+        help="keep the frames' features in this HDF5 file, and reuse it in later builds with the same extractor "
+        "settings (default: in memory for short sequences, a temporary file for long ones)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     add_rerun_args(p)
@@ -156,6 +162,8 @@ def run(args) -> int:
         )
     if args.exclude_every < 0 or args.exclude_every == 1:
         raise InputError("--exclude-every must be 0 (off) or >= 2")
+    if args.feature_cache is not None and Path(args.feature_cache).resolve() == out.resolve():
+        raise InputError(f"--feature-cache {args.feature_cache} is the output map; name another file")
     seq = read_sequence(args.sequence, args.format)
     config = config_from_args(args)
     if args.exclude_every:
@@ -184,6 +192,7 @@ def run(args) -> int:
             observer=rec.build_observer() if rec else None,
             executor=executor,
             device=auto_device(args.device),
+            feature_cache=args.feature_cache,
         )
     finally:
         bars.close()

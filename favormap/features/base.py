@@ -52,6 +52,22 @@ class Extractor(ABC):
     def config(self) -> dict:
         return {"name": self.name, "channels": self.channels, "max_keypoints": self.max_keypoints}
 
+    # The sampling state (``Features.dense``) as named NumPy arrays and back: what lets the on-disk
+    # feature cache (:mod:`favormap.features.cache`) hold a frame's features instead of RAM. An
+    # extractor without them builds in memory only.
+    @classmethod
+    def state_arrays(cls, state: Any) -> dict[str, np.ndarray]:
+        raise NotImplementedError(f"extractor {cls.name!r} cannot store its sampling state")
+
+    @classmethod
+    def state_from_arrays(cls, arrays: dict[str, np.ndarray]) -> Any:
+        raise NotImplementedError(f"extractor {cls.name!r} cannot store its sampling state")
+
+    @classmethod
+    def can_cache(cls) -> bool:
+        """Whether features of this extractor can live in the on-disk feature cache."""
+        return cls.state_arrays.__func__ is not Extractor.state_arrays.__func__
+
 
 # The built-in extractors, by name -> "module:Class". Their modules are imported on first use
 # (create / extractor_class), so that e.g. SIFT never imports torch, which XFeat and DISK need.

@@ -127,6 +127,14 @@ class DISKExtractor(Extractor):
         top = torch.argsort(-scores)[: self.max_keypoints]
         return yx[top].flip(1), scores[top]
 
+    @classmethod
+    def state_arrays(cls, state: _DiskState) -> dict[str, np.ndarray]:
+        return {"dense": state.dense.cpu().numpy()}  # float16, C x the image's pixels
+
+    @classmethod
+    def state_from_arrays(cls, arrays: dict[str, np.ndarray]) -> _DiskState:
+        return _DiskState(torch.from_numpy(np.ascontiguousarray(arrays["dense"])))
+
     @torch.inference_mode()
     def sample(self, features: Features, points: np.ndarray) -> np.ndarray:
         """Bilinear interpolation of the full-resolution descriptor map (clamped at the border)."""

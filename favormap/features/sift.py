@@ -83,6 +83,14 @@ class SIFTExtractor(Extractor):
         scores = np.array([kps[i].response for i in uniq], np.float32)
         return Features(state.xy, scores, _root_sift(desc[uniq]), (image.shape[1], image.shape[0]), state)
 
+    @classmethod
+    def state_arrays(cls, state: _SiftState) -> dict[str, np.ndarray]:
+        return {k: getattr(state, k) for k in ("gray", "xy", "size", "angle", "octave")}
+
+    @classmethod
+    def state_from_arrays(cls, arrays: dict[str, np.ndarray]) -> _SiftState:
+        return _SiftState(*(arrays[k] for k in ("gray", "xy", "size", "angle", "octave")))
+
     def sample(self, features: Features, points: np.ndarray) -> np.ndarray:
         st: _SiftState = features.dense
         pts = np.asarray(points, np.float32).reshape(-1, 2)

@@ -80,6 +80,16 @@ class XFeatExtractor(Extractor):
         feats.descriptors = self.sample(feats, feats.keypoints)
         return feats
 
+    @classmethod
+    def state_arrays(cls, state) -> dict[str, np.ndarray]:
+        M1, H1, W1, rh, rw = state
+        return {"M1": M1.cpu().numpy(), "size": np.array([H1, W1], np.int64), "scale": np.array([rh, rw], np.float64)}
+
+    @classmethod
+    def state_from_arrays(cls, arrays: dict[str, np.ndarray]):
+        (H1, W1), (rh, rw) = arrays["size"].tolist(), arrays["scale"].tolist()
+        return torch.from_numpy(np.ascontiguousarray(arrays["M1"])), H1, W1, rh, rw
+
     @torch.inference_mode()
     def sample(self, features: Features, points: np.ndarray) -> np.ndarray:
         M1, H1, W1, rh, rw = features.dense
