@@ -543,6 +543,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         Ks = np.stack([c.K for c in ff.cameras])
         all_lms = triangulate(tracks, ff.cam_from_world, Ks, tri_cfg)
         lms = select_landmarks(all_lms, config.max_landmarks)
+        n_tracks, n_triangulated = len(tracks), len(all_lms)
+        del tracks, all_lms  # every track's observations: only the selected landmarks' go on
         pr.callback("triangulate", 1, 1)
     obs.on_landmarks(lms, ff)
     if len(lms) == 0:
@@ -563,8 +565,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     stats = {
         "frames": len(seq.frames),
         "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,
-        "tracks": int(len(tracks)),
-        "triangulated": int(len(all_lms)),
+        "tracks": int(n_tracks),
+        "triangulated": int(n_triangulated),
         "landmarks": int(len(lms)),
         "mean_track_length": float(lms.tracks.lengths.mean()),
         # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean

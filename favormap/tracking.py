@@ -116,6 +116,7 @@ def track_features(
     n = len(features)
     counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])
+    gid = np.int32 if base[-1] < np.iinfo(np.int32).max else np.int64  # global keypoint ids of the edges
     held: dict[int, tuple[np.ndarray, torch.Tensor]] = {}  # frame -> (keypoints, descriptors)
 
     def frame(i):
@@ -137,8 +138,8 @@ def track_features(
                 continue
             F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
             ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
-            rows.append(base[a] + ia[ok])
-            cols.append(base[b] + ib[ok])
+            rows.append((base[a] + ia[ok]).astype(gid))
+            cols.append((base[b] + ib[ok]).astype(gid))
             xy_rows.append(ka[ia[ok]])
             xy_cols.append(kb[ib[ok]])
     if not rows or not sum(len(r) for r in rows):
@@ -147,13 +148,13 @@ def track_features(
     ends = np.concatenate(rows + cols)
     node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
     node_xy = np.concatenate(xy_rows + xy_cols)[first]
-    del ends, xy_rows, xy_cols
+    del ends, rows, cols, xy_rows, xy_cols
     m = len(node_id)
     r, c = inv[: len(inv) // 2], inv[len(inv) // 2 :]
     graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
     _, label = connected_components(graph, directed=False)
     node_frame = (np.searchsorted(base, node_id, side="right") - 1).astype(np.int64)
-    node_kp = node_id - base[node_frame]
+    node_kp = node_id.astype(np.int64) - base[node_frame]
     # consistency (one keypoint per frame) and length
     pairs = label.astype(np.int64) * n + node_frame
     uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)

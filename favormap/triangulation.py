@@ -75,13 +75,53 @@ def dlt(P: np.ndarray, xy: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
     return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
 
 
+BLOCK_OBSERVATIONS = 200_000  # observations triangulated at once (memory ~1 KB each while working)
+
+
 def triangulate(
     tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig | None = None
 ) -> Landmarks:
-    """Triangulate every track. ``cam_from_world``: (M,4,4) per frame; ``Ks``: (M,3,3) pinhole."""
+    """Triangulate every track. ``cam_from_world``: (M,4,4) per frame; ``Ks``: (M,3,3) pinhole.
+
+    Tracks are independent: they are solved in blocks of about ``BLOCK_OBSERVATIONS`` observations,
+    so the working memory does not grow with the sequence."""
     config = TriangulationConfig() if config is None else config
     if len(tracks) == 0:
         return Landmarks(np.zeros((0, 3)), tracks, np.zeros(0), np.zeros(0))
+    cuts = np.searchsorted(tracks.offsets, np.arange(0, tracks.offsets[-1], BLOCK_OBSERVATIONS), side="right") - 1
+    bounds = np.unique(np.concatenate([cuts, [len(tracks)]]))
+    if len(bounds) <= 2:
+        return _triangulate_block(tracks, cam_from_world, Ks, config)
+    parts = [
+        _triangulate_block(_track_range(tracks, lo, hi), cam_from_world, Ks, config)
+        for lo, hi in zip(bounds[:-1], bounds[1:])
+    ]
+    offsets = [np.zeros(1, np.int64)]
+    for p in parts:
+        offsets.append(p.tracks.offsets[1:] + offsets[-1][-1])
+    merged = Tracks(
+        np.concatenate([p.tracks.frame_idx for p in parts]),
+        np.concatenate([p.tracks.keypoint_idx for p in parts]),
+        np.concatenate([p.tracks.xy for p in parts]),
+        np.concatenate(offsets),
+    )
+    return Landmarks(
+        np.concatenate([p.positions for p in parts]),
+        merged,
+        np.concatenate([p.reproj_errors for p in parts]),
+        np.concatenate([p.angles_deg for p in parts]),
+    )
+
+
+def _track_range(tracks: Tracks, lo: int, hi: int) -> Tracks:
+    """Tracks lo..hi-1 (their observations are contiguous)."""
+    a, b = tracks.offsets[lo], tracks.offsets[hi]
+    return Tracks(tracks.frame_idx[a:b], tracks.keypoint_idx[a:b], tracks.xy[a:b], tracks.offsets[lo : hi + 1] - a)
+
+
+def _triangulate_block(
+    tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig
+) -> Landmarks:
     fi = tracks.frame_idx
     Rcw = cam_from_world[fi, :3, :3]  # (O,3,3)
     tcw = cam_from_world[fi, :3, 3]

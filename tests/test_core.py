@@ -47,6 +47,23 @@ def test_triangulation_is_accurate_and_robust_to_outliers():
     assert np.median(err) < 0.01  # 1 cm at 5 m with 0.5 px noise
 
 
+def test_triangulation_in_blocks_equals_one_block(monkeypatch):
+    """Tracks are solved in blocks of observations (bounded memory): the result is the same."""
+    import favormap.triangulation as tri
+
+    X, T, K, rng = _scene()
+    tracks = _observe(X, T, K, rng, noise_px=0.5)
+    tracks.xy[tracks.offsets[:-1][::4] + 3] += 40.0
+    cfg = TriangulationConfig(max_reproj_px=3.0, min_track=5)
+    whole = triangulate(tracks, T, K, cfg)
+    monkeypatch.setattr(tri, "BLOCK_OBSERVATIONS", 37)  # many blocks, cut inside tracks
+    blocks = triangulate(tracks, T, K, cfg)
+    assert np.array_equal(whole.positions, blocks.positions) and np.array_equal(whole.angles_deg, blocks.angles_deg)
+    assert np.array_equal(whole.reproj_errors, blocks.reproj_errors)
+    for k in ("frame_idx", "keypoint_idx", "xy", "offsets"):
+        assert np.array_equal(getattr(whole.tracks, k), getattr(blocks.tracks, k)), k
+
+
 def test_triangulation_rejects_points_behind_and_tiny_angles():
     X, T, K, rng = _scene(n_points=20)
     tracks = _observe(X, T, K, rng, noise_px=0.0)
