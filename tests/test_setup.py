@@ -156,3 +156,10 @@ def test_wheel_install_finds_its_schema(tmp_path, small_map):
     assert r.returncode == 0, r.stdout + r.stderr
     assert r.stdout.splitlines()[0].startswith(str(target))
     assert "valid" in r.stdout.lower()
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "tools").glob("bench_*.py")))
+def test_benchmark_help_works(script):
+    """Each benchmark's --help prints its usage (a '%' in a help text once broke bench_accuracy's)."""
+    r = subprocess.run([sys.executable, str(REPO / "tools" / script), "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "usage:" in r.stdout, r.stderr[-500:]

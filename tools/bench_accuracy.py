@@ -396,7 +396,7 @@ def main():
     ap.add_argument("--map", help="custom split: mapping sequence")
     ap.add_argument("--queries", help="custom split: query sequence")
     ap.add_argument("--priors", default="noise,nearest,constant,none")
-    ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS).replace("%", "%%"))
     ap.add_argument(
         "--extractor",
         default=None,
