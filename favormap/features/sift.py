@@ -68,19 +68,22 @@ class SIFTExtractor(Extractor):
         kps, desc = self._sift.detectAndCompute(gray, None)
         if desc is None or not len(kps):
             kps, desc = (), np.zeros((0, 128), np.float32)
-        order = np.argsort([-k.response for k in kps], kind="stable")[: self.max_keypoints]
-        xy = np.array([kps[i].pt for i in order], np.float32).reshape(-1, 2)
+        # every keypoint's x, y, size, angle, response, octave in one pass (reading cv2.KeyPoint
+        # attributes is the slow part of this function)
+        kp = np.array([(*k.pt, k.size, k.angle, k.response, k.octave) for k in kps], np.float64).reshape(-1, 6)
+        order = np.argsort(-kp[:, 4], kind="stable")[: self.max_keypoints]
+        xy = kp[order, :2].astype(np.float32)
         # several detections at one position (different orientations): keep the strongest
         _, first = np.unique(np.round(xy, 1), axis=0, return_index=True)
         uniq = order[np.sort(first)]
         state = _SiftState(
             gray,
-            np.array([kps[i].pt for i in uniq], np.float32).reshape(-1, 2) + 0.5,
-            np.array([kps[i].size for i in uniq], np.float32),
-            np.array([kps[i].angle for i in uniq], np.float32),
-            np.array([kps[i].octave for i in uniq], np.int64),
+            kp[uniq, :2].astype(np.float32) + 0.5,
+            kp[uniq, 2].astype(np.float32),
+            kp[uniq, 3].astype(np.float32),
+            kp[uniq, 5].astype(np.int64),
         )
-        scores = np.array([kps[i].response for i in uniq], np.float32)
+        scores = kp[uniq, 4].astype(np.float32)
         return Features(state.xy, scores, _root_sift(desc[uniq]), (image.shape[1], image.shape[0]), state)
 
     @classmethod
