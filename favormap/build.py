@@ -250,10 +250,12 @@ def extract_sequence(
         todo = list(seq.frames)
     else:
         keys = [_image_key(fr.image_path) for fr in seq.frames]
-        todo, seen = [], set()
+        todo, stamps, seen = [], [], set()
         for fr, k in zip(seq.frames, keys):
-            if k not in seen and not cache.has(k, _stamp(fr.image_path)):
+            stamp = _stamp(fr.image_path)  # before the bytes are read: a file changed meanwhile is redone next time
+            if k not in seen and not cache.has(k, stamp):
                 todo.append(fr)
+                stamps.append(stamp)
             seen.add(k)
     tasks = (
         ExtractTask(
@@ -273,8 +275,7 @@ def extract_sequence(
         if cache is None:
             results.append(r)
         else:
-            fr = todo[i]
-            cache.put(_image_key(fr.image_path), r.features, r.camera, _stamp(fr.image_path))
+            cache.put(_image_key(todo[i].image_path), r.features, r.camera, stamps[i])
 
     report = (lambda d: progress("extract", int(d), n)) if progress else None
     map_into(executor, extract_frame, tasks, n, sink, gpu, report)
