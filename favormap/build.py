@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from . import features as feats_mod
-from .errors import FavormapError, InputError, SequenceError
+from .errors import FavormapError, SequenceError
 from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
 from .features.cache import FeatureCache, source_stamp
@@ -221,14 +221,6 @@ def _image_key(path) -> str:
     return str(Path(path).resolve())
 
 
-def _stamp(path) -> tuple[int, int]:
-    try:
-        return source_stamp(path)
-    except OSError as e:
-        missing = isinstance(e, FileNotFoundError)
-        raise InputError(f"image not found: {path}" if missing else f"cannot read image {path}: {e}") from None
-
-
 def extract_sequence(
     seq: Sequence,
     extractor: Extractor | ExtractorSpec,
@@ -252,7 +244,7 @@ def extract_sequence(
         keys = [_image_key(fr.image_path) for fr in seq.frames]
         todo, stamps, seen = [], [], set()
         for fr, k in zip(seq.frames, keys):
-            stamp = _stamp(fr.image_path)  # before the bytes are read: a file changed meanwhile is redone next time
+            stamp = source_stamp(fr.image_path)  # before the bytes are read (a file changed meanwhile is redone)
             if k not in seen and not cache.has(k, stamp):
                 todo.append(fr)
                 stamps.append(stamp)

@@ -42,8 +42,14 @@ def _key(name: str) -> str:
 
 
 def source_stamp(path) -> tuple[int, int]:
-    """(size, mtime_ns) of an image file: a cached frame is reused only while these are unchanged."""
-    st = os.stat(path)
+    """(size, mtime_ns) of an image file: a cached frame is reused only while these are unchanged
+    (a missing or unreadable file is an InputError naming it, as when its bytes are read)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise InputError(f"image not found: {path}") from None
+    except OSError as e:
+        raise InputError(f"cannot read image {path}: {e.strerror or e}") from None
     return int(st.st_size), int(st.st_mtime_ns)
 
 
