@@ -123,6 +123,32 @@ def test_each_success_check_refuses_a_pose(small_map, queries, checks, reason):
     assert Localizer(path, LocalizeConfig(iterations=2, global_fallback=False)).localize(img, prior).success
 
 
+def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
+    """SuccessChecks.confirm_below_inliers: a pose refined from a prior with few inliers is refused
+    when matching against all landmarks finds no pose (here: a Lowe test nothing passes), and kept
+    when that estimate agrees."""
+    from favormap.localize import SuccessChecks
+
+    _, path = small_map
+    img, T = queries[2]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(4))
+    every_pose_weak = SuccessChecks(confirm_below_inliers=10**6)
+    cfg = LocalizeConfig(checks=every_pose_weak, global_fallback=False, global_ratio=1e-3)
+    res = Localizer(path, cfg).localize(img, prior)
+    assert not res.success and "not confirmed by matching against all landmarks" in res.message, res.message
+    assert res.checks["confirmation_change"] is None
+    np.testing.assert_allclose(res.cam_from_world, prior)
+    assert pose_error(res.estimate, T)[0] < 0.01  # the refinement itself was right: only the check refused
+
+    res = Localizer(path, LocalizeConfig(checks=every_pose_weak, global_fallback=False)).localize(img, prior)
+    assert res.success, res.message
+    assert 0 <= res.checks["confirmation_change"] < 0.05 and res.checks["confirmation_change_deg"] < 2.0
+    # with the default threshold this query has enough inliers not to need the prior-free step
+    res = Localizer(path, LocalizeConfig(global_fallback=False, global_ratio=1e-3)).localize(img, prior)
+    assert res.success and res.num_inliers >= SuccessChecks().confirm_below_inliers
+    assert "confirmation_change" not in res.checks
+
+
 def test_an_image_of_another_scene_is_never_a_success(small_map, small_sequence):
     """Wrong poses are refused: a room with other textures, seen from the map's own poses."""
     from favormap.synthetic import make_room, render

@@ -13,7 +13,8 @@ frame, constant (first mapping frame), none.
 
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
-  fox-extrap   the same sequence, map from the first half of the path, every 2nd frame of the second half
+  fox-extrap   the same sequence, map from the first half of the path, every 2nd frame of the second
+               half (--extrap-step 1: every frame)
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
   custom       --map SEQ --queries SEQ (any readable sequences)
@@ -83,7 +84,7 @@ class Split:
     angle: np.ndarray | None = None  # per query: rotation to the nearest mapping view (deg)
 
 
-def fox_splits(which: list[str]) -> list[Split]:
+def fox_splits(which: list[str], extrap_step: int = 2) -> list[Split]:
     from favormap.io import read_sequence
 
     if not FOX.exists():
@@ -96,7 +97,7 @@ def fox_splits(which: list[str]) -> list[Split]:
         out.append(Split("fox-holdout", seq.subset([i for i in range(n) if i % 5]), seq.subset(list(range(0, n, 5)))))
     if "fox-extrap" in which:
         half = n // 2
-        out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, 2)))))
+        out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, extrap_step)))))
     for s in out:
         s.angle = nearest_view_angle(s.queries, s.mapping)
     return out
@@ -199,19 +200,22 @@ def localizer_config(overrides: dict):
 def run_split(split: Split, args, build_cfgs) -> list[dict]:
     """Rows of one split: favormap maps of each build config (one per extractor), then the baseline."""
     rows, extent = [], None
-    for cfg in build_cfgs:
+    for name, cfg in build_cfgs:
         # a map of the build default keeps its old file name (so --reuse finds earlier maps)
         solver = cfg.voxel.solver
-        tag = ("" if cfg.extractor == args.default_extractor else f"-{cfg.extractor}") + (
-            "" if solver == args.default_solver else f"-{solver}"
+        tag = (
+            ("" if cfg.extractor == args.default_extractor else f"-{cfg.extractor}")
+            + ("" if solver == args.default_solver else f"-{solver}")
+            + (f"-{name}" if name else "")
         )
-        label = [cfg.extractor] * (len({c.extractor for c in build_cfgs}) > 1)
-        label += [solver] * (len({c.voxel.solver for c in build_cfgs}) > 1)
+        label = [cfg.extractor] * (len({c.extractor for _, c in build_cfgs}) > 1)
+        label += [solver] * (len({c.voxel.solver for _, c in build_cfgs}) > 1)
+        label += [name] * bool(name)
         prefix = "".join(f"{w} " for w in label)
         r, extent = run_favormap(split, args, cfg, tag, prefix, extent)
         rows += r
     if args.baseline:
-        rows += run_baseline(split, args, build_cfgs[0], extent)
+        rows += run_baseline(split, args, build_cfgs[0][1], extent)
     return rows
 
 
@@ -266,6 +270,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
             rows[-1].update(
                 extractor=build_cfg.extractor,
                 solver_tag=f" {build_cfg.voxel.solver}",
+                map_variant=prefix.strip(),
                 build_s=None if build_s is None else round(build_s, 1),
             )
     m.close()
@@ -416,6 +421,14 @@ def main():
         metavar="KEY=VALUE",
         help="VoxelConfig override for every map built (repeatable; e.g. --set init=lstsq --set iterations=60)",
     )
+    ap.add_argument(
+        "--build-variant",
+        action="append",
+        default=[],
+        metavar="NAME:KEY=VALUE,...",
+        help="also build a map with these VoxelConfig overrides (repeatable; one map each, its rows prefixed "
+        "with NAME; e.g. --build-variant cf-dens20:solver=lstsq,density_init=20)",
+    )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
@@ -424,6 +437,12 @@ def main():
     )
     ap.add_argument("--device", default="cpu", help="torch device for training and localization (cpu | cuda)")
     ap.add_argument("--orbit-frames", type=int, default=24)
+    ap.add_argument(
+        "--extrap-step",
+        type=int,
+        default=2,
+        help="fox-extrap queries: every STEP-th frame of the second half (default 2: 10 queries; 1: 20)",
+    )
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
     ap.add_argument(
         "--baseline-budget", type=int, default=0, help="also run the baseline restricted to N longest tracks"
@@ -449,8 +468,14 @@ def main():
     if bad or not extractors:
         ap.error(f"unknown extractor(s) {bad}; known: {features.available()}")
     solvers = [s.strip() for s in (args.solver or "").split(",") if s.strip()] or [None]
+    variants = [("", [])]
+    for spec in args.build_variant:
+        name, _, kvs = spec.partition(":")
+        if not name or not kvs or not name.replace("-", "").replace(".", "").isalnum():
+            ap.error(f"--build-variant {spec!r}: expected NAME:KEY=VALUE,... (NAME of letters, digits, - and .)")
+        variants.append((name, [kv.strip() for kv in kvs.split(",") if kv.strip()]))
     build_cfgs = []
-    for ex, solver in [(e, s) for e in extractors for s in solvers]:
+    for ex, solver, (vname, vset) in [(e, s, v) for e in extractors for s in solvers for v in variants]:
         build_cfg = BuildConfig(extractor=ex)
         if args.quality:
             from favormap.voxels import VoxelConfig
@@ -458,17 +483,17 @@ def main():
             build_cfg.voxel = VoxelConfig.preset(args.quality)
         if solver:
             build_cfg.voxel.solver = solver
-        for kv in args.set:
-            k, v = kv.split("=", 1)
-            if not hasattr(build_cfg.voxel, k):
-                ap.error(f"--set {kv}: VoxelConfig has no field {k!r}")
+        for kv in args.set + vset:
+            k, _, v = kv.partition("=")
+            if not hasattr(build_cfg.voxel, k) or not v:
+                ap.error(f"{kv!r}: expected KEY=VALUE with KEY a VoxelConfig field")
             setattr(build_cfg.voxel, k, json.loads(v) if v[:1] in '0123456789-[{tfn".' else v)
         for k in ("min_track", "max_landmarks"):
             if getattr(args, k) is not None:
                 setattr(build_cfg, k, getattr(args, k))
         if args.iterations:
             build_cfg.voxel.iterations = args.iterations
-        build_cfgs.append(build_cfg)
+        build_cfgs.append((vname, build_cfg))
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -482,18 +507,23 @@ def main():
         splits.append(Split("custom", mapping, queries, nearest_view_angle(queries, mapping)))
     else:
         which = args.splits.split(",")
-        splits += fox_splits(which)
+        splits += fox_splits(which, args.extrap_step)
         if "orbit" in which:
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
     rows = []
     for sp in splits:
         rows += run_split(sp, args, build_cfgs)
     print(markdown(rows))
-    builds = {(r["split"], r["extractor"] + r.get("solver_tag", "")): r["build_s"] for r in rows if "extractor" in r}
+    builds = {
+        (r["split"], r["extractor"] + r.get("solver_tag", "") + f" {r.get('map_variant', '')}".rstrip()): r["build_s"]
+        for r in rows
+        if "extractor" in r
+    }
+    build_cfg = build_cfgs[0][1]
     print(
         f"\n{len(splits)} splits in {time.perf_counter() - t0:.0f} s; build config: extractor {','.join(extractors)}, "
         f"min_track {build_cfg.min_track}, max_landmarks {build_cfg.max_landmarks}, "
-        f"voxel solver {','.join(sorted({c.voxel.solver for c in build_cfgs}))} (adam: "
+        f"voxel solver {','.join(sorted({c.voxel.solver for _, c in build_cfgs}))} (adam: "
         f"{build_cfg.voxel.iterations} iterations x {build_cfg.voxel.rays_per_landmark} rays), "
         f"box factor {build_cfg.voxel.box_factor}, device {args.device}; map builds: "
         + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items())

@@ -145,6 +145,11 @@ VARIANTS: dict[str, dict] = {
     "lstsq-prior1": dict(solver="lstsq", lstsq_prior_weight=1.0),
     "lstsq-ridge0.1": dict(solver="lstsq", lstsq_ridge=0.1),
     "lstsq-tv0.01": dict(solver="lstsq", lstsq_tv=0.01),
+    # nearly opaque densities: a ray stops near where it enters the cube, so the closed form's
+    # descriptor depends on the viewing direction (a cube map of descriptors over the surface nodes)
+    "lstsq-dens5": dict(solver="lstsq", density_init=5.0),
+    "lstsq-dens20": dict(solver="lstsq", density_init=20.0),
+    "lstsq-dens20-p3": dict(solver="lstsq", density_init=20.0, patch_size=3),
     "paper": dict(PAPER),
     "box12": dict(PAPER, box_factor=12.0),
     "box12-it600": dict(PAPER, box_factor=12.0, iterations=600),
