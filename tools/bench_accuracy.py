@@ -13,8 +13,8 @@ frame, constant (first mapping frame), none.
 
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
-  fox-extrap   the same sequence, map from the first half of the path, every 2nd frame of the second
-               half (--extrap-step 1: every frame)
+  fox-extrap   the same sequence, map from the first half of the path, queries: every frame of the
+               second half (--extrap-step 2: every 2nd, as before 2026-11-26's seventh session)
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
   custom       --map SEQ --queries SEQ (any readable sequences)
@@ -84,7 +84,7 @@ class Split:
     angle: np.ndarray | None = None  # per query: rotation to the nearest mapping view (deg)
 
 
-def fox_splits(which: list[str], extrap_step: int = 2) -> list[Split]:
+def fox_splits(which: list[str], extrap_step: int = 1) -> list[Split]:
     from favormap.io import read_sequence
 
     if not FOX.exists():
@@ -440,8 +440,9 @@ def main():
     ap.add_argument(
         "--extrap-step",
         type=int,
-        default=2,
-        help="fox-extrap queries: every STEP-th frame of the second half (default 2: 10 queries; 1: 20)",
+        default=1,
+        help="fox-extrap queries: every STEP-th frame of the second half (default 1: 20 queries; before "
+        "2026-11-26's seventh session 2: 10 queries)",
     )
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
     ap.add_argument(
