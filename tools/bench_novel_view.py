@@ -98,6 +98,13 @@ solver of the quick preset (python tools/bench_novel_view.py --extractor sift --
     lstsq-prior1                 .9129   .8640   .8258   .7558   .8750
     lstsq-prior0.5               .9124   .8623   .8233   .7525   .8736
 
+2026-11-26 (session 7), nearly opaque densities for the closed form (python tools/bench_novel_view.py
+--extractor sift|xfeat --threads 2 --variants default,lstsq,lstsq-dens5,lstsq-dens20; view chg, cpu s):
+
+    SIFT   lstsq .9132 .8652 .8277 .7581 .8760 0.0025 | dens5 .8758 0.0065 | dens20 .9134 .8645 .8277 .7596 .8758 0.0079
+    XFeat  default (adam) .9545 .9070 .8440 .6815 .9031 0.0388 50.0 | lstsq .9518 .9056 .8460 .6812 .9021 0.0142 4.5
+           lstsq-dens5 .9534 .9070 .8464 .6830 .9033 0.0256 5.0 | lstsq-dens20 .9537 .9071 .8463 .6837 .9034 0.0280 5.3
+
 The truth changes by 0.2047 across views; beyond 10 deg the nearest view predicts it worse than the
 mean, so no predictor trained on the mapping views beats the mean there by much.
 """
