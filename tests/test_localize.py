@@ -149,6 +149,43 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     assert "confirmation_change" not in res.checks
 
 
+def test_landmarks_with_two_descriptors_each_localize(small_map, queries):
+    """descriptors="rendered+mean": every visible landmark is matched through its rendered and its
+    mean descriptor; matches name landmarks (not descriptor rows), without repeated pairs."""
+    from favormap.localize.descriptors import StackedDescriptors, describe, make_source
+    from favormap.mapfile import Map
+
+    _, path = small_map
+    img, T = queries[3]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(5))
+    loc = Localizer(path, LocalizeConfig(descriptors="rendered+mean"))
+    assert isinstance(loc.source, StackedDescriptors) and loc.source.name == "rendered+mean"
+    res = loc.localize(img, prior)
+    assert res.success, res.message
+    assert pose_error(res.cam_from_world, T)[0] < 0.01
+    assert res.matches[:, 0].max() < len(loc.map)  # landmark rows
+    pairs = {tuple(p) for p in res.matches.tolist()}
+    assert len(pairs) == len(res.matches)
+    # describe(): the descriptors of each source in turn, and the landmark of each
+    with Map.open(path) as m:
+        rows = np.array([5, 1, 7])
+        d, drows = describe(make_source("rendered+mean", m), rows, T, {})
+        np.testing.assert_array_equal(drows, [5, 1, 7, 5, 1, 7])
+        np.testing.assert_allclose(d[3:], make_source("mean", m)(rows, T, {}))
+        np.testing.assert_allclose(d[:3], make_source("rendered", m)(rows, T, {}))
+        single, srows = describe(make_source("mean", m), rows, T, {})
+        assert single.shape == (3, m.channels) and srows is not None and list(srows) == [5, 1, 7]
+
+
+def test_repeated_landmark_keypoint_pairs_are_dropped():
+    from favormap.localize.localizer import _distinct_pairs
+
+    drows = np.array([4, 9, 4, 9])  # descriptors 0, 2 of landmark 4; 1, 3 of landmark 9
+    m = np.array([[0, 10], [2, 10], [1, 11], [3, 12]])
+    np.testing.assert_array_equal(_distinct_pairs(m, drows), [[0, 10], [1, 11], [3, 12]])
+    np.testing.assert_array_equal(_distinct_pairs(m, np.arange(4)), m)  # one descriptor per landmark
+
+
 def test_an_image_of_another_scene_is_never_a_success(small_map, small_sequence):
     """Wrong poses are refused: a room with other textures, seen from the map's own poses."""
     from favormap.synthetic import make_room, render

@@ -53,6 +53,9 @@ VARIANTS = {
     "rendered": ("rendered", {}),
     "mean": ("mean", {}),
     "nearest-view": ("nearest", {}),
+    # each landmark matched through two descriptors (favormap.localize.descriptors.StackedDescriptors)
+    "rendered+mean": ("rendered+mean", {}),
+    "rendered+nearest-view": ("rendered+nearest", {}),
     "rendered 8px no-mutual (old default)": ("rendered", {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0}),
     "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
@@ -192,7 +195,11 @@ def localizer_config(overrides: dict):
         over["checks"] = SuccessChecks(**over["checks"])
     if over.get("checks") == "none":
         over["checks"] = SuccessChecks(
-            min_inliers=12, min_inlier_ratio=0.0, max_iteration_change=(np.inf, np.inf), min_visible_inliers=0.0
+            min_inliers=12,
+            min_inlier_ratio=0.0,
+            max_iteration_change=(np.inf, np.inf),
+            min_visible_inliers=0.0,
+            confirm_below_inliers=0,
         )
     return LocalizeConfig(**over)
 
@@ -242,7 +249,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
         file=sys.stderr,
     )
     obs_desc = None
-    if any(VARIANTS[v][0] == "nearest" for v in args.variants):
+    if any("nearest" in VARIANTS[v][0].split("+") for v in args.variants):
         obs_desc = observation_descriptors(m, split.mapping)
 
     for prior_mode in args.priors:

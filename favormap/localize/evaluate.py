@@ -18,6 +18,7 @@ from ..errors import InputError
 from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
 from ..visibility import project_inside, visible_rows
+from .descriptors import describe
 from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
@@ -206,11 +207,11 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
         localizer.map.depth_range,
         cfg.view_limits,
     )
-    desc = localizer.source(rows, gt, {})
+    desc, drows = describe(localizer.source, rows, gt, {})
     m = match_descriptors(desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio)
     pos = localizer.map.positions
     return diagnostics_from_matches(
-        cam, gt, pos[rows], feats.keypoints, pos[rows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px
+        cam, gt, pos[rows], feats.keypoints, pos[drows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px
     )
 
 

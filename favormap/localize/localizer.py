@@ -33,7 +33,7 @@ from ..io.images import prepare_query
 from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
-from .descriptors import DescriptorSource, make_source, unit_rows
+from .descriptors import DescriptorSource, describe, make_source, unit_rows
 
 
 @dataclass
@@ -85,7 +85,9 @@ class LocalizeConfig:
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     stop_translation: float = 1e-4  # relative to the median landmark distance
     stop_rotation_deg: float = 0.01
-    descriptors: str = "rendered"  # "rendered" (FaVoR), "mean" or "nearest" (baselines; see .descriptors)
+    # "rendered" (FaVoR), "mean" or "nearest" (baselines), or several joined by "+" (each landmark then
+    # carries one descriptor from each; see .descriptors)
+    descriptors: str = "rendered"
     # landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
     # distances (tools/bench_accuracy.py, fox extrapolation: 3/5 localized with 15 deg / 0.5-2x, 5/5 with these)
     view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
@@ -193,6 +195,16 @@ def match_descriptors(
         _, first = np.unique(best[idx], return_index=True)
         idx = idx[np.sort(first)]
     return np.stack([idx, best[idx]], 1).astype(np.int64)
+
+
+def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray) -> np.ndarray:
+    """Matches (K, 2) [descriptor, query keypoint] without repeated (landmark, keypoint) pairs, which
+    arise when a landmark has several descriptors (``desc_rows``: the landmark of each descriptor;
+    the first of a repeated pair is kept)."""
+    if len(m) < 2 or len(np.unique(desc_rows)) == len(desc_rows):
+        return m
+    _, keep = np.unique(np.c_[desc_rows[m[:, 0]], m[:, 1]], axis=0, return_index=True)
+    return m[np.sort(keep)]
 
 
 def match_near(
@@ -428,18 +440,19 @@ class Localizer:
         last = None
         for _ in range(cfg.iterations):
             rows = self._visible(q, pose, t)
-            rend = self.source(rows, pose, t)
+            rend, drows = describe(self.source, rows, pose, t)
             s = time.perf_counter()
             if cfg.search_radius_px > 0 and last is not None:
-                uv = project(q.cam.K, pose, self.map.positions[rows])
+                uv = project(q.cam.K, pose, self.map.positions[drows])
                 m = match_near(
                     rend, q.desc, uv, q.keypoints_tree(), cfg.search_radius_px, cfg.match_threshold, cfg.mutual
                 )
             else:
                 m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+            m = _distinct_pairs(m, drows)
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
-            ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
+            ans = self._pnp(q, self.map.positions[drows[m[:, 0]]], m[:, 1], t)
             n_in = int(ans["num_inliers"]) if ans is not None else 0
             ok = ans is not None and n_in >= cfg.checks.min_inliers
             new_pose = from_rigid3d(ans["cam_from_world"]) if ok else pose
@@ -447,7 +460,7 @@ class Localizer:
             if not ok:
                 break
             last = dict(
-                matches=np.c_[rows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims
+                matches=np.c_[drows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims
             )
             dt, dr = pose_error(new_pose, pose)
             pose = new_pose
@@ -463,14 +476,15 @@ class Localizer:
         threshold), then PnP runs again with a tight threshold."""
         cfg = self.config
         rows = self._visible(q, pose, t)
-        rend = self.source(rows, pose, t)
+        rend, drows = describe(self.source, rows, pose, t)
         s = time.perf_counter()
-        uv = project(q.cam.K, pose, self.map.positions[rows])
+        uv = project(q.cam.K, pose, self.map.positions[drows])
         m = match_near(rend, q.desc, uv, q.keypoints_tree(), cfg.guided_radius_px, cfg.match_threshold, mutual=True)
+        m = _distinct_pairs(m, drows)
         idx, kidx = m[:, 0], m[:, 1]
         sims = _pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.map.positions[rows[idx]], kidx, t, cfg.guided_ransac_px)
+        ans = self._pnp(q, self.map.positions[drows[idx]], kidx, t, cfg.guided_ransac_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         iters.append(
@@ -482,7 +496,7 @@ class Localizer:
             iters.pop()  # keep the rendering iterations' estimate
             return None
         return dict(
-            matches=np.c_[rows[idx], kidx],
+            matches=np.c_[drows[idx], kidx],
             inliers=np.asarray(ans["inlier_mask"], bool),
             similarity=sims,
         )
