@@ -4,8 +4,8 @@ The view test maps a short segment of the synthetic orbit (exact poses) and quer
 leave it (further along the orbit, raised and lowered cameras re-aimed at the same content). For
 every visible, unoccluded landmark the truth is the descriptor extracted at its projection in the
 query image. With the default VoxelConfig the rendered descriptor must beat the landmark's mean
-descriptor (what the map stores) by a clear margin at those views, and not lose to the descriptor
-of the nearest training view. (With the former training, ``centre_rays=0, prior_rays=0``, rendered
+descriptor (what the map stores) by a clear margin at those views and the descriptor of the nearest
+training view at the views >= 10 deg from it. (With the former training, ``centre_rays=0, prior_rays=0``, rendered
 and mean were within 0.002 of each other and 0.015 below the nearest view; tools/bench_novel_view.py
 has the full table.)
 """
@@ -126,12 +126,19 @@ def test_rendered_descriptors_beat_the_mean_descriptor_away_from_the_mapping_pat
     assert far.sum() >= 300 and (~far).sum() >= 300, (far.sum(), (~far).sum())
     gain_far = r["rendered"][far].mean() - r["mean"][far].mean()
     gain_all = r["rendered"].mean() - r["mean"].mean()
+    vs_nearest_far = r["rendered"][far].mean() - r["nearest"][far].mean()
     vs_nearest = r["rendered"].mean() - r["nearest"].mean()
-    summary = f"gain over mean: >=10 deg {gain_far:.4f}, all {gain_all:.4f}; vs nearest view {vs_nearest:.4f}"
+    summary = (
+        f"gain over mean: >=10 deg {gain_far:.4f}, all {gain_all:.4f}; "
+        f"vs nearest view: >=10 deg {vs_nearest_far:.4f}, all {vs_nearest:.4f}"
+    )
     print(summary)
-    # measured: 0.017 / 0.017 / +0.0014 (former training: 0.0015 / 0.0012 / -0.015)
+    # measured (XFeat, 2026-11-26): 0.0172 / 0.0174; +0.0017 / +0.0014 (former training: 0.0015 / 0.0012 /
+    # -0.015 overall; the closed form of the quick preset: +0.0145 over mean, -0.0009 against the nearest
+    # view at >= 10 deg, so it would fail here)
     assert gain_far >= 0.01, summary
     assert gain_all >= 0.01, summary
+    assert vs_nearest_far > 0.0, summary  # beats the nearest training view where views are extrapolated
     assert vs_nearest >= -0.003, summary
 
 
