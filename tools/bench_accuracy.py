@@ -67,6 +67,7 @@ VARIANTS = {
     "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
     "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
+    "rendered no-confirmation": ("rendered", {"checks": {"confirm_below_inliers": 0}}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),
