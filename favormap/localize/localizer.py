@@ -52,8 +52,9 @@ class SuccessChecks:
     # estimate (the query matched against all landmarks' mean descriptors, Lowe's test, PnP): that
     # estimate must exist and lie within max_iteration_change of the pose. tools/bench_accuracy.py
     # --extrap-step 1 (fox extrapolation, 20 queries, 2026-11-26): two queries converged from priors
-    # 0.3 units off to poses 6.8 units off with 51 and 57 consistent inliers (wrong matches on
-    # a self-similar texture, 1.2 px median reprojection error) and passed every other check; the
+    # 0.3 units off to poses 6.8 units off with 51 and 57 consistent inliers (query keypoints on one
+    # flower of a repeated wallpaper pattern matched to landmarks on another; 1.2 px median
+    # reprojection error) and passed every other check; the
     # prior-free step finds no pose for them, and confirms every correct pose of that split with
     # fewer than 100 inliers (51-94). 0: never ask.
     confirm_below_inliers: int = 100
