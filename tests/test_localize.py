@@ -235,6 +235,49 @@ def test_matching_keeps_best_above_threshold():
     assert m.tolist() == [[0, 0], [1, 1]]
 
 
+def test_grouped_matching_treats_a_location_as_one_keypoint():
+    """KeypointGroups: descriptors at one position compete as one keypoint whose similarity is their
+    best; the pair names the member that reaches it (checked against a brute-force reference)."""
+    from favormap.localize.localizer import KeypointGroups
+
+    rng = np.random.default_rng(0)
+    unit = lambda x: (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)  # noqa: E731
+    rend, query = unit(rng.normal(size=(60, 16))), unit(rng.normal(size=(90, 16)))
+    kp = rng.uniform(0, 100, size=(90, 2))
+    assert KeypointGroups.of(kp) is None  # every position unique: plain matching
+    kp[60:90] = kp[0:30]  # 30 locations with two descriptors each
+    groups = KeypointGroups.of(kp)
+    assert len(groups.starts) == 60
+    gid = np.unique(np.round(kp, 1), axis=0, return_inverse=True)[1].reshape(-1)
+    sim = rend @ query.T
+    gsim = np.full((60, 60), -np.inf)
+    np.maximum.at(gsim, (slice(None), gid), sim)
+    for ratio in (1.0, 0.9):
+        ref = []
+        for r in range(60):
+            order = np.sort(gsim[r])[::-1]
+            b = int(gsim[r].argmax())
+            if gsim[:, b].argmax() != r or (2 - 2 * order[0]) >= ratio**2 * (2 - 2 * order[1]) and ratio < 1:
+                continue
+            members = np.flatnonzero(gid == b)
+            ref.append((r, int(members[np.argmax(sim[r, members])])))
+        got = match_descriptors(rend, query, -1.0, mutual=True, ratio=ratio, groups=groups, chunk=16)
+        assert sorted(map(tuple, got.tolist())) == sorted(ref)
+        assert len(ref) > 10
+
+
+def test_a_sift_map_localizes_with_every_orientation_of_the_query(small_map, queries):
+    _, path = small_map
+    img, T = queries[4]
+    loc = Localizer(path, LocalizeConfig(sift_orientations="all"))
+    assert loc.extractor.orientations == "all"
+    res = loc.localize(img, perturb_pose(T, 0.3, 10.0, np.random.default_rng(6)))
+    assert res.success and pose_error(res.cam_from_world, T)[0] < 0.01, res.message
+    assert len(np.unique(np.round(res.keypoints, 1), axis=0)) < len(res.keypoints)  # groups were present
+    matched_at = np.round(res.keypoints[res.matches[:, 1]], 1)
+    assert len(np.unique(matched_at, axis=0)) == len(res.matches)  # a location is matched at most once
+
+
 def test_search_by_projection_matches_like_full_matching_within_the_radius():
     """match_near compares only pairs within the radius: with a radius covering the image it gives
     exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only

@@ -29,6 +29,17 @@ def test_sampling_at_keypoints_reproduces_their_descriptors(room_image):
     assert np.median(np.sum(near * f.descriptors, 1)) > 0.9
 
 
+def test_all_orientations_keep_every_keypoint_opencv_finds_at_a_location(room_image):
+    strongest = features.create("sift", max_keypoints=4096).extract(room_image)
+    every = features.create("sift", max_keypoints=4096, orientations="all").extract(room_image)
+    pos = lambda f: {tuple(p) for p in np.round(f.keypoints, 1).tolist()}  # noqa: E731
+    assert pos(every) == pos(strongest)  # the same locations ...
+    assert len(np.unique(np.round(strongest.keypoints, 1), axis=0)) == len(strongest)
+    assert len(every) > 1.05 * len(strongest)  # ... with the extra orientations of some of them
+    with pytest.raises(ValueError, match="orientations"):
+        features.create("sift", orientations="some")
+
+
 def test_descriptors_survive_an_in_plane_rotation(room_image):
     """Rotate the image by 40 degrees: mutual nearest neighbours with the ratio test must mostly
     land on the rotated keypoint (an upright, fixed-size descriptor fails this)."""

@@ -68,6 +68,9 @@ VARIANTS = {
     "rendered no-checks": ("rendered", {"checks": "none"}),
     "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
     "rendered no-confirmation": ("rendered", {"checks": {"confirm_below_inliers": 0}}),
+    # SIFT maps: every orientation OpenCV finds at a query location, matched as one keypoint
+    "rendered all-orientations": ("rendered", {"sift_orientations": "all"}),
+    "rendered+mean all-orientations": ("rendered+mean", {"sift_orientations": "all"}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),

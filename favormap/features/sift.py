@@ -56,11 +56,23 @@ class SIFTExtractor(Extractor):
     match_ratio = 0.8  # Lowe's test when matching against a whole map (the localizer's prior-free step)
 
     def __init__(
-        self, max_keypoints: int = 2048, device: str | None = None, size: float = 12.0, support_px: float = 4.0
+        self,
+        max_keypoints: int = 2048,
+        device: str | None = None,
+        size: float = 12.0,
+        support_px: float = 4.0,
+        orientations: str = "strongest",
     ):
         super().__init__(max_keypoints, device)
         self.size = float(size)
         self.support_px = float(support_px)
+        # OpenCV gives a location one keypoint per dominant orientation (peaks within 80 % of the
+        # highest): "strongest" keeps the strongest one (maps: one track node per location), "all"
+        # keeps them all (queries: the localizer matches such a group as one keypoint through
+        # whichever descriptor fits, favormap.localize.localizer.KeypointGroups)
+        if orientations not in ("strongest", "all"):
+            raise ValueError(f"orientations must be 'strongest' or 'all', not {orientations!r}")
+        self.orientations = orientations
         self._sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=0.02)
 
     def extract(self, image: np.ndarray) -> Features:
@@ -73,9 +85,11 @@ class SIFTExtractor(Extractor):
         kp = np.array([(*k.pt, k.size, k.angle, k.response, k.octave) for k in kps], np.float64).reshape(-1, 6)
         order = np.argsort(-kp[:, 4], kind="stable")[: self.max_keypoints]
         xy = kp[order, :2].astype(np.float32)
-        # several detections at one position (different orientations): keep the strongest
-        _, first = np.unique(np.round(xy, 1), axis=0, return_index=True)
-        uniq = order[np.sort(first)]
+        if self.orientations == "all":
+            uniq = order
+        else:  # several detections at one position (different orientations): keep the strongest
+            _, first = np.unique(np.round(xy, 1), axis=0, return_index=True)
+            uniq = order[np.sort(first)]
         state = _SiftState(
             gray,
             kp[uniq, :2].astype(np.float32) + 0.5,

@@ -19,7 +19,7 @@ from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
 from ..visibility import project_inside, visible_rows
 from .descriptors import describe
-from .localizer import Localizer, match_descriptors
+from .localizer import KeypointGroups, Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
 PRIOR_MODES = ("noise", "nearest", "constant", "none")
@@ -208,7 +208,9 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
         cfg.view_limits,
     )
     desc, drows = describe(localizer.source, rows, gt, {})
-    m = match_descriptors(desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio)
+    m = match_descriptors(
+        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=KeypointGroups.of(feats.keypoints)
+    )
     pos = localizer.map.positions
     return diagnostics_from_matches(
         cam, gt, pos[rows], feats.keypoints, pos[drows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px

@@ -68,6 +68,9 @@ class LocalizeConfig:
     ratio: float = 1.0  # Lowe ratio on descriptor distances in the rendering iterations (1: off)
     global_ratio: float | None = None  # Lowe ratio when matching against all landmarks (None: the extractor's)
     max_keypoints: int = 4096
+    # SIFT maps: query keypoints per location, "strongest" orientation or "all" (grouped in matching,
+    # KeypointGroups)
+    sift_orientations: str = "strongest"
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
     guided_radius_px: float = (
@@ -151,6 +154,30 @@ class LocalizationResult:
         }
 
 
+@dataclass
+class KeypointGroups:
+    """Query keypoints that share a position: OpenCV's SIFT returns one keypoint per dominant
+    orientation, so a location can carry two or more descriptors. Matching treats a group as one
+    keypoint whose similarity to a landmark is the best of its descriptors, so that the extra
+    orientations add chances to match without competing with each other in the mutual and ratio
+    tests."""
+
+    order: np.ndarray  # (Q,) keypoint indices, sorted by group
+    starts: np.ndarray  # (G,) where each group starts in ``order``
+
+    @classmethod
+    def of(cls, keypoints: np.ndarray, decimals: int = 1) -> KeypointGroups | None:
+        """Groups of keypoints at the same position (rounded); None when every position is unique."""
+        kp = np.round(np.asarray(keypoints, np.float64).reshape(-1, 2), decimals)
+        if len(kp) == 0:
+            return None
+        _, inverse, counts = np.unique(kp, axis=0, return_inverse=True, return_counts=True)
+        if counts.max() == 1:
+            return None
+        inverse = inverse.reshape(-1)
+        return cls(np.argsort(inverse, kind="stable"), np.r_[0, np.cumsum(counts)[:-1]])
+
+
 def match_descriptors(
     rendered: np.ndarray,
     query: np.ndarray,
@@ -158,11 +185,15 @@ def match_descriptors(
     mutual: bool = False,
     ratio: float = 1.0,
     chunk: int = 8192,
+    groups: KeypointGroups | None = None,
 ) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
     query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
     rendered descriptor is also that query descriptor's most similar one, and when the best
     distance is below ``ratio`` times the second best (Lowe's test on unit vectors).
+
+    With ``groups`` the tests run on groups of query descriptors at one position (a group's
+    similarity: the best of its members) and the pair names the group's most similar member.
 
     NumPy, ``chunk`` rendered rows at a time: memory stays bounded when matching a query against a
     whole map (the prior-free step); ties go to the lower index."""
@@ -171,23 +202,28 @@ def match_descriptors(
     L, Q = len(rendered), len(query)
     if L == 0 or Q == 0:
         return np.zeros((0, 2), np.int64)
+    if groups is not None:
+        query = query[groups.order]
     qt = np.ascontiguousarray(query.T)
-    best = np.empty(L, np.int64)
+    G = Q if groups is None else len(groups.starts)
+    best = np.empty(L, np.int64)  # best column (group)
     best_sim = np.empty(L, np.float32)
     second = np.full(L, -np.inf, np.float32)
-    col_best = np.full(Q, -np.inf, np.float32)  # each query descriptor's best similarity
+    col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's (group's) best similarity
     for s in range(0, L, chunk):
         sim = rendered[s : s + chunk] @ qt
         r = np.arange(len(sim))
+        if groups is not None:
+            sim = np.maximum.reduceat(sim, groups.starts, axis=1)
         if mutual:  # max along axis 0 is ~20x faster than argmax along it
             np.maximum(col_best, sim.max(0), out=col_best)
         b = sim.argmax(1)
         best[s : s + len(sim)], best_sim[s : s + len(sim)] = b, sim[r, b]
-        if ratio < 1.0 and Q >= 2:
+        if ratio < 1.0 and G >= 2:
             sim[r, b] = -np.inf
             second[s : s + len(sim)] = sim.max(1)
     ok = best_sim >= threshold
-    if ratio < 1.0 and Q >= 2:
+    if ratio < 1.0 and G >= 2:
         ok &= np.maximum(2 - 2 * best_sim, 0) < ratio**2 * np.maximum(2 - 2 * second, 0)
     if mutual:  # the rendered row is its query descriptor's best; on a tie the lowest row wins
         ok &= best_sim >= col_best[best]
@@ -195,7 +231,16 @@ def match_descriptors(
     if mutual:
         _, first = np.unique(best[idx], return_index=True)
         idx = idx[np.sort(first)]
-    return np.stack([idx, best[idx]], 1).astype(np.int64)
+    if groups is None:
+        return np.stack([idx, best[idx]], 1).astype(np.int64)
+    # each kept row's group -> the member that reaches the group's similarity
+    size = np.diff(np.r_[groups.starts, Q])[best[idx]]
+    cols = groups.starts[best[idx]][:, None] + np.arange(size.max(initial=1))[None, :]
+    valid = cols < (groups.starts[best[idx]] + size)[:, None]
+    cols = np.where(valid, cols, cols[:, :1])  # positions in ``query`` (sorted by group)
+    sims = np.where(valid, np.einsum("kc,kwc->kw", rendered[idx], query[cols]), -np.inf)
+    member = groups.order[cols[np.arange(len(idx)), sims.argmax(1)]]
+    return np.stack([idx, member], 1).astype(np.int64)
 
 
 def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray) -> np.ndarray:
@@ -278,6 +323,7 @@ class Localizer:
             self.map.extractor,
             max_keypoints=self.config.max_keypoints,
             device=None if self.config.device == "cpu" else self.config.device,
+            **({"orientations": self.config.sift_orientations} if self.map.extractor == "sift" else {}),
         )
         self.index = SpatialIndex(self.map.positions)
         self.default_camera = (
@@ -325,7 +371,7 @@ class Localizer:
         feats = self.extractor.extract(img)
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
-        q = _Query(feats, qdesc, cam)
+        q = _Query(feats, qdesc, cam, KeypointGroups.of(feats.keypoints))
 
         if prior is not None:
             res = self._refine(q, prior, [], t)
@@ -412,7 +458,7 @@ class Localizer:
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
-        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
+        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio, groups=q.groups)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -449,7 +495,7 @@ class Localizer:
                     rend, q.desc, uv, q.keypoints_tree(), cfg.search_radius_px, cfg.match_threshold, cfg.mutual
                 )
             else:
-                m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+                m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
             m = _distinct_pairs(m, drows)
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
@@ -594,6 +640,7 @@ class _Query:
     feats: object
     desc: np.ndarray  # (N, C) float32 unit descriptors
     cam: Camera
+    groups: KeypointGroups | None = None  # query keypoints sharing a position (several orientations)
     _tree: object = None
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
 
