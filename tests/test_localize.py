@@ -359,6 +359,22 @@ def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_
     assert json.loads(capsys.readouterr().out)["success"] is False
 
 
+def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, tmp_path, capsys):
+    from favormap.cli import main
+
+    _, path = small_map
+    fr = small_sequence.frames[7]
+    pose = tmp_path / "prior.txt"
+    np.savetxt(pose, inverse(perturb_pose(fr.cam_from_world, 0.1, 5.0, np.random.default_rng(2))))
+    args = ["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json"]
+    assert main(args + ["--descriptors", "rendered+mean", "--sift-orientations", "all"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
+    with pytest.raises(SystemExit):  # argparse: one usage line, exit 2
+        main(args + ["--descriptors", "nearest"])
+    assert "invalid choice" in capsys.readouterr().err
+
+
 def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
     from favormap.cli import main
 

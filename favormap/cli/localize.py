@@ -32,6 +32,13 @@ def add_localize_options(p):
         "matching without a prior uses the extractor's: 0.8 for sift, off for xfeat)",
     )
     p.add_argument(
+        "--sift-orientations",
+        choices=["strongest", "all"],
+        default="strongest",
+        help="SIFT maps: keep the strongest orientation per query location, or all of them (matched as one "
+        "keypoint; better far from the mapping path, slightly worse near it: README, Accuracy)",
+    )
+    p.add_argument(
         "--no-global",
         action="store_true",
         help="never fall back to matching against all landmarks when the prior fails (or is missing)",
@@ -66,10 +73,14 @@ def register(sub):
         "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major); without it, no priors",
     )
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
-    add_localize_options(p)
     p.add_argument(
-        "--descriptors", choices=["rendered", "mean"], default="rendered", help="rendered (FaVoR) or mean (baseline)"
+        "--descriptors",
+        choices=["rendered", "mean", "rendered+mean"],
+        default="rendered",
+        help="landmark descriptors: rendered from the voxels (FaVoR, default), the stored mean, or both "
+        "(each landmark matched through either; better far from the mapping path: README, Accuracy)",
     )
+    add_localize_options(p)
     p.add_argument(
         "--output", help="write the estimated pose (world_from_cam 4x4) here; for a folder: one line per image"
     )
@@ -102,6 +113,7 @@ def config_from_args(args):
         ratio=args.ratio,
         global_fallback=not args.no_global,
         descriptors=getattr(args, "descriptors", "rendered"),
+        sift_orientations=args.sift_orientations,
         device=auto_device(args.device),
         threads=getattr(args, "threads", None),
     )
