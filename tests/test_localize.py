@@ -143,6 +143,10 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     res = Localizer(path, LocalizeConfig(checks=every_pose_weak, global_fallback=False)).localize(img, prior)
     assert res.success, res.message
     assert 0 <= res.checks["confirmation_change"] < 0.05 and res.checks["confirmation_change_deg"] < 2.0
+    # without a prior the refined pose must stay where the prior-free estimate put it
+    res = Localizer(path, LocalizeConfig(checks=every_pose_weak)).localize(img)
+    assert res.success and res.iterations[0].kind == "global", res.message
+    assert 0 <= res.checks["confirmation_change"] < 0.05
     # with the default threshold this query has enough inliers not to need the prior-free step
     res = Localizer(path, LocalizeConfig(global_fallback=False, global_ratio=1e-3)).localize(img, prior)
     assert res.success and res.num_inliers >= SuccessChecks().confirm_below_inliers
