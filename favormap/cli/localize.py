@@ -29,7 +29,7 @@ def add_localize_options(p):
         type=float,
         default=1.0,
         help="Lowe ratio test on descriptor distances in the rendering iterations (default 1: off; "
-        "matching without a prior uses the extractor's: 0.8 for sift, off for xfeat)",
+        "matching without a prior uses the extractor's: 0.9 for sift, off for xfeat)",
     )
     p.add_argument(
         "--sift-orientations",
