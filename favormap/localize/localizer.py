@@ -48,9 +48,10 @@ class SuccessChecks:
     min_inlier_ratio: float = 0.1
     max_iteration_change: tuple[float, float] = (0.05, 2.0)  # last two estimates: (x median landmark depth, deg)
     min_visible_inliers: float = 0.8  # share of inlier landmarks visible from the final pose
-    # A pose refined from a prior with fewer inliers than this must be confirmed by the prior-free
-    # estimate (the query matched against all landmarks' mean descriptors, Lowe's test, PnP): that
-    # estimate must exist and lie within max_iteration_change of the pose. tools/bench_accuracy.py
+    # A pose with fewer inliers than this must be confirmed by the prior-free estimate (the query
+    # matched against all landmarks' mean descriptors, Lowe's test, PnP): refined from a prior, that
+    # estimate must exist and lie within max_iteration_change of the pose; refined from that estimate,
+    # the pose must have stayed that close to it. tools/bench_accuracy.py
     # --extrap-step 1 (fox extrapolation, 20 queries, 2026-11-26): two queries converged from priors
     # 0.3 units off to poses 6.8 units off with 51 and 57 consistent inliers (query keypoints on one
     # flower of a repeated wallpaper pattern matched to landmarks on another; 1.2 px median
