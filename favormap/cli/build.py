@@ -47,9 +47,9 @@ def register(sub):
         "--quality",
         choices=("quick", "fast", "reference"),
         default="fast",
-        help="voxel training preset: quick (closed-form descriptors at fixed densities: ~25x faster training, "
-        "slightly less accurate), fast (default; 200 Adam iterations, sized for a few CPU cores) or reference "
-        "(the reference implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: "
+        help="voxel training preset: quick (closed-form descriptors at fixed, nearly opaque densities: ~25x faster "
+        "training, slightly less accurate), fast (default; 200 Adam iterations, sized for a few CPU cores) or "
+        "reference (the reference implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: "
         "use a GPU)",
     )
     p.add_argument("--grid", type=int, default=None, help="voxel grid resolution R (default: the preset's, 3)")

@@ -114,8 +114,14 @@ QUALITY_PRESETS: dict[str, dict] = {
     # --solver lstsq (2026-11-26, medians / p90 in units): 7 x 7 patches hold-out 0.0016 / 0.0059,
     # extrapolation 0.0080 / 0.0139, orbit 0.0005 / 0.0016; 3 x 3 patches 0.0015 / 0.0076, 0.0071 /
     # 0.0168, 0.0005 / 0.0018 (Adam, fast: 0.0015 / 0.0042, 0.0074 / 0.0115, 0.0004 / 0.0016), and the
-    # patch descriptors, the build's largest stage, cost 5x less
-    "quick": dict(solver="lstsq", patch_size=3),
+    # patch descriptors, the build's largest stage, cost 5x less. Initial (= fixed) density 20 per voxel
+    # side instead of 1 (2026-11-26, seventh session): the cubes are nearly opaque, so a ray's
+    # descriptor interpolates the nodes on the side facing the camera and depends on the view. XFeat
+    # novel views (tests/test_voxels_view.py scene): rendered beats the nearest training view by
+    # +0.0020 at >= 10 deg (density 1: -0.0005; Adam: +0.0017); localization equal within a rebuild's
+    # noise (tools/bench_accuracy.py --build-variant, 20 extrapolation queries: hold-out 0.0015 /
+    # 0.0015, extrapolation 0.0101 / 0.0104, orbit 0.0006 / 0.0006 for density 20 / 1)
+    "quick": dict(solver="lstsq", patch_size=3, density_init=20.0),
     # the reference implementation's budget (utiasSTARS/FaVoR configs/default_base.py: N_iters 2000,
     # N_rand 1024, lr decay 0.1 per 10,000 steps, TV from step 1500; box side 4 * 3 px * l / f),
     # keeping this implementation's ray mix (half the rays through the centre, prior rays half as many)
