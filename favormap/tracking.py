@@ -48,6 +48,22 @@ class Tracks:
         keep = keep_obs & (counts[tid] >= min_len)
         return Tracks.from_obs(self.frame_idx[keep], self.keypoint_idx[keep], self.xy[keep], tid[keep])
 
+    def range(self, lo: int, hi: int) -> Tracks:
+        """Tracks lo..hi-1 (views: their observations are contiguous)."""
+        a, b = self.offsets[lo], self.offsets[hi]
+        return Tracks(self.frame_idx[a:b], self.keypoint_idx[a:b], self.xy[a:b], self.offsets[lo : hi + 1] - a)
+
+    @classmethod
+    def concat(cls, parts: list[Tracks]) -> Tracks:
+        """The tracks of ``parts``, one after the other."""
+        ends = np.cumsum([0] + [p.offsets[-1] for p in parts[:-1]])
+        return cls(
+            np.concatenate([p.frame_idx for p in parts]),
+            np.concatenate([p.keypoint_idx for p in parts]),
+            np.concatenate([p.xy for p in parts]),
+            np.concatenate([[0]] + [p.offsets[1:] + e for p, e in zip(parts, ends)]).astype(np.int64),
+        )
+
     @classmethod
     def from_obs(cls, frame_idx, keypoint_idx, xy, track_id) -> Tracks:
         order = np.lexsort((frame_idx, track_id))

@@ -93,30 +93,14 @@ def triangulate(
     if len(bounds) <= 2:
         return _triangulate_block(tracks, cam_from_world, Ks, config)
     parts = [
-        _triangulate_block(_track_range(tracks, lo, hi), cam_from_world, Ks, config)
-        for lo, hi in zip(bounds[:-1], bounds[1:])
+        _triangulate_block(tracks.range(lo, hi), cam_from_world, Ks, config) for lo, hi in zip(bounds[:-1], bounds[1:])
     ]
-    offsets = [np.zeros(1, np.int64)]
-    for p in parts:
-        offsets.append(p.tracks.offsets[1:] + offsets[-1][-1])
-    merged = Tracks(
-        np.concatenate([p.tracks.frame_idx for p in parts]),
-        np.concatenate([p.tracks.keypoint_idx for p in parts]),
-        np.concatenate([p.tracks.xy for p in parts]),
-        np.concatenate(offsets),
-    )
     return Landmarks(
         np.concatenate([p.positions for p in parts]),
-        merged,
+        Tracks.concat([p.tracks for p in parts]),
         np.concatenate([p.reproj_errors for p in parts]),
         np.concatenate([p.angles_deg for p in parts]),
     )
-
-
-def _track_range(tracks: Tracks, lo: int, hi: int) -> Tracks:
-    """Tracks lo..hi-1 (their observations are contiguous)."""
-    a, b = tracks.offsets[lo], tracks.offsets[hi]
-    return Tracks(tracks.frame_idx[a:b], tracks.keypoint_idx[a:b], tracks.xy[a:b], tracks.offsets[lo : hi + 1] - a)
 
 
 def _triangulate_block(

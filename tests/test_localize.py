@@ -186,8 +186,8 @@ def test_repeated_landmark_keypoint_pairs_are_dropped():
 
     drows = np.array([4, 9, 4, 9])  # descriptors 0, 2 of landmark 4; 1, 3 of landmark 9
     m = np.array([[0, 10], [2, 10], [1, 11], [3, 12]])
-    np.testing.assert_array_equal(_distinct_pairs(m, drows), [[0, 10], [1, 11], [3, 12]])
-    np.testing.assert_array_equal(_distinct_pairs(m, np.arange(4)), m)  # one descriptor per landmark
+    np.testing.assert_array_equal(_distinct_pairs(m, drows, 2), [[0, 10], [1, 11], [3, 12]])
+    np.testing.assert_array_equal(_distinct_pairs(m, np.arange(4), 4), m)  # one descriptor per landmark
 
 
 def test_an_image_of_another_scene_is_never_a_success(small_map, small_sequence):

@@ -19,7 +19,7 @@ from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
 from ..visibility import project_inside, visible_rows
 from .descriptors import describe
-from .localizer import KeypointGroups, Localizer, match_descriptors
+from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
 PRIOR_MODES = ("noise", "nearest", "constant", "none")
@@ -209,7 +209,7 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
     )
     desc, drows = describe(localizer.source, rows, gt, {})
     m = match_descriptors(
-        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=KeypointGroups.of(feats.keypoints)
+        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=localizer.keypoint_groups(feats)
     )
     pos = localizer.map.positions
     return diagnostics_from_matches(

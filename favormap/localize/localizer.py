@@ -244,11 +244,11 @@ def match_descriptors(
     return np.stack([idx, member], 1).astype(np.int64)
 
 
-def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray) -> np.ndarray:
+def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np.ndarray:
     """Matches (K, 2) [descriptor, query keypoint] without repeated (landmark, keypoint) pairs, which
-    arise when a landmark has several descriptors (``desc_rows``: the landmark of each descriptor;
-    the first of a repeated pair is kept)."""
-    if len(m) < 2 or len(np.unique(desc_rows)) == len(desc_rows):
+    arise when each of the ``n_landmarks`` has several descriptors (``desc_rows``: the landmark of
+    each descriptor; the first of a repeated pair is kept)."""
+    if len(m) < 2 or len(desc_rows) == n_landmarks:
         return m
     _, keep = np.unique(np.c_[desc_rows[m[:, 0]], m[:, 1]], axis=0, return_index=True)
     return m[np.sort(keep)]
@@ -342,6 +342,11 @@ class Localizer:
     def close(self):
         self.map.close()
 
+    def keypoint_groups(self, feats) -> KeypointGroups | None:
+        """The query keypoints sharing a location, for an extractor that gives several descriptors
+        per location (SIFT with ``sift_orientations="all"``); None otherwise."""
+        return KeypointGroups.of(feats.keypoints) if getattr(self.extractor, "orientations", None) == "all" else None
+
     # -- inputs --------------------------------------------------------------------------------------
     def prepare(self, image, camera: Camera | None = None):
         """Query image (path or RGB array at the camera's resolution) -> (working image, pinhole camera)."""
@@ -372,12 +377,11 @@ class Localizer:
         feats = self.extractor.extract(img)
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
-        q = _Query(feats, qdesc, cam, KeypointGroups.of(feats.keypoints))
+        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats))
 
         if prior is not None:
             res = self._refine(q, prior, [], t)
-            if res.success and res.num_inliers < cfg.checks.confirm_below_inliers:
-                self._confirm(q, res, prior, t)
+            self._confirm(q, res, prior, t)
             if res.success or not cfg.global_fallback:
                 return res
             first = res
@@ -397,8 +401,7 @@ class Localizer:
                 f"found no pose ({it.num_matches} matches, {it.num_inliers} inliers)",
             )
         res = self._refine(q, coarse, (first.iterations if first is not None else []) + [it], t)
-        if res.success and res.num_inliers < cfg.checks.confirm_below_inliers:
-            self._confirm(q, res, coarse, t)  # the refinement must stay where the coarse pose put it
+        self._confirm(q, res, coarse, t)  # the refinement must stay where the coarse pose put it
         if not res.success and first is not None:
             res.message = f"{first.message}; from a coarse pose found without the prior: {res.message}"
             res.cam_from_world = prior
@@ -424,12 +427,15 @@ class Localizer:
         return ans
 
     def _confirm(self, q: _Query, res: LocalizationResult, start: np.ndarray, t: dict) -> None:
-        """Refuse ``res`` (in place; its pose becomes ``start``, where its iterations began) unless the
-        prior-free estimate agrees with it (see ``SuccessChecks.confirm_below_inliers``). For a pose
+        """A successful ``res`` with fewer than ``SuccessChecks.confirm_below_inliers`` inliers is
+        refused (in place; its pose becomes ``start``, where its iterations began) unless the
+        prior-free estimate agrees with it. For a pose
         refined from that estimate this asks that the rendering iterations did not carry it away:
         with a looser ratio test (0.9) the fox's wallpaper query 0072 got a correct coarse pose (0.01
         units off) that the iterations moved 6.8 units, to the wallpaper's false consensus."""
         c = self.config.checks
+        if not res.success or res.num_inliers >= c.confirm_below_inliers:
+            return
         coarse, it = self._global_pose(q, t)
         if coarse is not None:
             dt, dr = pose_error(coarse, res.cam_from_world)
@@ -502,7 +508,7 @@ class Localizer:
                 )
             else:
                 m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
-            m = _distinct_pairs(m, drows)
+            m = _distinct_pairs(m, drows, len(rows))
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
             ans = self._pnp(q, self.map.positions[drows[m[:, 0]]], m[:, 1], t)
@@ -533,7 +539,7 @@ class Localizer:
         s = time.perf_counter()
         uv = project(q.cam.K, pose, self.map.positions[drows])
         m = match_near(rend, q.desc, uv, q.keypoints_tree(), cfg.guided_radius_px, cfg.match_threshold, mutual=True)
-        m = _distinct_pairs(m, drows)
+        m = _distinct_pairs(m, drows, len(rows))
         idx, kidx = m[:, 0], m[:, 1]
         sims = _pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
