@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from favormap.errors import InputError
 from favormap.geometry import inverse, perturb_pose, pose_error
 from favormap.localize import LocalizeConfig, Localizer, match_descriptors
 
@@ -151,6 +152,41 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     res = Localizer(path, LocalizeConfig(global_fallback=False, global_ratio=1e-3)).localize(img, prior)
     assert res.success and res.num_inliers >= SuccessChecks().confirm_below_inliers
     assert "confirmation_change" not in res.checks
+
+
+def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries):
+    """The default refines the last estimate on its inliers weighted by each landmark's position
+    uncertainty (favormap.localize.refine); 0 keeps RANSAC's refinement. Both converge; the weighted
+    pose is the weighted refinement of the plain one's inliers."""
+    from favormap.localize.refine import landmark_covariances, mapping_pixel_sigma, refine_pose
+
+    _, path = small_map
+    rng = np.random.default_rng(5)
+    plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0))
+    weighted = Localizer(path, LocalizeConfig())
+    assert weighted.config.landmark_sigma_px == "landmark"
+    moved = []
+    for img, T in queries[:3]:
+        prior = perturb_pose(T, 0.3, 15.0, rng)
+        a, b = plain.localize(img, prior), weighted.localize(img, prior)
+        assert a.success and b.success, (a.message, b.message)
+        assert pose_error(a.cam_from_world, T)[0] < 0.01 and pose_error(b.cam_from_world, T)[0] < 0.01
+        inl = a.matches[a.inlier_mask]
+        q_cam = plain.prepare(img)[1]
+        m = plain.map
+        expect = refine_pose(
+            a.cam_from_world,
+            m.positions[inl[:, 0]],
+            a.keypoints[inl[:, 1]],
+            q_cam.K,
+            landmark_covariances(m, inl[:, 0], mapping_pixel_sigma(m, inl[:, 0])),
+            weighted.config.keypoint_sigma_px,
+        )
+        assert pose_error(b.cam_from_world, expect)[0] < 1e-9
+        moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
+    assert max(moved) > 1e-6  # the weighting did change the pose
+    with pytest.raises(InputError, match="landmark_sigma_px"):
+        LocalizeConfig(landmark_sigma_px="everywhere")
 
 
 def test_landmarks_with_two_descriptors_each_localize(small_map, queries):
@@ -377,6 +413,12 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     with pytest.raises(SystemExit):  # argparse: one usage line, exit 2
         main(args + ["--descriptors", "nearest"])
     assert "invalid choice" in capsys.readouterr().err
+    assert main(args + ["--landmark-sigma", "0"]) == 0  # the plain RANSAC refinement
+    res = json.loads(capsys.readouterr().out)
+    assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
+    assert main(args + ["--landmark-sigma", "-1"]) != 0
+    err = capsys.readouterr().err
+    assert "--landmark-sigma" in err and "Traceback" not in err
 
 
 def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):

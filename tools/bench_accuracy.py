@@ -24,7 +24,12 @@ bounding-box diagonal of the landmarks), median rotation, localized %, false suc
 success with error > 5 % of the extent or > 5 deg), mean inliers, median translation after each
 iteration, seconds per query, and at the ground-truth pose the match precision (share of matches
 within 2 px of the landmark's projection) and the keypoint repeatability (share of visible
-landmarks with a query keypoint within 2 px).
+landmarks with a query keypoint within 2 px); last, the noise floor (median over the localized
+queries of how far the pose moves when its own inlier correspondences are re-drawn with Gaussian
+noise of their residual scale, from the median reprojection error, and refined again:
+favormap.localize.evaluate.pose_noise_floor) and that residual. A median error near the floor
+means the correspondences are right and only more inliers or smaller residuals can lower it; far
+above it, wrong or biased correspondences.
 
     python tools/bench_accuracy.py                       # fox-holdout, fox-extrap, orbit
     python tools/bench_accuracy.py --splits orbit --json out.json
@@ -79,8 +84,28 @@ VARIANTS = {
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),
     "rendered global-ratio-0.9": ("rendered", {"global_ratio": 0.9}),
     "rendered global-ratio-1.0": ("rendered", {"global_ratio": 1.0}),
+    # the final pose refined with each landmark's position uncertainty (favormap.localize.refine; the
+    # default: the keypoint noise of each landmark from its reprojection error), or not (before
+    # 2026-11-26's eighth session), or for this keypoint noise (px) in the mapping images
+    "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
+    "rendered uncertainty-0.5px": ("rendered", {"landmark_sigma_px": 0.5}),
+    "rendered uncertainty-1px": ("rendered", {"landmark_sigma_px": 1.0}),
+    "rendered uncertainty-2px": ("rendered", {"landmark_sigma_px": 2.0}),
+    "mean uncertainty-1px": ("mean", {"landmark_sigma_px": 1.0}),
+    # ... with the keypoint noise estimated from the map's reprojection errors: one figure per map, or
+    # per landmark
+    "rendered uncertainty-map": ("rendered", {"landmark_sigma_px": "map"}),
+    "rendered uncertainty-landmark": ("rendered", {"landmark_sigma_px": "landmark"}),
+    "mean uncertainty-map": ("mean", {"landmark_sigma_px": "map"}),
 }
-DEFAULT_VARIANTS = ("rendered", "mean", "nearest-view", "rendered 8px no-mutual (old default)", "rendered no-checks")
+DEFAULT_VARIANTS = (
+    "rendered",
+    "mean",
+    "nearest-view",
+    "rendered no-uncertainty",
+    "rendered 8px no-mutual (old default)",
+    "rendered no-checks",
+)
 
 
 @dataclasses.dataclass
@@ -237,7 +262,14 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
 
     from favormap.localize import Localizer, make_source
     from favormap.localize.descriptors import observation_descriptors
-    from favormap.localize.evaluate import EvalConfig, QueryOutcome, make_priors, match_diagnostics, scene_extent
+    from favormap.localize.evaluate import (
+        EvalConfig,
+        QueryOutcome,
+        make_priors,
+        match_diagnostics,
+        pose_noise_floor,
+        scene_extent,
+    )
     from favormap.mapfile import Map
 
     workdir = Path(args.workdir)
@@ -276,6 +308,16 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 res = loc.localize(fr.image_path, prior, cam)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                if res.success:
+                    inl = res.matches[res.inlier_mask]
+                    o.diagnostics.update(
+                        pose_noise_floor(
+                            loc.prepare(fr.image_path, cam)[1],
+                            res.cam_from_world,
+                            m.positions[inl[:, 0]],
+                            res.keypoints[inl[:, 1]],
+                        )
+                    )
                 outs.append(o)
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
             rows[-1].update(
@@ -291,7 +333,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
 def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
     from favormap.io import load_image
     from favormap.localize.baseline import StructureBaseline
-    from favormap.localize.evaluate import QueryOutcome, diagnostics_from_matches
+    from favormap.localize.evaluate import QueryOutcome, diagnostics_from_matches, pose_noise_floor
 
     rows = []
     t = time.perf_counter()
@@ -311,6 +353,11 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
             o.diagnostics = diagnostics_from_matches(
                 wcam, fr.cam_from_world, b.points3d, res.keypoints, b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]]
             )
+            if res.success:
+                inl = mm[np.asarray(res.inlier_mask, bool)]
+                o.diagnostics.update(
+                    pose_noise_floor(wcam, res.cam_from_world, b.points3d[inl[:, 0]], res.keypoints[inl[:, 1]])
+                )
             outs.append(o)
         rows.append(record(split, name, "none", outs, 1, extent, len(b.points3d)))
     return rows
@@ -363,15 +410,16 @@ def fmt_row(s: dict) -> str:
         f"p90 {_f(s['p90_translation'], '.4f')}  R {_f(s['median_rotation_deg'], '.3f')}  "
         f"loc {100 * s['success_rate']:.0f} %  FS {s['false_successes']}  inl {s['mean_inliers']:.0f}  "
         f"iters {iters}  {s['mean_time_s'] * 1000:.0f} ms  prec {_f(s['match_precision'], '.2f')}  "
-        f"rep {_f(s['keypoint_repeatability'], '.2f')}"
+        f"rep {_f(s['keypoint_repeatability'], '.2f')}  floor {_f(s.get('median_noise_floor'), '.4f')}"
     )
 
 
 def markdown(rows: list[dict]) -> str:
     out = [
         "| split | prior | method | landmarks | median t (units) | % extent | p90 t | median R (deg) | localized | "
-        "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT | noise floor | "
+        "residual px |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in rows:
         iters = " / ".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
@@ -380,7 +428,8 @@ def markdown(rows: list[dict]) -> str:
             f"{_f(s['median_translation'], '.4f')} | {_f(s['median_translation_pct_extent'], '.2f')} | "
             f"{_f(s['p90_translation'], '.4f')} | {_f(s['median_rotation_deg'], '.3f')} | "
             f"{s['localized']}/{s['queries']} | {s['false_successes']} | {s['mean_inliers']:.0f} | {iters} | "
-            f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} |"
+            f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} | "
+            f"{_f(s.get('median_noise_floor'), '.4f')} | {_f(s.get('median_residual_px'), '.2f')} |"
         )
     bins = [s for s in rows if s.get("bins")]
     if bins:

@@ -39,6 +39,13 @@ def add_localize_options(p):
         "keypoint; better far from the mapping path, slightly worse near it: README, Accuracy)",
     )
     p.add_argument(
+        "--landmark-sigma",
+        default="landmark",
+        help="final refinement weighted by each landmark's position uncertainty, for this keypoint noise of the "
+        "mapping images: 'landmark' (each landmark's, from its reprojection error; default), 'map' (their "
+        "median), a number of pixels, or 0 (off: RANSAC's refinement only)",
+    )
+    p.add_argument(
         "--no-global",
         action="store_true",
         help="never fall back to matching against all landmarks when the prior fails (or is missing)",
@@ -103,6 +110,14 @@ def config_from_args(args):
         raise InputError("--ransac-px must be > 0")
     if args.min_inliers < 4:
         raise InputError("--min-inliers must be >= 4")
+    sigma = getattr(args, "landmark_sigma", "landmark")
+    if sigma not in ("landmark", "map"):
+        try:
+            sigma = float(sigma)
+        except ValueError:
+            sigma = -1.0
+        if not (sigma >= 0 and sigma < float("inf")):
+            raise InputError("--landmark-sigma must be 'landmark', 'map' or a number of pixels >= 0")
     return LocalizeConfig(
         iterations=args.iters,
         match_threshold=args.threshold,
@@ -114,6 +129,7 @@ def config_from_args(args):
         global_fallback=not args.no_global,
         descriptors=getattr(args, "descriptors", "rendered"),
         sift_orientations=args.sift_orientations,
+        landmark_sigma_px=sigma,
         device=auto_device(args.device),
         threads=getattr(args, "threads", None),
     )

@@ -149,7 +149,15 @@ def summarize(
         "mean_time_s": float(np.mean([o.seconds for o in outcomes])),
         "match_precision": dmean("match_precision"),
         "keypoint_repeatability": dmean("keypoint_repeatability"),
+        # median over the localized queries of pose_noise_floor (when the caller computed it)
+        "median_noise_floor": _median([o.diagnostics.get("noise_floor") for o in outcomes if o.result.success]),
+        "median_residual_px": _median([o.diagnostics.get("residual_px") for o in outcomes if o.result.success]),
     }
+
+
+def _median(values) -> float | None:
+    v = [x for x in values if x is not None]
+    return float(np.median(v)) if v else None
 
 
 def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
@@ -189,6 +197,40 @@ def diagnostics_from_matches(
         "diag_matches": int(len(err)),
         "diag_points": int(len(uv)),
     }
+
+
+def pose_noise_floor(
+    camera, cam_from_world: np.ndarray, points: np.ndarray, keypoints: np.ndarray, samples: int = 30, seed: int = 0
+) -> dict:
+    """How far the pose estimated from these inlier correspondences moves under their own
+    measurement noise alone: the ``points`` (K, 3) are projected at ``cam_from_world`` (the
+    estimate), Gaussian noise of the correspondences' residual scale is added (per axis, from their
+    median reprojection error), the pose is
+    refined again (pycolmap, the localizer's refinement) from ``samples`` such noisy copies, and the
+    median camera-centre displacement is reported. An estimate's error to the ground truth much
+    larger than this floor comes from wrong or biased correspondences; an error near it can only
+    shrink with more inliers or smaller residuals (the floor falls as residual / sqrt(inliers))."""
+    import pycolmap
+
+    from ..geometry import from_rigid3d, to_rigid3d
+
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    if len(X) < 6:
+        return {"noise_floor": None, "residual_px": None}
+    uv = project(camera.K, cam_from_world, X)
+    # robust per-axis sigma: the median residual norm of a 2-D Gaussian is sigma * sqrt(2 ln 2) (RANSAC
+    # inliers up to its threshold would inflate an RMS)
+    sigma = float(np.median(np.linalg.norm(uv - kp, axis=1)) / np.sqrt(2 * np.log(2)))
+    rng = np.random.default_rng(seed)
+    pc, start = camera.to_pycolmap(), to_rigid3d(cam_from_world)
+    mask = np.ones(len(X), bool)
+    moved = []
+    for _ in range(samples):
+        ans = pycolmap.refine_absolute_pose(start, uv + rng.normal(0.0, sigma, uv.shape), X, mask, pc)
+        if ans is not None:
+            moved.append(pose_error(from_rigid3d(ans["cam_from_world"]), cam_from_world)[0])
+    return {"noise_floor": float(np.median(moved)) if moved else None, "residual_px": sigma}
 
 
 def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radius_px: float = 2.0) -> dict:

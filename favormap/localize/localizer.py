@@ -34,6 +34,7 @@ from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
+from .refine import landmark_covariances, mapping_pixel_sigma, refine_pose
 
 
 @dataclass
@@ -86,6 +87,17 @@ class LocalizeConfig:
     # the four prior modes, against 0.0088-0.0102 with the whole-image search), and the hold-out
     # median rose from 0.0015 to 0.0017 units (8 px: 0.0018, 32 px: 0.0016)
     search_radius_px: float = 0.0
+    # the final pose is refined once more on its inliers with each residual weighted by how well its
+    # landmark is known (favormap.localize.refine: position covariance from the training views' spread
+    # and distance for a keypoint noise of the mapping images, projected into the query, plus
+    # keypoint_sigma_px of query keypoint noise). That noise in pixels, or "map" (estimated from the
+    # map's reprojection errors, one figure: their median) or "landmark" (each landmark's own);
+    # 0: RANSAC's refinement only. tools/bench_accuracy.py (2026-11-26, eighth session, noise priors,
+    # medians hold-out / extrapolation / orbit, units): 0 -> 0.0015 / 0.0090 / 0.0006 (orbit > 40 deg
+    # 0.0016); "landmark" 0.0014 / 0.0086 / 0.0005 (0.0014); "map" 0.0014 / 0.0086 / 0.0005 (0.0015);
+    # 1 px 0.0014 / 0.0082 / 0.0007 (0.0024: too loose for the synthetic orbit's 0.09 px map)
+    landmark_sigma_px: float | str = "landmark"
+    keypoint_sigma_px: float = 0.5  # query keypoint noise (px) of that refinement
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     stop_translation: float = 1e-4  # relative to the median landmark distance
@@ -99,6 +111,11 @@ class LocalizeConfig:
     device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
     seed: int = 0
     threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule)
+
+    def __post_init__(self):
+        v = self.landmark_sigma_px
+        if not (v in ("landmark", "map") or (isinstance(v, (int, float)) and 0 <= v < float("inf"))):
+            raise InputError(f"landmark_sigma_px must be 'landmark', 'map' or a number of pixels >= 0, not {v!r}")
 
 
 @dataclass
@@ -337,6 +354,7 @@ class Localizer:
         configure_threads(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
         if self.config.global_ratio is None:
             self.config = dataclasses.replace(self.config, global_ratio=self.extractor.match_ratio)
+        self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
 
     def close(self):
@@ -527,7 +545,36 @@ class Localizer:
                 break
         if last is not None and cfg.guided_radius_px > 0:
             last = self._guided(q, pose, iters, t) or last
+        if last is not None and iters[-1].success and cfg.landmark_sigma_px not in (0, 0.0):
+            self._weighted(q, iters[-1], last, t)
         return self._result(q, last, iters, t, start)
+
+    def _landmark_sigma(self, rows: np.ndarray):
+        """Mapping keypoint noise (px) behind landmarks ``rows``: LocalizeConfig.landmark_sigma_px."""
+        v = self.config.landmark_sigma_px
+        if v == "map":  # one figure for the map: the median over its landmarks
+            if self._map_sigma is None:
+                self._map_sigma = float(np.median(mapping_pixel_sigma(self.map))) if len(self.map) else 0.0
+            return self._map_sigma
+        if v == "landmark":  # each landmark's own
+            return mapping_pixel_sigma(self.map, rows)
+        return float(v)
+
+    def _weighted(self, q: _Query, it: IterationResult, last: dict, t: dict) -> None:
+        """Refine the pose of the final iteration ``it`` (in place) on its inliers, each weighted by
+        its landmark's position uncertainty (favormap.localize.refine)."""
+        cfg = self.config
+        s = time.perf_counter()
+        inl = last["matches"][last["inliers"]]
+        it.cam_from_world = refine_pose(
+            it.cam_from_world,
+            self.map.positions[inl[:, 0]],
+            q.feats.keypoints[inl[:, 1]],
+            q.cam.K,
+            landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0])),
+            cfg.keypoint_sigma_px,
+        )
+        t["pnp"] += time.perf_counter() - s
 
     def _guided(self, q: _Query, pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
         """Search by projection: each landmark visible from ``pose`` is matched to the most similar

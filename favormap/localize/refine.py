@@ -1,0 +1,126 @@
+"""Pose refinement that knows how well each landmark is known (the localizer's last step).
+
+RANSAC's refinement (pycolmap) treats every 2D-3D correspondence alike: a reprojection error of one
+pixel counts the same for every landmark. But a landmark is triangulated from the mapping views
+only, and its position is uncertain mostly along their viewing direction (depth), by a factor
+~1 / sin(angle spanned by its training views) more than across it. Seen from the mapping path that
+depth error barely moves its projection; seen from a query far from the path (FaVoR's case) it
+moves it by pixels, and the pose is pulled towards wherever the worst-known landmarks happen to lie.
+
+:func:`landmark_covariances` gives each landmark a 3D covariance from what the map stores about its
+training views (mean viewing direction, their angular spread, their distances, the track length):
+``sigma_across = depth * pixel_sigma / (f * sqrt(track_length))`` across the viewing direction and
+``sigma_across / sin(spread)`` along it. :func:`refine_pose` then runs a Gauss-Newton refinement of
+the pose on reprojection errors whitened by the landmark's covariance projected into the query plus
+the query keypoint's own noise, with a Cauchy loss (iteratively reweighted), as COLMAP's does.
+
+Measured (tools/bench_accuracy.py, the ``rendered no-uncertainty`` variant is the former refinement):
+see LocalizeConfig.landmark_sigma_px.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mapfile import Map
+
+
+def mapping_pixel_sigma(map_: Map, rows: np.ndarray | None = None) -> np.ndarray:
+    """Keypoint noise (px, per axis) of the mapping images, estimated per landmark from its mean
+    reprojection error over its track (``landmarks/reproj_error``): the mean norm of a 2-D Gaussian
+    residual is sigma * sqrt(pi / 2), and a point fitted to n observations absorbs 3 of their 2n
+    degrees of freedom."""
+    rows = np.arange(len(map_.reproj_error)) if rows is None else np.asarray(rows, np.int64)
+    e = np.asarray(map_.reproj_error[rows], np.float64)
+    n = np.maximum(np.asarray(map_.track_length[rows], np.float64), 2.0)
+    return e * np.sqrt(2 / np.pi) * np.sqrt(2 * n / (2 * n - 3))
+
+
+def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray:
+    """(len(rows), 3, 3) position covariances of landmarks ``rows`` (map units squared), for a
+    keypoint noise of ``pixel_sigma`` pixels in the mapping images (one value, or one per row)."""
+    rows = np.asarray(rows, np.int64)
+    pixel_sigma = np.broadcast_to(np.asarray(pixel_sigma, np.float64), rows.shape)
+    f = float(np.median([np.mean(c.focal) for c in map_.cameras.values()])) if map_.cameras else 1.0
+    depth = np.asarray(map_.depth_range[rows], np.float64).mean(axis=1)
+    n = np.maximum(np.asarray(map_.track_length[rows], np.float64), 1.0)
+    spread = np.radians(np.clip(np.asarray(map_.view_angle[rows], np.float64), 0.5, 90.0))
+    across = depth * pixel_sigma / (f * np.sqrt(n))
+    along = across / np.sin(spread)
+    v = np.asarray(map_.view_dir[rows], np.float64)
+    v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    return (across**2)[:, None, None] * np.eye(3) + (along**2 - across**2)[:, None, None] * np.einsum(
+        "ni,nj->nij", v, v
+    )
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-12:
+        return np.eye(3) + K
+    K /= theta
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
+
+
+def refine_pose(
+    cam_from_world: np.ndarray,
+    points: np.ndarray,
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    point_cov: np.ndarray | None = None,
+    keypoint_sigma_px: float = 0.5,
+    loss_scale: float = 1.0,
+    iterations: int = 10,
+) -> np.ndarray:
+    """Gauss-Newton refinement of ``cam_from_world`` (4x4) from correspondences ``points`` (N, 3)
+    -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
+    residual is whitened by ``J point_cov J^T + keypoint_sigma_px^2 I`` (J: the projection's
+    Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
+    Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
+    left out. Returns the refined pose (the input when fewer than 6 points are usable)."""
+    T = np.array(cam_from_world, np.float64)
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    eye2 = keypoint_sigma_px**2 * np.eye(2)
+    for _ in range(iterations):
+        P = X @ T[:3, :3].T + T[:3, 3]
+        front = P[:, 2] > 1e-9
+        if front.sum() < 6:
+            break
+        P, x_kp = P[front], kp[front]
+        x, y, z = P.T
+        r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
+        Jp = np.zeros((len(P), 2, 3))  # d(pixel) / d(camera-frame point)
+        Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z**2
+        Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z**2
+        dP = np.zeros((len(P), 3, 6))  # d(camera-frame point) / d(rotation, translation), left update
+        dP[:, :, 3:] = np.eye(3)
+        dP[:, 0, 1], dP[:, 0, 2] = P[:, 2], -P[:, 1]
+        dP[:, 1, 0], dP[:, 1, 2] = -P[:, 2], P[:, 0]
+        dP[:, 2, 0], dP[:, 2, 1] = P[:, 1], -P[:, 0]
+        J = Jp @ dP
+        if point_cov is None:
+            S = np.broadcast_to(eye2, (len(P), 2, 2))
+        else:
+            R = T[:3, :3]
+            S = Jp @ (R @ point_cov[front] @ R.T) @ Jp.transpose(0, 2, 1) + eye2
+        L = np.linalg.cholesky(np.linalg.inv(S))  # S^-1 = L L^T: whitened residual L^T r
+        rw = np.einsum("nji,nj->ni", L, r)
+        Jw = np.einsum("nji,njk->nik", L, J)
+        w = 1.0 / (1.0 + (rw**2).sum(axis=1) / loss_scale**2)  # Cauchy IRLS weights
+        H = np.einsum("n,nik,nil->kl", w, Jw, Jw)
+        g = np.einsum("n,nik,ni->k", w, Jw, rw)
+        try:
+            d = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            break
+        dR = _so3_exp(d[:3])
+        T_new = np.eye(4)
+        T_new[:3, :3] = dR @ T[:3, :3]
+        T_new[:3, 3] = dR @ T[:3, 3] + d[3:]
+        T = T_new
+        if np.linalg.norm(d) < 1e-10:
+            break
+    return T
