@@ -389,6 +389,12 @@ def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_
         assert k in res
     est = np.loadtxt(out)
     assert pose_error(inverse(est), fr.cam_from_world)[0] < 0.01
+    # the pose's uncertainty: 1-sigma of the camera centre per world axis, and the actual error is of
+    # that size, not orders of magnitude beyond it
+    unc = res["uncertainty"]
+    std = np.array(unc["center_std"])
+    assert std.shape == (3,) and np.all(std > 0) and unc["rotation_std_deg"] > 0
+    assert pose_error(inverse(est), fr.cam_from_world)[0] < 10 * np.linalg.norm(std)
     # TUM one-line prior looking away: not localized, exit code 2, still JSON
     wfc = inverse(fr.cam_from_world)
     from favormap.geometry import rotmat_to_quat
@@ -396,7 +402,8 @@ def test_cli_localize_json_and_failure_exit_code(small_map, small_sequence, tmp_
     R = wfc[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
     pose.write_text(" ".join(map(str, [*wfc[:3, 3], *rotmat_to_quat(R)])))
     assert main(["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json", "--no-global"]) == 2
-    assert json.loads(capsys.readouterr().out)["success"] is False
+    failed = json.loads(capsys.readouterr().out)
+    assert failed["success"] is False and failed["uncertainty"] is None
 
 
 def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, tmp_path, capsys):

@@ -68,3 +68,26 @@ def test_weighting_by_landmark_uncertainty_helps_far_from_the_mapping_views():
     # without the weighting both would win about half the trials and the RMS ratio would be ~1
     assert np.mean(weighted < plain) >= 0.7  # measured 0.85
     assert np.sqrt(np.mean(weighted**2) / np.mean(plain**2)) < 0.9  # measured 0.76
+
+
+def test_the_pose_covariance_is_calibrated():
+    """With the noise model right, the camera-centre error normalised by the reported covariance is
+    chi-square with 3 degrees of freedom (mean 3), with and without landmark uncertainty."""
+    rng = np.random.default_rng(11)
+    for with_landmarks in (False, True):
+        nees, rot = [], []
+        for _ in range(40):
+            X, m = _landmarks(rng, 120)
+            m.view_angle[::2], m.track_length[::2] = 30.0, 20
+            C = landmark_covariances(m, np.arange(len(X)), 1.0) if with_landmarks else None
+            X_map = X + np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=X.shape)) if C is not None else X
+            gt = look_at(np.array([5.0 * np.sin(np.radians(40)), 0.3, -5.0 * np.cos(np.radians(40))]), np.zeros(3))
+            kp = project(CAM.K, gt, X) + rng.normal(0.0, 0.5, (len(X), 2))
+            est, cov = refine_pose(perturb_pose(gt, 0.02, 0.5, rng), X_map, kp, CAM.K, C, 0.5, return_covariance=True)
+            dc = -est[:3, :3].T @ est[:3, 3] - (-gt[:3, :3].T @ gt[:3, 3])
+            nees.append(dc @ np.linalg.solve(cov.center, dc))
+            rot.append(pose_error(est, gt)[1] / cov.rotation_std_deg)
+        assert 2.0 < np.mean(nees) < 4.5, (with_landmarks, np.mean(nees))  # chi-square(3): mean 3
+        assert np.median(rot) < 2.0  # the rotation error is of the reported size, not far beyond it
+    assert cov.center_std.shape == (3,) and np.all(cov.center_std > 0)
+    assert set(cov.to_json()) == {"center_std", "rotation_std_deg", "center_covariance", "rotation_covariance"}

@@ -29,7 +29,9 @@ queries of how far the pose moves when its own inlier correspondences are re-dra
 noise of their residual scale, from the median reprojection error, and refined again:
 favormap.localize.evaluate.pose_noise_floor) and that residual. A median error near the floor
 means the correspondences are right and only more inliers or smaller residuals can lower it; far
-above it, wrong or biased correspondences.
+above it, wrong or biased correspondences. NEES: the camera-centre error normalised by the
+covariance the localizer reports with the pose (median over the localized queries; 2.37, the median
+of a chi-square with 3 degrees of freedom, when that covariance is right; larger: overconfident).
 
     python tools/bench_accuracy.py                       # fox-holdout, fox-extrap, orbit
     python tools/bench_accuracy.py --splits orbit --json out.json
@@ -260,6 +262,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     one extent per split, so that every method's false successes are judged alike)."""
     import dataclasses as dc
 
+    from favormap.geometry import camera_centers
     from favormap.localize import Localizer, make_source
     from favormap.localize.descriptors import observation_descriptors
     from favormap.localize.evaluate import (
@@ -308,6 +311,9 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 res = loc.localize(fr.image_path, prior, cam)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                if res.success and res.covariance is not None:  # the pose's reported uncertainty against its error
+                    off = camera_centers(res.cam_from_world) - camera_centers(fr.cam_from_world)
+                    o.diagnostics["nees"] = float(off @ np.linalg.solve(res.covariance.center, off))
                 if res.success:
                     inl = res.matches[res.inlier_mask]
                     o.diagnostics.update(
@@ -410,7 +416,8 @@ def fmt_row(s: dict) -> str:
         f"p90 {_f(s['p90_translation'], '.4f')}  R {_f(s['median_rotation_deg'], '.3f')}  "
         f"loc {100 * s['success_rate']:.0f} %  FS {s['false_successes']}  inl {s['mean_inliers']:.0f}  "
         f"iters {iters}  {s['mean_time_s'] * 1000:.0f} ms  prec {_f(s['match_precision'], '.2f')}  "
-        f"rep {_f(s['keypoint_repeatability'], '.2f')}  floor {_f(s.get('median_noise_floor'), '.4f')}"
+        f"rep {_f(s['keypoint_repeatability'], '.2f')}  floor {_f(s.get('median_noise_floor'), '.4f')}  "
+        f"NEES {_f(s.get('median_nees'), '.1f')}"
     )
 
 
@@ -418,8 +425,8 @@ def markdown(rows: list[dict]) -> str:
     out = [
         "| split | prior | method | landmarks | median t (units) | % extent | p90 t | median R (deg) | localized | "
         "false succ. | inliers | median t per iter | s/query | match prec. @GT | kp repeat. @GT | noise floor | "
-        "residual px |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "residual px | median NEES |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in rows:
         iters = " / ".join(_f(it["median_translation"], ".4f") for it in s["per_iteration"])
@@ -429,7 +436,8 @@ def markdown(rows: list[dict]) -> str:
             f"{_f(s['p90_translation'], '.4f')} | {_f(s['median_rotation_deg'], '.3f')} | "
             f"{s['localized']}/{s['queries']} | {s['false_successes']} | {s['mean_inliers']:.0f} | {iters} | "
             f"{s['mean_time_s']:.2f} | {_f(s['match_precision'], '.2f')} | {_f(s['keypoint_repeatability'], '.2f')} | "
-            f"{_f(s.get('median_noise_floor'), '.4f')} | {_f(s.get('median_residual_px'), '.2f')} |"
+            f"{_f(s.get('median_noise_floor'), '.4f')} | {_f(s.get('median_residual_px'), '.2f')} | "
+            f"{_f(s.get('median_nees'), '.1f')} |"
         )
     bins = [s for s in rows if s.get("bins")]
     if bins:

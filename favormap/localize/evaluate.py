@@ -152,6 +152,8 @@ def summarize(
         # median over the localized queries of pose_noise_floor (when the caller computed it)
         "median_noise_floor": _median([o.diagnostics.get("noise_floor") for o in outcomes if o.result.success]),
         "median_residual_px": _median([o.diagnostics.get("residual_px") for o in outcomes if o.result.success]),
+        # camera-centre error normalised by the pose covariance the localizer reported (when computed)
+        "median_nees": _median([o.diagnostics.get("nees") for o in outcomes if o.result.success]),
     }
 
 

@@ -34,7 +34,7 @@ from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
-from .refine import landmark_covariances, mapping_pixel_sigma, refine_pose
+from .refine import PoseCovariance, landmark_covariances, mapping_pixel_sigma, refine_pose
 
 
 @dataclass
@@ -144,6 +144,9 @@ class LocalizationResult:
     inlier_mask: np.ndarray | None = None
     match_similarity: np.ndarray | None = None  # (K,) cosine of landmark vs query descriptor per match
     estimate: np.ndarray | None = None  # last PnP estimate even when the checks refused it
+    # uncertainty of a successful pose (favormap.localize.refine.PoseCovariance; None when the final
+    # weighted refinement is off)
+    covariance: PoseCovariance | None = None
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat
@@ -157,6 +160,7 @@ class LocalizationResult:
             "num_matches": int(self.num_matches),
             "num_inliers": int(self.num_inliers),
             "checks": {k: (round(v, 5) if isinstance(v, float) else v) for k, v in self.checks.items()},
+            "uncertainty": None if self.covariance is None else self.covariance.to_json(),
             "iterations": [
                 {
                     "kind": it.kind,
@@ -464,7 +468,7 @@ class Localizer:
         else:
             res.checks["confirmation_change"] = None
             why = f"without the prior no pose was found ({it.num_matches} matches, {it.num_inliers} inliers)"
-        res.success, res.cam_from_world = False, start
+        res.success, res.cam_from_world, res.covariance = False, start, None
         res.message = (
             f"the pose has only {res.num_inliers} inliers (fewer than {c.confirm_below_inliers}) and is not "
             f"confirmed by matching against all landmarks: {why}"
@@ -545,9 +549,12 @@ class Localizer:
                 break
         if last is not None and cfg.guided_radius_px > 0:
             last = self._guided(q, pose, iters, t) or last
+        cov = None
         if last is not None and iters[-1].success and cfg.landmark_sigma_px not in (0, 0.0):
-            self._weighted(q, iters[-1], last, t)
-        return self._result(q, last, iters, t, start)
+            cov = self._weighted(q, iters[-1], last, t)
+        res = self._result(q, last, iters, t, start)
+        res.covariance = cov if res.success else None
+        return res
 
     def _landmark_sigma(self, rows: np.ndarray):
         """Mapping keypoint noise (px) behind landmarks ``rows``: LocalizeConfig.landmark_sigma_px."""
@@ -560,21 +567,23 @@ class Localizer:
             return mapping_pixel_sigma(self.map, rows)
         return float(v)
 
-    def _weighted(self, q: _Query, it: IterationResult, last: dict, t: dict) -> None:
+    def _weighted(self, q: _Query, it: IterationResult, last: dict, t: dict) -> PoseCovariance | None:
         """Refine the pose of the final iteration ``it`` (in place) on its inliers, each weighted by
-        its landmark's position uncertainty (favormap.localize.refine)."""
+        its landmark's position uncertainty (favormap.localize.refine); returns its covariance."""
         cfg = self.config
         s = time.perf_counter()
         inl = last["matches"][last["inliers"]]
-        it.cam_from_world = refine_pose(
+        it.cam_from_world, cov = refine_pose(
             it.cam_from_world,
             self.map.positions[inl[:, 0]],
             q.feats.keypoints[inl[:, 1]],
             q.cam.K,
             landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0])),
             cfg.keypoint_sigma_px,
+            return_covariance=True,
         )
         t["pnp"] += time.perf_counter() - s
+        return cov
 
     def _guided(self, q: _Query, pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
         """Search by projection: each landmark visible from ``pose`` is matched to the most similar

@@ -20,6 +20,8 @@ see LocalizeConfig.landmark_sigma_px.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..mapfile import Map
@@ -72,14 +74,17 @@ def refine_pose(
     keypoint_sigma_px: float = 0.5,
     loss_scale: float = 1.0,
     iterations: int = 10,
-) -> np.ndarray:
+    return_covariance: bool = False,
+):
     """Gauss-Newton refinement of ``cam_from_world`` (4x4) from correspondences ``points`` (N, 3)
     -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
     residual is whitened by ``J point_cov J^T + keypoint_sigma_px^2 I`` (J: the projection's
     Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
     Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
-    left out. Returns the refined pose (the input when fewer than 6 points are usable)."""
+    left out. Returns the refined pose (the input when fewer than 6 points are usable), and with
+    ``return_covariance`` also the pose's :class:`PoseCovariance` (None when it cannot be computed)."""
     T = np.array(cam_from_world, np.float64)
+    H = None
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -123,4 +128,55 @@ def refine_pose(
         T = T_new
         if np.linalg.norm(d) < 1e-10:
             break
-    return T
+    if not return_covariance:
+        return T
+    cov = None
+    if H is not None:
+        # (J^T J)^-1 of the whitened residuals (the RANSAC inliers taken as Gaussian: the Cauchy
+        # weights would count a 1-sigma residual half and overstate the spread), scaled by the
+        # residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
+        # never below 1: the noise model is a floor
+        H0 = np.einsum("nik,nil->kl", Jw, Jw)
+        scale = max(float(np.median((rw**2).sum(axis=1))) / (2 * np.log(2)), 1.0)
+        try:
+            cov = PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
+        except np.linalg.LinAlgError:
+            cov = None
+    return T, cov
+
+
+@dataclass
+class PoseCovariance:
+    """Uncertainty of a ``cam_from_world`` estimate: ``rotation`` (3, 3) rad^2 of the small rotation
+    applied on the camera side (T -> exp(w) T), ``center`` (3, 3) map units^2 of the camera centre in
+    world axes, ``cross`` (3, 3) their covariance (rotation rows, centre columns)."""
+
+    rotation: np.ndarray
+    center: np.ndarray
+    cross: np.ndarray
+
+    @classmethod
+    def from_left_perturbation(cls, cam_from_world: np.ndarray, cov6: np.ndarray) -> PoseCovariance:
+        """From the covariance of (w, v) with T -> [exp(w) R | exp(w) t + v]: the centre
+        c = -R^T t moves by -R^T v to first order (w cancels)."""
+        R = cam_from_world[:3, :3]
+        A = -R.T
+        return cls(cov6[:3, :3].copy(), A @ cov6[3:, 3:] @ A.T, cov6[:3, 3:] @ A.T)
+
+    @property
+    def center_std(self) -> np.ndarray:
+        """1-sigma of the camera centre along the world axes (map units)."""
+        return np.sqrt(np.clip(np.diag(self.center), 0, None))
+
+    @property
+    def rotation_std_deg(self) -> float:
+        """1-sigma of the rotation about its least certain axis (degrees)."""
+        return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(self.rotation).max(), 0.0))))
+
+    def to_json(self) -> dict:
+        return {
+            "center_std": self.center_std.tolist(),
+            "rotation_std_deg": self.rotation_std_deg,
+            "center_covariance": self.center.tolist(),
+            "rotation_covariance": self.rotation.tolist(),
+        }
