@@ -186,7 +186,9 @@ def test_localize_recording(built):
         "/world/query/rendered/estimate/image/inliers",
         "/world/query/rendered/estimate/image/outliers",
         "/world/query/rendered/inliers",
+        "/world/query/rendered/uncertainty",
         "/metrics/inliers/rendered",
+        "/metrics/position_std/rendered",
         "/log/rendered",
     ):
         assert p in paths, p

@@ -137,6 +137,24 @@ class LocalizeLog(RecordingBase):
                     show_labels=False,
                 ),
             )
+        # the pose's reported uncertainty: the camera centre's 3-sigma ellipsoid (world axes)
+        cov = getattr(result, "covariance", None)
+        if cov is not None:
+            evals, evecs = np.linalg.eigh(np.asarray(cov.center, np.float64))
+            if np.linalg.det(evecs) < 0:
+                evecs[:, 0] = -evecs[:, 0]
+            self.rec.log(
+                f"{base}/uncertainty",
+                rr.Ellipsoids3D(
+                    centers=[geometry.camera_centers(final)],
+                    half_sizes=[3.0 * np.sqrt(np.clip(evals, 0, None))],
+                    quaternions=[rr.Quaternion(xyzw=geometry.rotmat_to_quat(evecs))],
+                    colors=[INLIER],
+                    labels=["3 sigma"],
+                ),
+            )
+        else:
+            self.rec.log(f"{base}/uncertainty", rr.Clear(recursive=False))
         # per-query metrics
         color = SERIES.get(method, (70, 130, 255))
         last = its[-1] if its else None
@@ -145,6 +163,7 @@ class LocalizeLog(RecordingBase):
             ("matches", result.num_matches),
             ("visible", last.num_visible if last else 0),
             ("time_ms", 1000 * sum(result.timings.values())),
+            *([("position_std", float(np.linalg.norm(cov.center_std)))] if cov is not None else []),
         ):
             self._series(f"metrics/{name}/{method}", method, color)
             self.rec.log(f"metrics/{name}/{method}", rr.Scalars(float(val)))
