@@ -100,23 +100,25 @@ def refine_pose(
         Jp = np.zeros((len(P), 2, 3))  # d(pixel) / d(camera-frame point)
         Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z**2
         Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z**2
-        dP = np.zeros((len(P), 3, 6))  # d(camera-frame point) / d(rotation, translation), left update
-        dP[:, :, 3:] = np.eye(3)
-        dP[:, 0, 1], dP[:, 0, 2] = P[:, 2], -P[:, 1]
-        dP[:, 1, 0], dP[:, 1, 2] = -P[:, 2], P[:, 0]
-        dP[:, 2, 0], dP[:, 2, 1] = P[:, 1], -P[:, 0]
-        J = Jp @ dP
+        # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
+        # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
+        J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
         if point_cov is None:
             S = np.broadcast_to(eye2, (len(P), 2, 2))
         else:
             R = T[:3, :3]
-            S = Jp @ (R @ point_cov[front] @ R.T) @ Jp.transpose(0, 2, 1) + eye2
-        L = np.linalg.cholesky(np.linalg.inv(S))  # S^-1 = L L^T: whitened residual L^T r
-        rw = np.einsum("nji,nj->ni", L, r)
-        Jw = np.einsum("nji,njk->nik", L, J)
-        w = 1.0 / (1.0 + (rw**2).sum(axis=1) / loss_scale**2)  # Cauchy IRLS weights
-        H = np.einsum("n,nik,nil->kl", w, Jw, Jw)
-        g = np.einsum("n,nik,ni->k", w, Jw, rw)
+            S = np.einsum("nai,nij,nbj->nab", Jp, R @ point_cov[front] @ R.T, Jp, optimize=True) + eye2
+        # S^-1 of the symmetric 2 x 2 blocks in closed form
+        a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+        det = a * c - b * b
+        Si = np.empty((len(P), 2, 2))
+        Si[:, 0, 0], Si[:, 1, 1] = c / det, a / det
+        Si[:, 0, 1] = Si[:, 1, 0] = -b / det
+        SiJ = Si @ J  # (n, 2, 6)
+        chi2 = np.einsum("ni,nij,nj->n", r, Si, r)  # squared whitened residual r^T S^-1 r
+        w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
+        H = np.einsum("n,nki,nkj->ij", w, J, SiJ)
+        g = np.einsum("n,nki,nk->i", w, SiJ, r)
         try:
             d = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
         except np.linalg.LinAlgError:
@@ -126,7 +128,8 @@ def refine_pose(
         T_new[:3, :3] = dR @ T[:3, :3]
         T_new[:3, 3] = dR @ T[:3, 3] + d[3:]
         T = T_new
-        if np.linalg.norm(d) < 1e-10:
+        # converged: the step turns the camera by < 1e-9 rad and moves it by < 1e-9 of the scene depth
+        if np.linalg.norm(d[:3]) < 1e-9 and np.linalg.norm(d[3:]) < 1e-9 * float(np.median(z)):
             break
     if not return_covariance:
         return T
@@ -136,8 +139,8 @@ def refine_pose(
         # weights would count a 1-sigma residual half and overstate the spread), scaled by the
         # residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
         # never below 1: the noise model is a floor
-        H0 = np.einsum("nik,nil->kl", Jw, Jw)
-        scale = max(float(np.median((rw**2).sum(axis=1))) / (2 * np.log(2)), 1.0)
+        H0 = np.einsum("nki,nkj->ij", J, SiJ)
+        scale = max(float(np.median(chi2)) / (2 * np.log(2)), 1.0)
         try:
             cov = PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
         except np.linalg.LinAlgError:
