@@ -439,9 +439,14 @@ def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
     for s in out["methods"].values():
         assert s["success_rate"] == 1.0 and s["false_successes"] == 0
         assert len(s["per_iteration"]) == 3
+        # the pose uncertainty reported with each pose, against the actual errors (NEES ~ chi-square(3))
+        assert s["median_position_std"] > 0 and 0 < s["median_nees"] < 50
     assert main(["eval", str(path), root, "--every", "5", "--json", "--prior-mode", "none", "--no-baseline"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["methods"]["rendered"]["success_rate"] == 1.0
+    assert main(["eval", str(path), root, "--every", "8", "--no-baseline"]) == 0
+    text = capsys.readouterr().out
+    assert "reported uncertainty: median 1-sigma" in text and "NEES" in text
 
 
 def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tmp_path, capsys):

@@ -262,7 +262,6 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     one extent per split, so that every method's false successes are judged alike)."""
     import dataclasses as dc
 
-    from favormap.geometry import camera_centers
     from favormap.localize import Localizer, make_source
     from favormap.localize.descriptors import observation_descriptors
     from favormap.localize.evaluate import (
@@ -270,6 +269,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
         QueryOutcome,
         make_priors,
         match_diagnostics,
+        pose_nees,
         pose_noise_floor,
         scene_extent,
     )
@@ -311,9 +311,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 res = loc.localize(fr.image_path, prior, cam)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
-                if res.success and res.covariance is not None:  # the pose's reported uncertainty against its error
-                    off = camera_centers(res.cam_from_world) - camera_centers(fr.cam_from_world)
-                    o.diagnostics["nees"] = float(off @ np.linalg.solve(res.covariance.center, off))
+                o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
                 if res.success:
                     inl = res.matches[res.inlier_mask]
                     o.diagnostics.update(
