@@ -187,6 +187,8 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
     assert max(moved) > 1e-6  # the weighting did change the pose
     with pytest.raises(InputError, match="landmark_sigma_px"):
         LocalizeConfig(landmark_sigma_px="everywhere")
+    with pytest.raises(InputError, match="keypoint_sigma_px"):
+        LocalizeConfig(keypoint_sigma_px=0)
 
 
 def test_landmarks_with_two_descriptors_each_localize(small_map, queries):

@@ -116,6 +116,8 @@ class LocalizeConfig:
         v = self.landmark_sigma_px
         if not (v in ("landmark", "map") or (isinstance(v, (int, float)) and 0 <= v < float("inf"))):
             raise InputError(f"landmark_sigma_px must be 'landmark', 'map' or a number of pixels >= 0, not {v!r}")
+        if not (isinstance(self.keypoint_sigma_px, (int, float)) and 0 < self.keypoint_sigma_px < float("inf")):
+            raise InputError(f"keypoint_sigma_px must be a number of pixels > 0, not {self.keypoint_sigma_px!r}")
 
 
 @dataclass

@@ -83,6 +83,8 @@ def refine_pose(
     Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
     left out. Returns the refined pose (the input when fewer than 6 points are usable), and with
     ``return_covariance`` also the pose's :class:`PoseCovariance` (None when it cannot be computed)."""
+    if not keypoint_sigma_px > 0:
+        raise ValueError("keypoint_sigma_px must be > 0")
     T = np.array(cam_from_world, np.float64)
     H = None
     X = np.asarray(points, np.float64).reshape(-1, 3)
@@ -122,6 +124,9 @@ def refine_pose(
         try:
             d = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
         except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(d)):
+            H = None
             break
         dR = _so3_exp(d[:3])
         T_new = np.eye(4)
