@@ -152,6 +152,16 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     res = Localizer(path, LocalizeConfig(global_fallback=False, global_ratio=1e-3)).localize(img, prior)
     assert res.success and res.num_inliers >= SuccessChecks().confirm_below_inliers
     assert "confirmation_change" not in res.checks
+    # the guided step's inliers (matched by projection) do not count as evidence: a pose whose
+    # rendering iterations found fewer than the threshold still needs the confirmation
+    guided = dict(guided_radius_px=3.0, global_fallback=False, global_ratio=1e-3)
+    res = Localizer(path, LocalizeConfig(checks=SuccessChecks(confirm_below_inliers=0), **guided)).localize(img, prior)
+    assert res.success and res.iterations[-1].kind == "guided"
+    by_descriptor = [it.num_inliers for it in res.iterations if it.kind == "render"][-1]
+    assert res.num_inliers > by_descriptor
+    checks = SuccessChecks(confirm_below_inliers=by_descriptor + 1)
+    res = Localizer(path, LocalizeConfig(checks=checks, **guided)).localize(img, prior)
+    assert not res.success and "not confirmed" in res.message, res.message
 
 
 def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries):
