@@ -435,6 +435,9 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     assert main(args + ["--landmark-sigma", "0"]) == 0  # the plain RANSAC refinement
     res = json.loads(capsys.readouterr().out)
     assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
+    assert main(args + ["--guided-radius", "3"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["success"] and res["iterations"][-1]["kind"] == "guided"
     assert main(args + ["--landmark-sigma", "-1"]) != 0
     err = capsys.readouterr().err
     assert "--landmark-sigma" in err and "Traceback" not in err
