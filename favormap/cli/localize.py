@@ -267,4 +267,10 @@ def print_result(name: str, res) -> None:
                 f"  {label}: q_xyzw ({', '.join(f'{v:.6f}' for v in q)})  t "
                 f"({', '.join(f'{v:.6f}' for v in P[:3, 3])}) scene units"
             )
+        if res.covariance is not None:
+            sd = res.covariance.center_std
+            print(
+                f"  uncertainty (1 sigma): camera centre ({', '.join(f'{v:.4f}' for v in sd)}) scene units along "
+                f"x, y, z; rotation {res.covariance.rotation_std_deg:.3f} deg"
+            )
     print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))
