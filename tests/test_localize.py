@@ -459,9 +459,11 @@ def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):
     assert main(["eval", str(path), root, "--every", "5", "--json", "--prior-mode", "none", "--no-baseline"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["methods"]["rendered"]["success_rate"] == 1.0
-    assert main(["eval", str(path), root, "--every", "8", "--no-baseline"]) == 0
+    assert main(["eval", str(path), root, "--every", "8", "--no-baseline", "--diagnostics"]) == 0
     text = capsys.readouterr().out
     assert "reported uncertainty: median 1-sigma" in text and "NEES" in text
+    floor = float(text.split("noise floor: ")[1].split()[0])  # the inliers' own noise, in scene units
+    assert 0 < floor < 0.01
 
 
 def test_cli_localizes_a_folder_with_a_priors_file(small_map, small_sequence, tmp_path, capsys):

@@ -267,10 +267,10 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     from favormap.localize.evaluate import (
         EvalConfig,
         QueryOutcome,
+        localizer_noise_floor,
         make_priors,
         match_diagnostics,
         pose_nees,
-        pose_noise_floor,
         scene_extent,
     )
     from favormap.mapfile import Map
@@ -312,16 +312,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
                 o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
-                if res.success:
-                    inl = res.matches[res.inlier_mask]
-                    o.diagnostics.update(
-                        pose_noise_floor(
-                            loc.prepare(fr.image_path, cam)[1],
-                            res.cam_from_world,
-                            m.positions[inl[:, 0]],
-                            res.keypoints[inl[:, 1]],
-                        )
-                    )
+                o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
                 outs.append(o)
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
             rows[-1].update(

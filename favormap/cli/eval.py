@@ -34,7 +34,8 @@ def register(sub):
     p.add_argument(
         "--diagnostics",
         action="store_true",
-        help="also measure match precision and keypoint repeatability at the ground-truth pose",
+        help="also measure match precision and keypoint repeatability at the ground-truth pose, and each pose's "
+        "noise floor (how far its inliers' own noise moves it)",
     )
     add_localize_options(p)
     p.add_argument("--json", action="store_true")

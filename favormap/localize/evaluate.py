@@ -250,6 +250,19 @@ def pose_noise_floor(
     return {"noise_floor": float(np.median(moved)) if moved else None, "residual_px": sigma}
 
 
+def localizer_noise_floor(localizer: Localizer, image, camera, result) -> dict:
+    """:func:`pose_noise_floor` of a successful localizer ``result`` (its final inliers), else {}."""
+    if not result.success or result.matches is None or result.inlier_mask is None:
+        return {}
+    inl = np.asarray(result.matches, np.int64)[np.asarray(result.inlier_mask, bool)]
+    return pose_noise_floor(
+        localizer.prepare(image, camera)[1],
+        result.cam_from_world,
+        localizer.map.positions[inl[:, 0]],
+        np.asarray(result.keypoints)[inl[:, 1]],
+    )
+
+
 def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radius_px: float = 2.0) -> dict:
     """Diagnostics of the localizer's matching at the ground-truth pose: the landmarks visible from
     ``gt`` get their descriptors from the localizer's source at ``gt`` and are matched as in
@@ -302,6 +315,7 @@ def evaluate(
             o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - s)
             if diagnostics:
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
             o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)
             std = getattr(res, "covariance", None)
             o.diagnostics["position_std"] = float(np.linalg.norm(std.center_std)) if std is not None else None
@@ -340,6 +354,12 @@ def format_table(reports: list[EvalReport]) -> str:
                 f"{it['mean_inliers']:>20.1f}"
             )
         lines.append("  recall (units/deg): " + ", ".join(f"({k}) {100 * v:.1f} %" for k, v in s["recall"].items()))
+        if s.get("median_noise_floor") is not None:
+            lines.append(
+                f"  noise floor: {s['median_noise_floor']:.4f} units (median over the localized queries: how far "
+                f"the pose moves under its inliers' own noise, {s['median_residual_px']:.2f} px; the error can "
+                "only fall below about this with more inliers or smaller residuals)"
+            )
         if s.get("median_position_std") is not None:
             lines.append(
                 f"  reported uncertainty: median 1-sigma {s['median_position_std']:.4f} units; error / reported "
