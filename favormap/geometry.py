@@ -161,9 +161,14 @@ def pose_from_quat_t(q_xyzw, t) -> np.ndarray:
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rotation matrix of ``angle_rad`` about ``axis`` (right-handed)."""
     axis = np.asarray(axis, dtype=np.float64)
+    return rotvec_to_rotmat(axis / np.linalg.norm(axis) * float(angle_rad))
+
+
+def rotvec_to_rotmat(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis times angle in radians; zero: the identity)."""
     from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
 
-    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * float(angle_rad)).as_matrix()
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
 
 
 def slerp(R0: np.ndarray, R1: np.ndarray, w: float) -> np.ndarray:

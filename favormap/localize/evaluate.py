@@ -133,6 +133,10 @@ def summarize(
         v = [d[key] for d in diag if d.get(key) is not None]
         return float(np.mean(v)) if v else None
 
+    def localized_median(key):  # over the localized queries, where the caller computed ``key``
+        v = [o.diagnostics[key] for o in outcomes if o.result.success and o.diagnostics.get(key) is not None]
+        return float(np.median(v)) if v else None
+
     return {
         "queries": n,
         "localized": int(success.sum()),
@@ -149,18 +153,11 @@ def summarize(
         "mean_time_s": float(np.mean([o.seconds for o in outcomes])),
         "match_precision": dmean("match_precision"),
         "keypoint_repeatability": dmean("keypoint_repeatability"),
-        # median over the localized queries of pose_noise_floor (when the caller computed it)
-        "median_noise_floor": _median([o.diagnostics.get("noise_floor") for o in outcomes if o.result.success]),
-        "median_residual_px": _median([o.diagnostics.get("residual_px") for o in outcomes if o.result.success]),
-        # camera-centre error normalised by the pose covariance the localizer reported (when computed)
-        "median_nees": _median([o.diagnostics.get("nees") for o in outcomes if o.result.success]),
-        "median_position_std": _median([o.diagnostics.get("position_std") for o in outcomes if o.result.success]),
+        "median_noise_floor": localized_median("noise_floor"),  # pose_noise_floor
+        "median_residual_px": localized_median("residual_px"),
+        "median_nees": localized_median("nees"),  # error normalised by the reported covariance (pose_nees)
+        "median_position_std": localized_median("position_std"),
     }
-
-
-def _median(values) -> float | None:
-    v = [x for x in values if x is not None]
-    return float(np.median(v)) if v else None
 
 
 def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
@@ -317,8 +314,8 @@ def evaluate(
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
                 o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
             o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)
-            std = getattr(res, "covariance", None)
-            o.diagnostics["position_std"] = float(np.linalg.norm(std.center_std)) if std is not None else None
+            cov = getattr(res, "covariance", None)
+            o.diagnostics["position_std"] = float(np.linalg.norm(cov.center_std)) if cov is not None else None
             outs.append(o)
             if on_query:
                 on_query(method, i, o)

@@ -559,7 +559,7 @@ class Localizer:
         if last is not None and cfg.guided_radius_px > 0:
             last = self._guided(q, pose, iters, t) or last
         cov = None
-        if last is not None and iters[-1].success and cfg.landmark_sigma_px not in (0, 0.0):
+        if last is not None and iters[-1].success and cfg.landmark_sigma_px != 0:
             cov = self._weighted(q, iters[-1], last, t)
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None

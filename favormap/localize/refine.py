@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import rotvec_to_rotmat
 from ..mapfile import Map
 
 
@@ -56,15 +57,6 @@ def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray
     return (across**2)[:, None, None] * np.eye(3) + (along**2 - across**2)[:, None, None] * np.einsum(
         "ni,nj->nij", v, v
     )
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        return np.eye(3) + K
-    K /= theta
-    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
 
 
 def refine_pose(
@@ -130,7 +122,7 @@ def refine_pose(
         if not np.all(np.isfinite(d)):
             H = None
             break
-        dR = _so3_exp(d[:3])
+        dR = rotvec_to_rotmat(d[:3])
         T_new = np.eye(4)
         T_new[:3, :3] = dR @ T[:3, :3]
         T_new[:3, 3] = dR @ T[:3, 3] + d[3:]
