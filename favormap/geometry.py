@@ -165,10 +165,15 @@ def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
 
 
 def rotvec_to_rotmat(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis times angle in radians; zero: the identity)."""
-    from scipy.spatial.transform import Rotation  # lazy: map-reading commands import no scipy
-
-    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
+    """Rotation matrix of a rotation vector (axis times angle in radians; zero: the identity), by
+    Rodrigues' formula (NumPy: the localizer, which refines poses with it, imports no scipy.spatial)."""
+    w = np.asarray(rotvec, dtype=np.float64).reshape(3)
+    theta = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-12:
+        return np.eye(3) + K
+    K /= theta
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
 
 
 def slerp(R0: np.ndarray, R1: np.ndarray, w: float) -> np.ndarray:
