@@ -154,7 +154,7 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     assert "confirmation_change" not in res.checks
     # the guided step's inliers (matched by projection) do not count as evidence: a pose whose
     # rendering iterations found fewer than the threshold still needs the confirmation
-    guided = dict(guided_radius_px=3.0, global_fallback=False, global_ratio=1e-3)
+    guided = dict(guided_radius_px=3.0, guided_below_inliers=None, global_fallback=False, global_ratio=1e-3)
     res = Localizer(path, LocalizeConfig(checks=SuccessChecks(confirm_below_inliers=0), **guided)).localize(img, prior)
     assert res.success and res.iterations[-1].kind == "guided"
     by_descriptor = [it.num_inliers for it in res.iterations if it.kind == "render"][-1]
@@ -172,8 +172,8 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
 
     _, path = small_map
     rng = np.random.default_rng(5)
-    plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0))
-    weighted = Localizer(path, LocalizeConfig())
+    plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0, guided_radius_px=0))
+    weighted = Localizer(path, LocalizeConfig(guided_radius_px=0))
     assert weighted.config.landmark_sigma_px == "landmark"
     moved = []
     for img, T in queries[:3]:
@@ -335,7 +335,6 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only
     where the keypoint lies near the landmark's projection."""
     import torch
-    from scipy.spatial import cKDTree
 
     from favormap.localize.localizer import match_near
 
@@ -349,11 +348,10 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     kp = rng.uniform(0, 640, (Q, 2))
     uv = kp[kq.numpy()] + rng.normal(0, 2.0, (L, 2))
     uv[::7] = rng.uniform(0, 640, (len(uv[::7]), 2))  # projections far from their keypoint
-    tree = cKDTree(kp)
     full = match_descriptors(rend, query, 0.7, mutual=True)
-    wide = match_near(rend, query, uv, tree, 2000.0, 0.7, mutual=True)
+    wide = match_near(rend, query, uv, kp, 2000.0, 0.7, mutual=True)
     assert sorted(map(tuple, wide.tolist())) == sorted(map(tuple, full.tolist()))
-    near = match_near(rend, query, uv, tree, 8.0, 0.7, mutual=True)
+    near = match_near(rend, query, uv, kp, 8.0, 0.7, mutual=True)
     assert len(near) > 0.7 * L
     assert np.all(np.linalg.norm(kp[near[:, 1]] - uv[near[:, 0]], axis=1) <= 8.0)
     assert len(np.unique(near[:, 0])) == len(near) and len(np.unique(near[:, 1])) == len(near)
@@ -371,12 +369,72 @@ def test_search_by_projection_localizes(small_map, queries):
     assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
 
 
+def test_radius_pairs_equal_a_brute_force_search():
+    from favormap.localize.localizer import radius_pairs
+
+    rng = np.random.default_rng(3)
+    for r in (0.7, 3.0, 8.0, 50.0):
+        kp = rng.uniform(0, 320, (700, 2))
+        uv = rng.uniform(-40, 360, (300, 2))
+        uv[::11] = np.nan
+        uv[5] = kp[7]  # exactly on a keypoint
+        i, j = radius_pairs(uv, kp, r)
+        d = np.linalg.norm(uv[:, None] - kp[None], axis=2)
+        expect = set(zip(*np.nonzero(d <= r)))
+        assert set(zip(i.tolist(), j.tolist())) == expect and len(i) == len(expect)
+    assert len(radius_pairs(np.zeros((0, 2)), kp, 3.0)[0]) == 0
+    assert len(radius_pairs(uv, np.zeros((0, 2)), 3.0)[0]) == 0
+
+
+def test_the_gate_follows_the_predicted_uncertainty():
+    """With a gate, a candidate must lie within the Mahalanobis bound of its landmark's predicted
+    projection: a keypoint 4 px away along the long axis of an elongated uncertainty is kept, the
+    same distance across it is not, although both are inside the radius."""
+    from favormap.localize.localizer import match_near
+
+    rend = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    query = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    uv = np.array([[100.0, 100.0], [200.0, 100.0]])
+    kp = np.array([[104.0, 100.0], [200.0, 104.0]])  # landmark 0: 4 px along x; landmark 1: 4 px along y
+    # both landmarks: sigma 2 px along x, 0.5 px along y
+    info = np.repeat(np.diag([1 / 4.0, 1 / 0.25])[None], 2, axis=0)
+    plain = match_near(rend, query, uv, kp, 8.0, 0.7)
+    assert sorted(map(tuple, plain.tolist())) == [(0, 0), (1, 1)]
+    gated = match_near(rend, query, uv, kp, 8.0, 0.7, gate=(info, 3.0**2))
+    assert gated.tolist() == [[0, 0]]
+
+
+def test_the_guided_step_runs_only_for_poses_with_few_descriptor_inliers(small_map, queries):
+    """By default the guided step (gated search by projection) runs after the rendering iterations
+    when they end with fewer than ``guided_below_inliers`` inliers; it keeps the pose accurate."""
+    _, path = small_map
+    img, T = queries[0]
+    prior = perturb_pose(T, 0.3, 15.0, np.random.default_rng(2))
+    cfg = LocalizeConfig()
+    assert cfg.guided_radius_px > 0 and cfg.guided_gate_sigma > 0 and cfg.guided_below_inliers
+    never = Localizer(path, LocalizeConfig(guided_radius_px=0)).localize(img, prior)
+    assert never.success and never.iterations[-1].kind == "render", never.message
+    n = never.iterations[-1].num_inliers
+    above = Localizer(path, LocalizeConfig(guided_below_inliers=n)).localize(img, prior)
+    assert [it.kind for it in above.iterations] == [it.kind for it in never.iterations]
+    below = Localizer(path, LocalizeConfig(guided_below_inliers=n + 1)).localize(img, prior)
+    assert below.success and below.iterations[-1].kind == "guided", below.message
+    assert below.num_inliers >= 0.9 * n
+    assert pose_error(below.cam_from_world, T)[0] < 0.01
+    with pytest.raises(InputError, match="guided_below_inliers"):
+        LocalizeConfig(guided_below_inliers=-1)
+    with pytest.raises(InputError, match="guided_radius_px"):
+        LocalizeConfig(guided_radius_px=float("nan"))
+
+
 def test_guided_final_step_localizes(small_map, queries):
     """The optional guided step (search by projection from the final estimate, then PnP at a tight
     threshold) keeps the pose accurate and reports itself as a "guided" iteration."""
     _, path = small_map
     rng = np.random.default_rng(0)
-    loc = Localizer(path, LocalizeConfig(iterations=3, guided_radius_px=3.0, guided_ransac_px=3.0))
+    loc = Localizer(
+        path, LocalizeConfig(iterations=3, guided_radius_px=3.0, guided_ransac_px=3.0, guided_below_inliers=None)
+    )
     errs = []
     for img, T in queries:
         res = loc.localize(img, perturb_pose(T, 0.3, 15.0, rng))
@@ -435,7 +493,7 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     assert main(args + ["--landmark-sigma", "0"]) == 0  # the plain RANSAC refinement
     res = json.loads(capsys.readouterr().out)
     assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
-    assert main(args + ["--guided-radius", "3"]) == 0
+    assert main(args + ["--guided-radius", "3", "--guided-below", "100000"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["success"] and res["iterations"][-1]["kind"] == "guided"
     assert main(args + ["--landmark-sigma", "-1"]) != 0

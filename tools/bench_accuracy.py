@@ -63,12 +63,30 @@ VARIANTS = {
     # each landmark matched through two descriptors (favormap.localize.descriptors.StackedDescriptors)
     "rendered+mean": ("rendered+mean", {}),
     "rendered+nearest-view": ("rendered+nearest", {}),
-    "rendered 8px no-mutual (old default)": ("rendered", {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0}),
+    "rendered 8px no-mutual (old default)": (
+        "rendered",
+        {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0, "landmark_sigma_px": 0, "guided_radius_px": 0},
+    ),
     "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
-    "rendered guided-3px": ("rendered", {"guided_radius_px": 3.0, "guided_ransac_px": 3.0}),
+    # the guided step (LocalizeConfig.guided_*; default: gated at 3 sigma within 8 px, for poses with
+    # fewer than 400 descriptor inliers): off (the default until 2026-11-26's ninth session), for every
+    # pose, ungated at 3 px (the eighth session's option), and other gates
+    "rendered no-guided": ("rendered", {"guided_radius_px": 0}),
+    "rendered gated every pose": ("rendered", {"guided_below_inliers": None}),
+    "rendered guided-3px": (
+        "rendered",
+        {"guided_radius_px": 3.0, "guided_ransac_px": 3.0, "guided_gate_sigma": 0, "guided_below_inliers": None},
+    ),
+    "rendered gated-2sigma every pose": ("rendered", {"guided_gate_sigma": 2.0, "guided_below_inliers": None}),
+    "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
+    "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
+    "rendered gated below-800": ("rendered", {"guided_below_inliers": 800}),
+    # ... with the matches found only by projection weighed down by their larger residuals
+    "rendered gated reweighted": ("rendered", {"guided_reweight": True}),
+    "rendered gated every pose reweighted": ("rendered", {"guided_below_inliers": None, "guided_reweight": True}),
     "rendered search-8px": ("rendered", {"search_radius_px": 8.0}),
     "rendered search-16px": ("rendered", {"search_radius_px": 16.0}),
     "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
@@ -90,6 +108,9 @@ VARIANTS = {
     # default: the keypoint noise of each landmark from its reprojection error), or not (before
     # 2026-11-26's eighth session), or for this keypoint noise (px) in the mapping images
     "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
+    "rendered no-guided no-uncertainty": ("rendered", {"landmark_sigma_px": 0, "guided_radius_px": 0}),
+    "mean no-guided": ("mean", {"guided_radius_px": 0}),
+    "nearest-view no-guided": ("nearest", {"guided_radius_px": 0}),
     "rendered uncertainty-0.5px": ("rendered", {"landmark_sigma_px": 0.5}),
     "rendered uncertainty-1px": ("rendered", {"landmark_sigma_px": 1.0}),
     "rendered uncertainty-2px": ("rendered", {"landmark_sigma_px": 2.0}),
@@ -104,7 +125,11 @@ DEFAULT_VARIANTS = (
     "rendered",
     "mean",
     "nearest-view",
-    "rendered no-uncertainty",
+    "rendered no-guided",
+    "mean no-guided",
+    "nearest-view no-guided",
+    "rendered gated every pose",
+    "rendered no-guided no-uncertainty",
     "rendered 8px no-mutual (old default)",
     "rendered no-checks",
 )
@@ -316,6 +341,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 outs.append(o)
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
             rows[-1].update(
+                per_query=[per_query(o) for o in outs],
                 extractor=build_cfg.extractor,
                 solver_tag=f" {build_cfg.voxel.solver}",
                 map_variant=prefix.strip(),
@@ -323,6 +349,25 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
             )
     m.close()
     return rows, extent
+
+
+def per_query(o) -> dict:
+    """One query's outcome for the JSON rows: error, success, inliers of the final and of the last
+    descriptor-matched (rendering) iteration."""
+    from favormap.geometry import pose_error
+
+    res = o.result
+    est = res.estimate if res.estimate is not None else res.cam_from_world
+    dt, dr = pose_error(est, o.gt)
+    render = [it.num_inliers for it in res.iterations if it.kind == "render"]
+    return dict(
+        name=o.name,
+        success=bool(res.success),
+        t_err=round(float(dt), 6),
+        r_err_deg=round(float(dr), 4),
+        inliers=int(res.num_inliers),
+        render_inliers=render[-1] if render else 0,
+    )
 
 
 def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:

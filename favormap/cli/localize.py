@@ -48,10 +48,17 @@ def add_localize_options(p):
     p.add_argument(
         "--guided-radius",
         type=float,
-        default=0.0,
-        help="after the iterations, match every visible landmark to query keypoints this close (px) to its "
-        "projection and solve again (default 0: off; 3 measured better far from the mapping path, slightly "
-        "worse near it: README, Accuracy)",
+        default=8.0,
+        help="guided step after the iterations: match every visible landmark to the query keypoints this close "
+        "(px) to its projection and within 3 sigma of its predicted uncertainty, and solve again "
+        "(default 8; 0: off; README, Accuracy)",
+    )
+    p.add_argument(
+        "--guided-below",
+        type=int,
+        default=400,
+        help="run the guided step only for poses with fewer inliers matched by descriptor than this "
+        "(default 400: far from the mapping path; a large number: every pose)",
     )
     p.add_argument(
         "--no-global",
@@ -118,9 +125,12 @@ def config_from_args(args):
         raise InputError("--ransac-px must be > 0")
     if args.min_inliers < 4:
         raise InputError("--min-inliers must be >= 4")
-    guided = getattr(args, "guided_radius", 0.0)
+    guided = getattr(args, "guided_radius", LocalizeConfig.guided_radius_px)
     if not 0 <= guided < float("inf"):
         raise InputError("--guided-radius must be a number of pixels >= 0")
+    guided_below = getattr(args, "guided_below", LocalizeConfig.guided_below_inliers)
+    if guided_below < 0:
+        raise InputError("--guided-below must be a number of inliers >= 0")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):
         try:
@@ -142,6 +152,7 @@ def config_from_args(args):
         sift_orientations=args.sift_orientations,
         landmark_sigma_px=sigma,
         guided_radius_px=guided,
+        guided_below_inliers=guided_below,
         device=auto_device(args.device),
         threads=getattr(args, "threads", None),
     )

@@ -34,7 +34,7 @@ from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
-from .refine import PoseCovariance, landmark_covariances, mapping_pixel_sigma, refine_pose
+from .refine import PoseCovariance, landmark_covariances, mapping_pixel_sigma, projection_information, refine_pose
 
 
 @dataclass
@@ -75,10 +75,29 @@ class LocalizeConfig:
     sift_orientations: str = "strongest"
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
-    guided_radius_px: float = (
-        0.0  # > 0: a final step matches each landmark to query keypoints this close to its projection
-    )
-    guided_ransac_px: float = 2.0  # RANSAC threshold of that step
+    # The guided step, after the rendering iterations (search by projection; the pose's last step
+    # before the weighted refinement): every landmark visible from the estimate is matched to the most
+    # similar query keypoint within guided_radius_px of its projection and within guided_gate_sigma
+    # standard deviations (Mahalanobis) of it under the noise model of the weighted refinement
+    # (landmark covariance projected into the query + keypoint noise, scaled up by the descriptor
+    # inliers' own residuals where those are larger), mutually and above match_threshold; then
+    # PnP-RANSAC at guided_ransac_px (None: the radius). It runs only for poses with fewer than
+    # guided_below_inliers inliers matched by descriptor (None: every pose): with few descriptor
+    # matches (far from the mapping path) the extra matches lower the pose's noise floor; with many
+    # the pose is at its floor already and the extra matches, chosen near the predicted projections,
+    # are noisier than the descriptor matches. tools/bench_accuracy.py (2026-11-26, ninth session,
+    # noise priors, medians hold-out / extrapolation / orbit, units): off 0.0014 / 0.0086 / 0.00047;
+    # gated 3 sigma 8 px for every pose 0.00155 / 0.0065 / 0.00069; below 400 inliers 0.0013 /
+    # 0.0065 / 0.00053 (orbit p90 0.0016 against 0.0024, beyond 40 deg 0.0011 against 0.0014);
+    # ungated 3 px for every pose 0.0014 / 0.0067 / 0.0006. guided_radius_px 0: off.
+    guided_radius_px: float = 8.0
+    guided_ransac_px: float | None = None
+    guided_gate_sigma: float = 3.0  # 0: the radius alone
+    guided_below_inliers: int | None = 400
+    # the weighted refinement after the guided step weighs the matches found only by projection down
+    # by how much larger their residuals are than those of the matches found by descriptor (median
+    # squared Mahalanobis residual of each group at the pose); off: see README, Accuracy
+    guided_reweight: bool = False
     # > 0: after the first successful iteration, a landmark is matched only against query keypoints
     # this close to its projection from the current estimate (search by projection; the first
     # iteration, from the prior, searches the whole image). Off: tools/bench_accuracy.py (3,000
@@ -116,6 +135,10 @@ class LocalizeConfig:
         v = self.landmark_sigma_px
         if not (v in ("landmark", "map") or (isinstance(v, (int, float)) and 0 <= v < float("inf"))):
             raise InputError(f"landmark_sigma_px must be 'landmark', 'map' or a number of pixels >= 0, not {v!r}")
+        if not (0 <= self.guided_radius_px < float("inf") and 0 <= self.guided_gate_sigma < float("inf")):
+            raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
+        if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
+            raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
         if not (isinstance(self.keypoint_sigma_px, (int, float)) and 0 < self.keypoint_sigma_px < float("inf")):
             raise InputError(f"keypoint_sigma_px must be a number of pixels > 0, not {self.keypoint_sigma_px!r}")
 
@@ -267,6 +290,14 @@ def match_descriptors(
     return np.stack([idx, member], 1).astype(np.int64)
 
 
+def _pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(K,) bool: which rows of ``pairs`` (K, 2) also occur in ``known`` (M, 2)."""
+    if len(pairs) == 0 or len(known) == 0:
+        return np.zeros(len(pairs), bool)
+    base = int(max(pairs[:, 1].max(), known[:, 1].max())) + 1
+    return np.isin(pairs[:, 0] * base + pairs[:, 1], known[:, 0] * base + known[:, 1])
+
+
 def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np.ndarray:
     """Matches (K, 2) [descriptor, query keypoint] without repeated (landmark, keypoint) pairs, which
     arise when each of the ``n_landmarks`` has several descriptors (``desc_rows``: the landmark of
@@ -277,33 +308,71 @@ def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> n
     return m[np.sort(keep)]
 
 
+def radius_pairs(points: np.ndarray, keypoints: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) with ``|points[i] - keypoints[j]| <= radius`` (pixels; rows of ``points``
+    that are not finite pair with nothing). NumPy: the keypoints are binned into square cells of
+    side ``radius``, and each point looks at the 3 x 3 cells around its own."""
+    points = np.asarray(points, np.float64).reshape(-1, 2)
+    keypoints = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    ok = np.flatnonzero(np.all(np.isfinite(points), axis=1))
+    empty = np.zeros(0, np.int64)
+    if len(ok) == 0 or len(keypoints) == 0 or not radius > 0:
+        return empty, empty
+    lo = keypoints.min(0)
+    ck = np.floor((keypoints - lo) / radius).astype(np.int64)
+    cp = np.floor((points[ok] - lo) / radius).astype(np.int64)
+    inside = np.all((cp >= -1) & (cp <= ck.max(0) + 1), axis=1)  # points near the keypoints' extent
+    ok, cp = ok[inside], cp[inside]
+    width = int(ck[:, 1].max()) + 3
+    key = (ck[:, 0] + 1) * width + (ck[:, 1] + 1)
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    ii, jj = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            q = (cp[:, 0] + 1 + dx) * width + (cp[:, 1] + 1 + dy)
+            a, b = np.searchsorted(skey, q, "left"), np.searchsorted(skey, q, "right")
+            n = b - a
+            if not n.any():
+                continue
+            rows = np.repeat(np.arange(len(q)), n)
+            ii.append(ok[rows])
+            jj.append(order[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())])
+    if not ii:
+        return empty, empty
+    i, j = np.concatenate(ii), np.concatenate(jj)
+    near = np.sum((points[i] - keypoints[j]) ** 2, axis=1) <= radius**2
+    return i[near], j[near]
+
+
 def match_near(
     rendered: np.ndarray,
     query: np.ndarray,
     uv: np.ndarray,
-    keypoint_tree,
+    keypoints: np.ndarray,
     radius: float,
     threshold: float,
     mutual: bool = True,
+    gate: tuple[np.ndarray, float] | None = None,
 ) -> np.ndarray:
-    """:func:`match_descriptors` restricted to pairs whose query keypoint lies within ``radius``
-    pixels of the landmark's projection ``uv`` (L, 2) (``keypoint_tree``: a scipy cKDTree of the
-    query keypoints): the best query keypoint near each landmark, kept when its cosine reaches
+    """:func:`match_descriptors` restricted to pairs whose query keypoint (``keypoints`` (Q, 2))
+    lies within ``radius`` pixels of the landmark's projection ``uv`` (L, 2) (:func:`radius_pairs`):
+    the best query keypoint near each landmark, kept when its cosine reaches
     ``threshold`` and (``mutual``) the landmark is also the best among those near that keypoint.
-    Only the candidate pairs are compared, not the full similarity matrix."""
-    from scipy.spatial import cKDTree
-
+    With ``gate`` = (information (L, 2, 2), d2_max), a pair must also have a squared Mahalanobis
+    distance r^T info r <= d2_max from the projection. Only the candidate pairs are compared, not
+    the full similarity matrix."""
     rendered = np.asarray(rendered, np.float32)
     query = np.asarray(query, np.float32)
-    if len(rendered) == 0 or keypoint_tree.n == 0:
+    keypoints = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    li, kj = radius_pairs(uv, keypoints, radius)
+    if len(rendered) == 0 or len(li) == 0:
         return np.zeros((0, 2), np.int64)
-    ok = np.all(np.isfinite(uv), axis=1)
-    rows_ok = np.flatnonzero(ok)
-    pairs = cKDTree(uv[ok]).sparse_distance_matrix(keypoint_tree, radius, output_type="ndarray")
-    if len(pairs) == 0:
-        return np.zeros((0, 2), np.int64)
-    li = rows_ok[pairs["i"]].astype(np.int64)
-    kj = pairs["j"].astype(np.int64)
+    if gate is not None:
+        info, d2_max = gate
+        r = keypoints[kj] - uv[li]
+        inside = np.einsum("ni,nij,nj->n", r, info[li], r) <= d2_max
+        li, kj = li[inside], kj[inside]
     sim = np.einsum("ij,ij->i", rendered[li], query[kj])
     best_l = np.full(len(rendered), -3.0, np.float32)
     np.maximum.at(best_l, li, sim)
@@ -535,7 +604,7 @@ class Localizer:
             if cfg.search_radius_px > 0 and last is not None:
                 uv = project(q.cam.K, pose, self.map.positions[drows])
                 m = match_near(
-                    rend, q.desc, uv, q.keypoints_tree(), cfg.search_radius_px, cfg.match_threshold, cfg.mutual
+                    rend, q.desc, uv, q.feats.keypoints, cfg.search_radius_px, cfg.match_threshold, cfg.mutual
                 )
             else:
                 m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
@@ -556,10 +625,21 @@ class Localizer:
             pose = new_pose
             if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
                 break
-        if last is not None and cfg.guided_radius_px > 0:
-            last = self._guided(q, pose, iters, t) or last
         cov = None
-        if last is not None and iters[-1].success and cfg.landmark_sigma_px != 0:
+        weighted = last is not None and iters[-1].success and cfg.landmark_sigma_px != 0
+        if (
+            last is not None
+            and cfg.guided_radius_px > 0
+            and (cfg.guided_below_inliers is None or int(last["inliers"].sum()) < cfg.guided_below_inliers)
+        ):
+            gate = None
+            if cfg.guided_gate_sigma > 0:  # search from the weighted pose, gated by its noise model
+                if weighted:
+                    self._weighted(q, iters[-1], last, t)
+                    pose = iters[-1].cam_from_world
+                gate = self._gate_scale(q, pose, last)
+            last = self._guided(q, pose, iters, t, gate, last) or last
+        if weighted:
             cov = self._weighted(q, iters[-1], last, t)
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None
@@ -582,33 +662,84 @@ class Localizer:
         cfg = self.config
         s = time.perf_counter()
         inl = last["matches"][last["inliers"]]
+        X, kp = self.map.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
+        Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
+        factor = None
+        if cfg.guided_reweight and "by_descriptor" in last:
+            by_desc = last["by_descriptor"][last["inliers"]]
+            if by_desc.sum() >= 6 and (~by_desc).any():
+                T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, cfg.keypoint_sigma_px)
+                uv, info = projection_information(T1, X, q.cam.K, Xcov, cfg.keypoint_sigma_px)
+                d2 = np.einsum("ni,nij,nj->n", kp - uv, info, kp - uv)
+                m_desc = float(np.nanmedian(d2[by_desc]))
+                m_proj = float(np.nanmedian(d2[~by_desc]))
+                factor = np.where(by_desc, 1.0, max(m_proj / max(m_desc, 1e-12), 1.0))
+                it.cam_from_world = T1
         it.cam_from_world, cov = refine_pose(
             it.cam_from_world,
-            self.map.positions[inl[:, 0]],
-            q.feats.keypoints[inl[:, 1]],
+            X,
+            kp,
             q.cam.K,
-            landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0])),
+            Xcov,
             cfg.keypoint_sigma_px,
             return_covariance=True,
+            variance_factor=factor,
         )
         t["pnp"] += time.perf_counter() - s
         return cov
 
-    def _guided(self, q: _Query, pose: np.ndarray, iters: list[IterationResult], t: dict) -> dict | None:
+    def _noise_model(self, q: _Query, pose: np.ndarray, rows: np.ndarray):
+        """Predicted projections (N, 2) of landmarks ``rows`` from ``pose`` and the inverse
+        covariances (N, 2, 2) of the weighted refinement's noise model there."""
+        return projection_information(
+            pose,
+            self.map.positions[rows],
+            q.cam.K,
+            landmark_covariances(self.map, rows, self._landmark_sigma(rows)),
+            self.config.keypoint_sigma_px,
+        )
+
+    def _gate_scale(self, q: _Query, pose: np.ndarray, last: dict) -> float:
+        """Variance factor of the noise model as the descriptor inliers at ``pose`` show it: their
+        median squared Mahalanobis residual over that of a chi-square(2) (2 ln 2), never below 1."""
+        inl = last["matches"][last["inliers"]]
+        uv, info = self._noise_model(q, pose, inl[:, 0])
+        r = q.feats.keypoints[inl[:, 1]] - uv
+        d2 = np.einsum("ni,nij,nj->n", r, info, r)
+        d2 = d2[np.isfinite(d2)]
+        return max(float(np.median(d2)) / (2 * np.log(2)), 1.0) if len(d2) else 1.0
+
+    def _guided(
+        self,
+        q: _Query,
+        pose: np.ndarray,
+        iters: list[IterationResult],
+        t: dict,
+        gate_scale: float | None = None,
+        found: dict | None = None,
+    ) -> dict | None:
         """Search by projection: each landmark visible from ``pose`` is matched to the most similar
         query keypoint within ``guided_radius_px`` of its projection (mutually, above the
-        threshold), then PnP runs again with a tight threshold."""
+        threshold) and, with ``gate_scale``, within ``guided_gate_sigma`` standard deviations of the
+        noise model (times that variance factor); then PnP runs again with a tight threshold."""
         cfg = self.config
         rows = self._visible(q, pose, t)
         rend, drows = describe(self.source, rows, pose, t)
         s = time.perf_counter()
-        uv = project(q.cam.K, pose, self.map.positions[drows])
-        m = match_near(rend, q.desc, uv, q.keypoints_tree(), cfg.guided_radius_px, cfg.match_threshold, mutual=True)
+        gate = None
+        if gate_scale:
+            uv, info = self._noise_model(q, pose, drows)
+            gate = (info / gate_scale, cfg.guided_gate_sigma**2)
+        else:
+            uv = project(q.cam.K, pose, self.map.positions[drows])
+        m = match_near(
+            rend, q.desc, uv, q.feats.keypoints, cfg.guided_radius_px, cfg.match_threshold, mutual=True, gate=gate
+        )
         m = _distinct_pairs(m, drows, len(rows))
         idx, kidx = m[:, 0], m[:, 1]
         sims = _pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.map.positions[drows[idx]], kidx, t, cfg.guided_ransac_px)
+        ans = self._pnp(q, self.map.positions[drows[idx]], kidx, t, cfg.guided_ransac_px or cfg.guided_radius_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         iters.append(
@@ -619,11 +750,11 @@ class Localizer:
         if not ok:
             iters.pop()  # keep the rendering iterations' estimate
             return None
-        return dict(
-            matches=np.c_[drows[idx], kidx],
-            inliers=np.asarray(ans["inlier_mask"], bool),
-            similarity=sims,
-        )
+        out = dict(matches=np.c_[drows[idx], kidx], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims)
+        if found is not None:  # which pairs the rendering iteration had already matched by descriptor
+            known = found["matches"][found["inliers"]]
+            out["by_descriptor"] = _pair_in(out["matches"], known)
+        return out
 
     def _result(
         self, q: _Query, last: dict | None, iters: list[IterationResult], t: dict, start: np.ndarray, message: str = ""
@@ -718,16 +849,7 @@ class _Query:
     desc: np.ndarray  # (N, C) float32 unit descriptors
     cam: Camera
     groups: KeypointGroups | None = None  # query keypoints sharing a position (several orientations)
-    _tree: object = None
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
-
-    def keypoints_tree(self):
-        """scipy cKDTree of the query keypoints (built on first use)."""
-        if self._tree is None:
-            from scipy.spatial import cKDTree
-
-            self._tree = cKDTree(np.asarray(self.feats.keypoints, np.float64).reshape(-1, 2))
-        return self._tree
 
 
 def localize(

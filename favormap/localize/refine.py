@@ -59,6 +59,60 @@ def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray
     )
 
 
+def _projection_jacobians(P: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n, 2, 3) d(pixel) / d(camera-frame point) of a pinhole ``K`` at camera-frame points ``P``."""
+    fx, fy = K[0, 0], K[1, 1]
+    x, y, z = P.T
+    Jp = np.zeros((len(P), 2, 3))
+    Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z**2
+    Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z**2
+    return Jp
+
+
+def _image_covariances(Jp: np.ndarray, R: np.ndarray, point_cov: np.ndarray | None, eye2: np.ndarray) -> np.ndarray:
+    """(n, 2, 2) covariance of each projection: world covariances ``point_cov`` (n, 3, 3) rotated
+    into the camera (``R``: cam_from_world rotation) and projected with ``Jp``, plus ``eye2``."""
+    if point_cov is None:
+        return np.broadcast_to(eye2, (len(Jp), 2, 2))
+    return np.einsum("nai,nij,nbj->nab", Jp, R @ point_cov @ R.T, Jp, optimize=True) + eye2
+
+
+def _inverse2(S: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 2 x 2 blocks (n, 2, 2) in closed form."""
+    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    det = a * c - b * b
+    Si = np.empty((len(S), 2, 2))
+    Si[:, 0, 0], Si[:, 1, 1] = c / det, a / det
+    Si[:, 0, 1] = Si[:, 1, 0] = -b / det
+    return Si
+
+
+def projection_information(
+    cam_from_world: np.ndarray,
+    points: np.ndarray,
+    K: np.ndarray,
+    point_cov: np.ndarray | None = None,
+    keypoint_sigma_px: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``points`` (N, 3) project from ``cam_from_world`` (pixels, pinhole ``K``) and the
+    inverse covariance (N, 2, 2) of a keypoint observing each there: the landmark's position
+    covariance ``point_cov`` projected into the image plus ``keypoint_sigma_px`` of keypoint noise
+    (the noise model of :func:`refine_pose`). Points behind the camera get NaN pixels and zero
+    information."""
+    T = np.asarray(cam_from_world, np.float64)
+    P = np.asarray(points, np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    front = P[:, 2] > 1e-9
+    uv = np.full((len(P), 2), np.nan)
+    info = np.zeros((len(P), 2, 2))
+    if front.any():
+        Pf = P[front]
+        uv[front] = (Pf[:, :2] / Pf[:, 2:]) * np.diag(K)[:2] + K[:2, 2]
+        Jp = _projection_jacobians(Pf, K)
+        cov = None if point_cov is None else np.asarray(point_cov, np.float64)[front]
+        info[front] = _inverse2(_image_covariances(Jp, T[:3, :3], cov, keypoint_sigma_px**2 * np.eye(2)))
+    return uv, info
+
+
 def refine_pose(
     cam_from_world: np.ndarray,
     points: np.ndarray,
@@ -69,13 +123,15 @@ def refine_pose(
     loss_scale: float = 1.0,
     iterations: int = 10,
     return_covariance: bool = False,
+    variance_factor: np.ndarray | None = None,
 ):
     """Gauss-Newton refinement of ``cam_from_world`` (4x4) from correspondences ``points`` (N, 3)
     -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
     residual is whitened by ``J point_cov J^T + keypoint_sigma_px^2 I`` (J: the projection's
     Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
     Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
-    left out. Returns the refined pose (the input when fewer than 6 points are usable), and with
+    left out. ``variance_factor`` (N,) scales each residual's covariance (a group of matches
+    known to be noisier than the model). Returns the refined pose (the input when fewer than 6 points are usable), and with
     ``return_covariance`` also the pose's :class:`PoseCovariance` (None when it cannot be computed)."""
     if not keypoint_sigma_px > 0:
         raise ValueError("keypoint_sigma_px must be > 0")
@@ -93,23 +149,13 @@ def refine_pose(
         P, x_kp = P[front], kp[front]
         x, y, z = P.T
         r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
-        Jp = np.zeros((len(P), 2, 3))  # d(pixel) / d(camera-frame point)
-        Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z**2
-        Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z**2
+        Jp = _projection_jacobians(P, K)  # d(pixel) / d(camera-frame point)
         # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
         # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
         J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
-        if point_cov is None:
-            S = np.broadcast_to(eye2, (len(P), 2, 2))
-        else:
-            R = T[:3, :3]
-            S = np.einsum("nai,nij,nbj->nab", Jp, R @ point_cov[front] @ R.T, Jp, optimize=True) + eye2
-        # S^-1 of the symmetric 2 x 2 blocks in closed form
-        a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
-        det = a * c - b * b
-        Si = np.empty((len(P), 2, 2))
-        Si[:, 0, 0], Si[:, 1, 1] = c / det, a / det
-        Si[:, 0, 1] = Si[:, 1, 0] = -b / det
+        Si = _inverse2(_image_covariances(Jp, T[:3, :3], None if point_cov is None else point_cov[front], eye2))
+        if variance_factor is not None:
+            Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
         SiJ = Si @ J  # (n, 2, 6)
         chi2 = np.einsum("ni,nij,nj->n", r, Si, r)  # squared whitened residual r^T S^-1 r
         w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
