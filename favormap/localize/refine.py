@@ -131,8 +131,9 @@ def refine_pose(
     Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
     Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
     left out. ``variance_factor`` (N,) scales each residual's covariance (a group of matches
-    known to be noisier than the model). Returns the refined pose (the input when fewer than 6 points are usable), and with
-    ``return_covariance`` also the pose's :class:`PoseCovariance` (None when it cannot be computed)."""
+    known to be noisier than the model). Returns the refined pose (the input when fewer than 6
+    points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
+    (None when it cannot be computed)."""
     if not keypoint_sigma_px > 0:
         raise ValueError("keypoint_sigma_px must be > 0")
     T = np.array(cam_from_world, np.float64)
