@@ -83,6 +83,8 @@ VARIANTS = {
     "rendered gated-2sigma every pose": ("rendered", {"guided_gate_sigma": 2.0, "guided_below_inliers": None}),
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
+    "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
+    "rendered gated-2sigma 2-rounds": ("rendered", {"guided_rounds": 2, "guided_gate_sigma": 2.0}),
     "rendered gated below-800": ("rendered", {"guided_below_inliers": 800}),
     # ... with the matches found only by projection weighed down by their larger residuals
     "rendered gated reweighted": ("rendered", {"guided_reweight": True}),

@@ -94,6 +94,7 @@ class LocalizeConfig:
     guided_ransac_px: float | None = None
     guided_gate_sigma: float = 3.0  # 0: the radius alone
     guided_below_inliers: int | None = 400
+    guided_rounds: int = 1  # > 1: search again from the previous round's (weighted) pose
     # the weighted refinement after the guided step weighs the matches found only by projection down
     # by how much larger their residuals are than those of the matches found by descriptor (median
     # squared Mahalanobis residual of each group at the pose); off: see README, Accuracy
@@ -638,7 +639,17 @@ class Localizer:
                     self._weighted(q, iters[-1], last, t)
                     pose = iters[-1].cam_from_world
                 gate = self._gate_scale(q, pose, last)
-            last = self._guided(q, pose, iters, t, gate, last) or last
+            found = last
+            for r in range(cfg.guided_rounds):
+                if r > 0:
+                    if not weighted:
+                        break
+                    self._weighted(q, iters[-1], last, t)
+                    pose = iters[-1].cam_from_world
+                g = self._guided(q, pose, iters, t, gate, found)
+                if g is None:
+                    break
+                last = g
         if weighted:
             cov = self._weighted(q, iters[-1], last, t)
         res = self._result(q, last, iters, t, start)
