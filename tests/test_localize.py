@@ -369,6 +369,25 @@ def test_search_by_projection_localizes(small_map, queries):
     assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
 
 
+def test_iterations_stop_once_the_estimate_stops_moving(small_map, queries):
+    """The rendering iterations stop when an estimate lies within stop_translation / stop_rotation_deg
+    of the pose its descriptors were rendered from: from a prior 15 deg off the first estimate moves
+    far, the second hardly, so no third iteration runs, and the pose is the one three give."""
+    _, path = small_map
+    img, T = queries[1]
+    prior = perturb_pose(T, 0.3, 15.0, np.random.default_rng(4))
+    cfg = dict(guided_radius_px=0)
+    early = Localizer(path, LocalizeConfig(**cfg)).localize(img, prior)
+    full = Localizer(path, LocalizeConfig(stop_translation=0.0, stop_rotation_deg=0.0, **cfg)).localize(img, prior)
+    assert early.success and full.success
+    assert [it.kind for it in full.iterations] == ["render"] * 3
+    assert [it.kind for it in early.iterations] == ["render"] * 2
+    moved = pose_error(early.iterations[1].cam_from_world, early.iterations[0].cam_from_world)
+    assert moved[1] < LocalizeConfig.stop_rotation_deg
+    assert pose_error(early.cam_from_world, full.cam_from_world)[0] < 1e-3
+    assert pose_error(early.cam_from_world, T)[0] < 0.01
+
+
 def test_radius_pairs_equal_a_brute_force_search():
     from favormap.localize.localizer import radius_pairs
 

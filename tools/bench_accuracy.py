@@ -101,6 +101,11 @@ VARIANTS = {
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),
+    # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
+    # (default: 5e-3 x the median landmark distance and 0.5 deg)
+    "rendered stop-0.01deg (before)": ("rendered", {"stop_translation": 1e-4, "stop_rotation_deg": 0.01}),
+    "rendered stop-0.2deg": ("rendered", {"stop_translation": 2e-3, "stop_rotation_deg": 0.2}),
+    "rendered stop-1deg": ("rendered", {"stop_translation": 1e-2, "stop_rotation_deg": 1.0}),
     "rendered 2048-keypoints 2-iterations": ("rendered", {"max_keypoints": 2048, "iterations": 2}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),

@@ -13,7 +13,12 @@ IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 
 
 def add_localize_options(p):
-    p.add_argument("--iters", type=int, default=3, help="render-match-PnP iterations (default 3)")
+    p.add_argument(
+        "--iters",
+        type=int,
+        default=3,
+        help="render-match-PnP iterations, at most (default 3; they stop once the estimate stops moving)",
+    )
     p.add_argument("--threshold", type=float, default=0.7, help="descriptor similarity threshold (default 0.7)")
     p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
     p.add_argument(
