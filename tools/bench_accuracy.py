@@ -374,6 +374,7 @@ def per_query(o) -> dict:
         r_err_deg=round(float(dr), 4),
         inliers=int(res.num_inliers),
         render_inliers=render[-1] if render else 0,
+        iterations=[it.kind for it in res.iterations],
     )
 
 
