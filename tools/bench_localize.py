@@ -98,7 +98,7 @@ def measure(args) -> dict:
     open_s = time.perf_counter() - t
     rng = np.random.default_rng(0)
     loc.localize(images[0], perturb_pose(views[0], 0.3, 15, rng))  # warm-up (model, caches, KD-trees)
-    rows, errs, totals, ok = [], [], [], 0
+    rows, errs, totals, iters, ok = [], [], [], [], 0
     b0 = loc.map.bytes_read
     for img, T in zip(images, views):
         prior = perturb_pose(T, 0.3, 15, rng)
@@ -106,6 +106,7 @@ def measure(args) -> dict:
         res = loc.localize(img, prior)
         totals.append(time.perf_counter() - t)
         rows.append(res.timings)
+        iters.append([it.kind for it in res.iterations])
         errs.append(pose_error(res.cam_from_world, T))
         ok += bool(res.success)
     e = np.array(errs)
@@ -120,6 +121,9 @@ def measure(args) -> dict:
         "median_error": [float(np.median(e[:, 0])), float(np.median(e[:, 1]))],
         "voxel_kb_per_query": (loc.map.bytes_read - b0) / len(views) / 1024,
         "peak_rss_mb": peak_rss_mb(),
+        # iterations per query: rendering ones, and how many queries ended with the guided step
+        "render_iterations": float(np.mean([sum(k == "render" for k in i) for i in iters])),
+        "guided": int(sum("guided" in i for i in iters)),
     }
 
 
@@ -186,7 +190,7 @@ def main():
 
     r0 = results[0]
     print(
-        f"{args.queries} queries 640x480, 3 iterations, device {args.device}, descriptors {args.descriptors}; "
+        f"{args.queries} queries 640x480, up to 3 iterations, device {args.device}, descriptors {args.descriptors}; "
         f"load average {os.getloadavg()[0]:.1f}"
     )
     stages = list(r0["stages_ms"])
@@ -194,7 +198,7 @@ def main():
         f"{'landmarks':>10} {'open s':>7}"
         + "".join(f"{s:>11}" for s in stages)
         + f"{'ms/query':>10}{'x room':>8}{'peak RSS MB':>13}{'x room':>8}"
-        + f"{'voxel KB/q':>11}{'localized':>10}{'median err':>18}"
+        + f"{'voxel KB/q':>11}{'localized':>10}{'median err':>18}{'iters':>7}{'guided':>7}"
     )
     for r in results:
         print(
@@ -203,6 +207,7 @@ def main():
             + f"{r['total_ms']:>10.1f}{r['total_ms'] / r0['total_ms']:>8.2f}{r['peak_rss_mb']:>13.0f}"
             f"{r['peak_rss_mb'] / r0['peak_rss_mb']:>8.2f}{r['voxel_kb_per_query']:>11.0f}"
             f"{r['localized']:>5}/{r['queries']:<4}{r['median_error'][0]:>9.4f} / {r['median_error'][1]:.3f}°"
+            f"{r['render_iterations']:>7.1f}{r['guided']:>7}"
         )
     return 0
 
