@@ -191,12 +191,15 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
             q_cam.K,
             landmark_covariances(m, inl[:, 0], mapping_pixel_sigma(m, inl[:, 0])),
             weighted.config.keypoint_sigma_px,
+            loss_scale=weighted.config.refine_loss_scale,
         )
         assert pose_error(b.cam_from_world, expect)[0] < 1e-9
         moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
     assert max(moved) > 1e-6  # the weighting did change the pose
     with pytest.raises(InputError, match="landmark_sigma_px"):
         LocalizeConfig(landmark_sigma_px="everywhere")
+    with pytest.raises(InputError, match="refine_loss_scale"):
+        LocalizeConfig(refine_loss_scale=0.0)
     with pytest.raises(InputError, match="keypoint_sigma_px"):
         LocalizeConfig(keypoint_sigma_px=0)
 

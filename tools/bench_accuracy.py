@@ -84,6 +84,12 @@ VARIANTS = {
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
     "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
+    # the Cauchy scale of the weighted refinement (default "auto": the residuals' own)
+    "rendered loss-1": ("rendered", {"refine_loss_scale": 1.0}),
+    "rendered loss-2": ("rendered", {"refine_loss_scale": 2.0}),
+    "rendered gated cos-0.6": ("rendered", {"guided_match_threshold": 0.6}),
+    "rendered gated cos-0.5": ("rendered", {"guided_match_threshold": 0.5}),
+    "rendered gated cos-0.8": ("rendered", {"guided_match_threshold": 0.8}),
     "rendered gated-2sigma 2-rounds": ("rendered", {"guided_rounds": 2, "guided_gate_sigma": 2.0}),
     "rendered gated below-800": ("rendered", {"guided_below_inliers": 800}),
     # ... with the matches found only by projection weighed down by their larger residuals
@@ -115,7 +121,10 @@ VARIANTS = {
     # default: the keypoint noise of each landmark from its reprojection error), or not (before
     # 2026-11-26's eighth session), or for this keypoint noise (px) in the mapping images
     "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
-    "rendered no-guided no-uncertainty": ("rendered", {"landmark_sigma_px": 0, "guided_radius_px": 0}),
+    "rendered no-guided no-uncertainty": (
+        "rendered",
+        {"landmark_sigma_px": 0, "guided_radius_px": 0, "stop_translation": 1e-4, "stop_rotation_deg": 0.01},
+    ),
     "mean no-guided": ("mean", {"guided_radius_px": 0}),
     "nearest-view no-guided": ("nearest", {"guided_radius_px": 0}),
     "rendered uncertainty-0.5px": ("rendered", {"landmark_sigma_px": 0.5}),
@@ -136,6 +145,7 @@ DEFAULT_VARIANTS = (
     "mean no-guided",
     "nearest-view no-guided",
     "rendered gated every pose",
+    "rendered loss-1",
     "rendered no-guided no-uncertainty",
     "rendered 8px no-mutual (old default)",
     "rendered no-checks",

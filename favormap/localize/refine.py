@@ -120,7 +120,7 @@ def refine_pose(
     K: np.ndarray,
     point_cov: np.ndarray | None = None,
     keypoint_sigma_px: float = 0.5,
-    loss_scale: float = 1.0,
+    loss_scale: float | str = 1.0,
     iterations: int = 10,
     return_covariance: bool = False,
     variance_factor: np.ndarray | None = None,
@@ -129,7 +129,8 @@ def refine_pose(
     -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
     residual is whitened by ``J point_cov J^T + keypoint_sigma_px^2 I`` (J: the projection's
     Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
-    Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
+    Cauchy loss of scale ``loss_scale`` (in those whitened units; "auto": the residuals' robust
+    scale, re-estimated at every iterate, at least 1). Points behind the camera are
     left out. ``variance_factor`` (N,) scales each residual's covariance (a group of matches
     known to be noisier than the model). Returns the refined pose (the input when fewer than 6
     points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
@@ -159,7 +160,10 @@ def refine_pose(
             Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
         SiJ = Si @ J  # (n, 2, 6)
         chi2 = np.einsum("ni,nij,nj->n", r, Si, r)  # squared whitened residual r^T S^-1 r
-        w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
+        c = loss_scale
+        if loss_scale == "auto":  # the residuals' robust scale at this iterate (never below the model's)
+            c = max(float(np.sqrt(np.median(chi2) / (2 * np.log(2)))), 1.0)
+        w = 1.0 / (1.0 + chi2 / c**2)  # Cauchy IRLS weights
         H = np.einsum("n,nki,nkj->ij", w, J, SiJ)
         g = np.einsum("n,nki,nk->i", w, SiJ, r)
         try:
