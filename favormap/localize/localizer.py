@@ -651,28 +651,35 @@ class Localizer:
             and cfg.guided_radius_px > 0
             and (cfg.guided_below_inliers is None or int(last["inliers"].sum()) < cfg.guided_below_inliers)
         ):
-            gate = None
-            if cfg.guided_gate_sigma > 0:  # search from the weighted pose, gated by its noise model
-                if weighted:
-                    self._weighted(q, iters[-1], last, t)
-                    pose = iters[-1].cam_from_world
-                gate = self._gate_scale(q, pose, last)
-            found = last
-            for r in range(cfg.guided_rounds):
-                if r > 0:
-                    if not weighted:
-                        break
-                    self._weighted(q, iters[-1], last, t)
-                    pose = iters[-1].cam_from_world
-                g = self._guided(q, pose, iters, t, gate, found)
-                if g is None:
-                    break
-                last = g
-        if weighted:
+            last, cov = self._guided_steps(q, pose, iters, last, weighted, t)
+        elif weighted:
             cov = self._weighted(q, iters[-1], last, t)
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None
         return res
+
+    def _guided_steps(
+        self, q: _Query, pose: np.ndarray, iters: list[IterationResult], found: dict, weighted: bool, t: dict
+    ) -> tuple[dict, PoseCovariance | None]:
+        """The guided step(s) after the rendering iterations, which matched ``found`` at ``pose``,
+        then (``weighted``) the final weighted refinement: returns the final matches and the pose's
+        covariance."""
+        cfg = self.config
+        last, gate, cov, fresh = found, None, None, False  # fresh: iters[-1] is refined on ``last``
+        for r in range(cfg.guided_rounds):
+            if weighted and (r > 0 or cfg.guided_gate_sigma > 0):  # search from the weighted pose
+                if not fresh:
+                    cov, fresh = self._weighted(q, iters[-1], last, t), True
+                pose = iters[-1].cam_from_world
+            if gate is None and cfg.guided_gate_sigma > 0:  # the gate's scale, from the descriptor inliers
+                gate = self._gate_scale(q, pose, found)
+            guided = self._guided(q, pose, iters, t, gate, found)
+            if guided is None:  # the rendering iterations' (or the previous round's) estimate stays
+                break
+            last, fresh = guided, False
+        if weighted and not fresh:
+            cov = self._weighted(q, iters[-1], last, t)
+        return last, cov
 
     def _landmark_sigma(self, rows: np.ndarray):
         """Mapping keypoint noise (px) behind landmarks ``rows``: LocalizeConfig.landmark_sigma_px."""
