@@ -442,6 +442,10 @@ def test_the_guided_step_runs_only_for_poses_with_few_descriptor_inliers(small_m
     below = Localizer(path, LocalizeConfig(guided_below_inliers=n + 1)).localize(img, prior)
     assert below.success and below.iterations[-1].kind == "guided", below.message
     assert below.num_inliers >= 0.9 * n
+    # the matches only the guided step found are marked (rerun draws them apart); none without it
+    assert never.by_projection is None and above.by_projection is None
+    assert below.by_projection.shape == (len(below.matches),)
+    assert 0 < int(below.by_projection[below.inlier_mask].sum()) < below.num_inliers
     assert pose_error(below.cam_from_world, T)[0] < 0.01
     with pytest.raises(InputError, match="guided_below_inliers"):
         LocalizeConfig(guided_below_inliers=-1)

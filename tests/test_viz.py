@@ -184,6 +184,7 @@ def test_localize_recording(built):
         "/world/query/rendered/estimate/image",
         "/world/query/rendered/estimate/image/keypoints",
         "/world/query/rendered/estimate/image/inliers",
+        "/world/query/rendered/estimate/image/guided",
         "/world/query/rendered/estimate/image/outliers",
         "/world/query/rendered/inliers",
         "/world/query/rendered/uncertainty",

@@ -188,6 +188,9 @@ class LocalizationResult:
     inlier_mask: np.ndarray | None = None
     match_similarity: np.ndarray | None = None  # (K,) cosine of landmark vs query descriptor per match
     estimate: np.ndarray | None = None  # last PnP estimate even when the checks refused it
+    # (K,) True for the matches that only the guided step found (by projection, not among the
+    # descriptor-matched inliers); None when the pose did not take the guided step
+    by_projection: np.ndarray | None = None
     # uncertainty of a successful pose (favormap.localize.refine.PoseCovariance; None when the final
     # weighted refinement is off)
     covariance: PoseCovariance | None = None
@@ -837,6 +840,7 @@ class Localizer:
             inlier_mask=None if last is None else last["inliers"],
             match_similarity=None if last is None else last["similarity"],
             estimate=est,
+            by_projection=None if last is None or "by_descriptor" not in last else ~last["by_descriptor"],
         )
 
     def _checks(self, q: _Query, last: dict, iters: list[IterationResult]) -> tuple[dict, str]:

@@ -12,6 +12,7 @@ from .. import geometry
 from .base import (
     GREY,
     GT,
+    GUIDED,
     INLIER,
     OUTLIER,
     PRIOR,
@@ -104,13 +105,20 @@ class LocalizeLog(RecordingBase):
             inl = np.asarray(result.inlier_mask, bool)
         sim = getattr(result, "match_similarity", None)
         sim = None if sim is None or len(sim) != len(matches) else np.asarray(sim, np.float64)
-        strips = {True: np.zeros((0, 2, 2)), False: np.zeros((0, 2, 2))}
+        guided = getattr(result, "by_projection", None)
+        guided = (
+            np.zeros(len(matches), bool) if guided is None or len(guided) != len(matches) else np.asarray(guided, bool)
+        )
+        strips = {True: np.zeros((0, 2, 2)), False: np.zeros((0, 2, 2)), "guided": np.zeros((0, 2, 2))}
         if len(matches) and self._map_positions is not None:
             uv, z = geometry.project(K, final, self._map_positions[matches[:, 0]], with_depth=True)
             front = z > 1e-9
             q = kp[matches[:, 1]]
-            for flag in (True, False):
-                sel = (inl == flag) & front
+            for flag, sel in (
+                (True, inl & ~guided & front),
+                ("guided", inl & guided & front),
+                (False, ~inl & front),
+            ):
                 strips[flag] = np.stack([q[sel], uv[sel]], 1)
             self.rec.log(
                 f"{base}/inliers",
@@ -121,6 +129,10 @@ class LocalizeLog(RecordingBase):
         self.rec.log(
             f"{base}/estimate/image/inliers",
             rr.LineStrips2D(strips[True], colors=[INLIER], radii=rr.Radius.ui_points(1.0)),
+        )
+        self.rec.log(
+            f"{base}/estimate/image/guided",
+            rr.LineStrips2D(strips["guided"], colors=[GUIDED], radii=rr.Radius.ui_points(1.0)),
         )
         self.rec.log(
             f"{base}/estimate/image/outliers",
