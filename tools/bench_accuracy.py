@@ -84,8 +84,8 @@ VARIANTS = {
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
     "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
-    # the Cauchy scale of the weighted refinement (default "auto": the residuals' own)
-    "rendered loss-1": ("rendered", {"refine_loss_scale": 1.0}),
+    # the Cauchy scale of the weighted refinement (default 1; "auto": the residuals' own)
+    "rendered loss-auto": ("rendered", {"refine_loss_scale": "auto"}),
     "rendered loss-2": ("rendered", {"refine_loss_scale": 2.0}),
     "rendered gated cos-0.6": ("rendered", {"guided_match_threshold": 0.6}),
     "rendered gated cos-0.5": ("rendered", {"guided_match_threshold": 0.5}),
@@ -145,7 +145,7 @@ DEFAULT_VARIANTS = (
     "mean no-guided",
     "nearest-view no-guided",
     "rendered gated every pose",
-    "rendered loss-1",
+    "rendered loss-auto",
     "rendered no-guided no-uncertainty",
     "rendered 8px no-mutual (old default)",
     "rendered no-checks",

@@ -120,13 +120,13 @@ class LocalizeConfig:
     landmark_sigma_px: float | str = "landmark"
     keypoint_sigma_px: float = 0.5  # query keypoint noise (px) of that refinement
     # Cauchy scale of that refinement, in whitened units: a number, or "auto" (the residuals' robust
-    # scale, re-estimated at every iterate, at least 1). Far from the mapping path the residuals are
-    # several times what the noise model says (the mapping poses' errors show there), and a scale
-    # of 1 treats most inliers as half-outliers. tools/bench_accuracy.py (2026-11-26, ninth session,
-    # noise priors, medians hold-out / extrapolation / orbit, units): 1 -> 0.0013 / 0.0065 / 0.00053;
-    # "auto" 0.0013 / 0.0057 / 0.00053 (extrapolation better in every angle bin, p90 0.0105 against
-    # 0.0111); 2 -> 0.0012 / 0.0064 / 0.00064
-    refine_loss_scale: float | str = "auto"
+    # scale, re-estimated at every iterate, at least 1: far from the mapping path the residuals are
+    # several times what the noise model says, and a scale of 1 treats most inliers as
+    # half-outliers). tools/bench_accuracy.py (2026-11-26, ninth session, noise priors, fox
+    # extrapolation): "auto" 0.0057 against 0.0065 units on the default (Adam) map, 13 of 19 queries
+    # better; but 0.0079 against 0.0071 on a quick map (8 of 20 better) and 0.0290 against 0.0167 on
+    # an XFeat map (7 of 17): not a robust gain, so an option; hold-out and orbit unchanged
+    refine_loss_scale: float | str = 1.0
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
