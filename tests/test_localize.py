@@ -522,6 +522,12 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     assert main(args + ["--guided-radius", "3", "--guided-below", "100000"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["success"] and res["iterations"][-1]["kind"] == "guided"
+    plain = [a for a in args if a != "--json"]
+    assert main(plain + ["--guided-below", "100000"]) == 0  # the plain text names the guided step
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].lstrip().startswith("iter 1:") and any(ln.lstrip().startswith("guided:") for ln in lines)
+    assert main(plain + ["--guided-below", "0"]) == 0
+    assert not any(ln.lstrip().startswith("guided:") for ln in capsys.readouterr().out.splitlines())
     assert main(args + ["--landmark-sigma", "-1"]) != 0
     err = capsys.readouterr().err
     assert "--landmark-sigma" in err and "Traceback" not in err

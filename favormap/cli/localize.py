@@ -270,10 +270,14 @@ def print_result(name: str, res) -> None:
     T = res.cam_from_world
     status = "localized" if res.success else f"NOT localized: {res.message}"
     print(f"{name}: {status}")
-    for k, it in enumerate(res.iterations, 1):
+    # "iter k" for the rendering iterations; the prior-free coarse pose and the guided step by name
+    k = 0
+    for it in res.iterations:
         c = camera_centers(it.cam_from_world)
+        k += it.kind == "render"
+        label = {"global": "no prior:", "guided": "guided:"}.get(it.kind, f"iter {k}:")
         print(
-            f"  iter {k}: visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
+            f"  {label:<12} visible {it.num_visible:5d}  matches {it.num_matches:5d}  inliers {it.num_inliers:5d}  "
             f"camera centre in world ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) scene units"
         )
     if res.success:
