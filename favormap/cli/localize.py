@@ -53,7 +53,7 @@ def add_localize_options(p):
     p.add_argument(
         "--guided-radius",
         type=float,
-        default=8.0,
+        default=None,
         help="guided step after the iterations: match every visible landmark to the query keypoints this close "
         "(px) to its projection and within 3 sigma of its predicted uncertainty, and solve again "
         "(default 8; 0: off; README, Accuracy)",
@@ -61,7 +61,7 @@ def add_localize_options(p):
     p.add_argument(
         "--guided-below",
         type=int,
-        default=400,
+        default=None,
         help="run the guided step only for poses with fewer inliers matched by descriptor than this "
         "(default 400: far from the mapping path; a large number: every pose)",
     )
@@ -130,11 +130,13 @@ def config_from_args(args):
         raise InputError("--ransac-px must be > 0")
     if args.min_inliers < 4:
         raise InputError("--min-inliers must be >= 4")
-    guided = getattr(args, "guided_radius", LocalizeConfig.guided_radius_px)
+    guided = getattr(args, "guided_radius", None)
+    guided = LocalizeConfig.guided_radius_px if guided is None else guided
     if not 0 <= guided < float("inf"):
         raise InputError("--guided-radius must be a number of pixels >= 0")
-    guided_below = getattr(args, "guided_below", LocalizeConfig.guided_below_inliers)
-    if guided_below < 0:
+    guided_below = getattr(args, "guided_below", None)
+    guided_below = LocalizeConfig.guided_below_inliers if guided_below is None else guided_below
+    if guided_below is not None and guided_below < 0:
         raise InputError("--guided-below must be a number of inliers >= 0")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):

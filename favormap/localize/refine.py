@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import rotvec_to_rotmat
+from ..geometry import project, rotvec_to_rotmat
 from ..mapfile import Map
 
 
@@ -106,7 +106,7 @@ def projection_information(
     info = np.zeros((len(P), 2, 2))
     if front.any():
         Pf = P[front]
-        uv[front] = (Pf[:, :2] / Pf[:, 2:]) * np.diag(K)[:2] + K[:2, 2]
+        uv[front] = project(K, T, np.asarray(points, np.float64).reshape(-1, 3)[front])
         Jp = _projection_jacobians(Pf, K)
         cov = None if point_cov is None else np.asarray(point_cov, np.float64)[front]
         info[front] = _inverse2(_image_covariances(Jp, T[:3, :3], cov, keypoint_sigma_px**2 * np.eye(2)))
