@@ -209,10 +209,12 @@ class Map(MapCounts):
             self._cache_d = np.empty((self.cache_size, R3, self.channels), np.float32)
             self._cache_s = np.empty((self.cache_size, R3), np.float32)
             self._next = 0
-        desc = np.empty((len(rows), R3, self.channels), np.float32)
-        dens = np.empty((len(rows), R3), np.float32)
         slots = self._slot[rows]
         hit = slots >= 0
+        if hit.all():  # warm (a localizer's next query): one gather, ~5x faster than the masked copies
+            return np.take(self._cache_d, slots, axis=0), np.take(self._cache_s, slots, axis=0)
+        desc = np.empty((len(rows), R3, self.channels), np.float32)
+        dens = np.empty((len(rows), R3), np.float32)
         desc[hit], dens[hit] = self._cache_d[slots[hit]], self._cache_s[slots[hit]]
         missing, inverse = np.unique(rows[~hit], return_inverse=True)
         if len(missing):

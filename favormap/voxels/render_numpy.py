@@ -97,7 +97,8 @@ def render_from_camera_numpy(
     factors[:, 1:] = 1.0 - alpha[:, :-1] + 1e-10
     w = np.cumprod(factors, axis=-1) * alpha * hit[:, None]
     a = np.einsum("ln,kln->lk", w, stencils)  # composite stencil (L, R^3)
-    d = np.einsum("lk,lkc->lc", a.astype(out_dtype), descriptors.astype(out_dtype, copy=False))
+    # (L, 1, R^3) @ (L, R^3, C): a batched product, ~1.6x faster than the equivalent einsum
+    d = np.matmul(a.astype(out_dtype)[:, None, :], descriptors.astype(out_dtype, copy=False))[:, 0]
     if normalize:
         d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
     return d.astype(np.float32, copy=False)
