@@ -24,6 +24,7 @@ from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
 from .features.cache import FeatureCache, source_stamp
 from .geometry import camera_centers, direction_cones, project, unproject
+from .heap import release_free_memory
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
@@ -108,27 +109,6 @@ class _Progress:
         t = time.perf_counter()
         yield
         self.timings[name] = round(time.perf_counter() - t, 3)
-
-
-def release_free_memory() -> None:
-    """Hand the heap's free pages back to the system (glibc ``malloc_trim``; a no-op elsewhere).
-
-    Stages such as tracking free many mid-sized arrays that glibc keeps in its heap, so the process
-    would otherwise enter the next stage with ~1 GB of free but resident memory on a 5,000-frame
-    build (tools/bench_build_memory.py)."""
-    global _malloc_trim
-    if _malloc_trim is None:
-        try:
-            import ctypes
-
-            _malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
-        except (OSError, AttributeError):
-            _malloc_trim = False
-    if _malloc_trim:
-        _malloc_trim(0)
-
-
-_malloc_trim = None
 
 
 @dataclass(frozen=True)
@@ -578,6 +558,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     release_free_memory()
     with pr.stage("train"):
         grids = train_batches(rays, config.voxel, config.train_batch, executor, pr.callback)
+    release_free_memory()  # the blocks training kept for reuse (favormap.heap)
     for it, loss, psnr in grids.history:  # the (landmark-weighted) training curve
         obs.on_train_step(it, loss, psnr)
     channels = rays.targets.shape[-1]

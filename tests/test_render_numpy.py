@@ -113,3 +113,28 @@ def test_lazy_package_exports():
     assert render_from_camera is direct and VoxelConfig is direct_cfg
     with pytest.raises(AttributeError):
         voxels.no_such_name  # noqa: B018
+
+
+def test_ray_stencils_are_trilinear_weights_at_the_samples():
+    """ray_stencils (node axis second) gives, for every ray and sample, the trilinear weights of the
+    sample point, as trilinear_stencil computes them point by point."""
+    import torch
+
+    from favormap.voxels.render import box_intersections, ray_stencils, trilinear_stencil
+
+    g = torch.Generator().manual_seed(3)
+    G, K, N, R = 4, 5, 7, 3
+    origins = torch.rand(G, K, 3, generator=g, dtype=torch.float64) * 3 - 1
+    dirs = torch.nn.functional.normalize(
+        0.5 - origins + 0.2 * torch.rand(G, K, 3, generator=g, dtype=torch.float64), dim=-1
+    )
+    st, delta, hit = ray_stencils(origins, dirs, R, N)
+    assert st.shape == (G, R**3, K, N) and hit.any()
+    t_near, t_far, _ = box_intersections(origins, dirs)
+    t = t_near[..., None] + (t_far - t_near).clamp_min(0)[..., None] * (
+        (torch.arange(N, dtype=torch.float64) + 0.5) / N
+    )
+    points = origins[..., None, :] + t[..., None] * dirs[..., None, :]  # (G, K, N, 3)
+    expected = trilinear_stencil(points, R)  # (G, K, N, R^3)
+    assert torch.allclose(st.permute(0, 2, 3, 1)[hit], expected[hit], atol=1e-12)
+    assert torch.allclose(st.sum(1)[hit], torch.ones(int(hit.sum()), N, dtype=torch.float64))

@@ -51,38 +51,53 @@ def trilinear_stencil(points: torch.Tensor, R: int) -> torch.Tensor:
     return _outer3(_hats(g[..., 0], R), _hats(g[..., 1], R), _hats(g[..., 2], R))
 
 
+def _hats_node_second(g: torch.Tensor, R: int) -> torch.Tensor:
+    """1D hat weights (B, R, ...) of grid coordinates g (B, ...): the node axis second."""
+    nodes = torch.arange(R, dtype=g.dtype, device=g.device).view((1, R) + (1,) * (g.dim() - 1))
+    return (g.unsqueeze(1) - nodes).abs_().neg_().add_(1.0).clamp_min_(0.0)
+
+
 def ray_stencils(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: int):
-    """Geometry of rays (local frame; any batch shape (..., 3)). Returns the per-sample trilinear
-    stencils (..., N, R^3), the sample spacing delta (...) in voxel units and the hit mask (...).
-    (The stencils are built axis by axis from the sample parameters, without forming the sample
-    points: with R = 3 this and :func:`composite`'s two matmuls train ~1.8x faster on CPU than the
-    former gather/scatter of the 8 corners of every sample.)"""
+    """Geometry of rays (local frame; batch shape (B, ..., 3)). Returns the per-sample trilinear
+    stencils (B, R^3, ..., N), the sample spacing delta (B, ...) in voxel units and the hit mask
+    (B, ...).
+
+    The stencils are built axis by axis from the sample parameters, without forming the sample
+    points, and with the node axis second: the outer products of the per-axis hats then run over
+    long contiguous rows (..., N). With the node axis last (..., N, R^3) the same products broadcast
+    over trailing axes of length 3 and took ~3x longer (fox, 3,000 landmarks x 48 rays x 12
+    samples: 88 -> 33 ms per training iteration for the stencils, 259 -> 137 ms with compositing
+    and its gradient)."""
     dirs = F.normalize(dirs, dim=-1)
     t_near, t_far, hit = box_intersections(origins, dirs)
     span = (t_far - t_near).clamp_min(0.0)
     steps = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + 0.5) / n_samples
-    t = t_near[..., None] + span[..., None] * steps  # (..., N)
-    hats = [
-        _hats((origins[..., ax, None] + t * dirs[..., ax, None]).clamp_(0.0, 1.0).mul_(R - 1), R) for ax in range(3)
-    ]
-    return _outer3(*hats), span / n_samples, hit
+    t = t_near[..., None] + span[..., None] * steps  # (B, ..., N)
+    hx, hy, hz = (
+        _hats_node_second((origins[..., ax, None] + t * dirs[..., ax, None]).clamp_(0.0, 1.0).mul_(R - 1), R)
+        for ax in range(3)
+    )
+    xy = hx[:, :, None] * hy[:, None, :]  # (B, R, R, ..., N)
+    st = xy[:, :, :, None] * hz[:, None, None, :]  # (B, R, R, R, ..., N): node order (x, y, z) row-major
+    return st.flatten(1, 3), span / n_samples, hit
 
 
 def composite(stencils: torch.Tensor, delta: torch.Tensor, density_raw: torch.Tensor, hit: torch.Tensor | None = None):
     """Composite stencil (G, K, R^3) and accumulated opacity (G, K) of rays grouped by landmark:
     a ray's descriptor is its composite stencil times the node descriptors.
 
-    stencils: (G, K, N, R^3); delta: (G, K); density_raw: (G, R^3); hit (G, K): rays that miss the
-    cube get zero."""
-    G, K, N, R3 = stencils.shape
-    raw = torch.bmm(stencils.reshape(G, K * N, R3), density_raw[:, :, None]).view(G, K, N)
+    stencils: (G, R^3, K, N) (:func:`ray_stencils`); delta: (G, K); density_raw: (G, R^3); hit (G, K):
+    rays that miss the cube get zero. The composite stencil is a transposed view of a (G, R^3, K)
+    tensor."""
+    G, R3, K, N = stencils.shape
+    raw = torch.bmm(density_raw[:, None, :], stencils.reshape(G, R3, K * N)).view(G, K, N)
     sigma = F.softplus(raw)
     alpha = 1.0 - torch.exp(-sigma * delta[..., None])
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1] + 1e-10], -1), -1)
     w = trans * alpha
     if hit is not None:
         w = w * hit[..., None]
-    return torch.matmul(w[..., None, :], stencils).squeeze(-2), w.sum(-1)
+    return torch.einsum("grkn,gkn->grk", stencils, w).transpose(1, 2), w.sum(-1)
 
 
 def render(descriptors: torch.Tensor, density_raw: torch.Tensor, stencils, delta, hit):

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..heap import reuse_freed_blocks
 from .render import composite, ray_stencils, render, to_local
 
 
@@ -171,6 +172,7 @@ class _BatchedAdam:
         self.params, self.lrs, self.factors = params, lrs, factors
         self.m = [torch.zeros_like(p) for p in params]
         self.v = [torch.zeros_like(p) for p in params]
+        self.buf = [torch.empty_like(p) for p in params]
         self.b1, self.b2, self.eps, self.t = betas[0], betas[1], eps, 0
 
     @torch.no_grad()
@@ -178,12 +180,14 @@ class _BatchedAdam:
         self.t += 1
         c1 = 1 - self.b1**self.t
         c2 = 1 - self.b2**self.t
-        for p, m, v, lr, f in zip(self.params, self.m, self.v, self.lrs, self.factors):
+        for p, m, v, lr, f, buf in zip(self.params, self.m, self.v, self.lrs, self.factors, self.buf):
             g = p.grad
             m.mul_(self.b1).add_(g, alpha=1 - self.b1)
             v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
-            upd = (m / c1) / ((v / c2).sqrt() + self.eps)
-            p.sub_(lr * lr_scale * (f.view(f.shape + (1,) * (p.dim() - f.dim())) * upd))
+            # p -= lr f (m / c1) / (sqrt(v / c2) + eps), in place in one buffer per parameter
+            torch.div(v, c2, out=buf).sqrt_().add_(self.eps)
+            torch.div(m, buf, out=buf).mul_(f.view(f.shape + (1,) * (p.dim() - f.dim())))
+            p.sub_(buf, alpha=lr * lr_scale / c1)
             p.grad = None
 
 
@@ -208,7 +212,7 @@ def _visibility(data, origins_l, dirs_all, R, cfg, device) -> torch.Tensor:
         st, _, hit = ray_stencils(
             origins_l[sl][:, None, :].expand(-1, dirs_all.shape[1], -1), dirs_all[sl], R, cfg.samples
         )
-        touched = ((st > 0) & hit[..., None, None]).flatten(1, 2).any(1)  # (n, R^3)
+        touched = ((st > 0) & hit[:, None, :, None]).flatten(2).any(-1)  # (n, R^3)
         counts.index_add_(0, lm[sl], touched.float())
     return counts
 
@@ -290,6 +294,8 @@ def train_voxels(
     if cfg.solver != "adam":
         raise ValueError(f"unknown VoxelConfig.solver {cfg.solver!r} (lstsq, adam)")
     dev = torch.device(device)
+    if dev.type == "cpu":
+        reuse_freed_blocks()  # the loop's large temporaries: reused heap blocks, not fresh mappings
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     R, C = cfg.resolution, data.targets.shape[-1]
     L, P = len(data.centers), data.ray_dirs.shape[1]
