@@ -111,3 +111,18 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     assert loc.config.global_ratio == loc.extractor.match_ratio == 0.9
     errs = localize_perturbed(loc, small_sequence.frames[1::5])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
+
+
+def test_features_pickle_with_their_keypoint_frames(room_image):
+    """Features travel to and from Ray workers by pickle: the keypoints' sizes, angles and octaves
+    (read from OpenCV only when needed) arrive, and sampling gives the same descriptors."""
+    import pickle
+
+    ex = features.create("sift", max_keypoints=300)
+    f = ex.extract(room_image)
+    g = pickle.loads(pickle.dumps(f))
+    for k in ("xy", "size", "angle", "octave"):
+        assert np.array_equal(getattr(g.dense, k), getattr(f.dense, k))
+    assert len(f.dense.size) == len(f.keypoints) and (f.dense.size > 0).all()
+    pts = f.keypoints[:20] + 1.5
+    assert np.array_equal(ex.sample(g, pts), ex.sample(f, pts))

@@ -15,21 +15,50 @@ instead of two per query image."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
 from .base import Extractor, Features, register
 
 
-@dataclass
 class _SiftState:
-    gray: np.ndarray
-    xy: np.ndarray  # (N, 2) keypoints, COLMAP convention
-    size: np.ndarray  # (N,) OpenCV keypoint size
-    angle: np.ndarray  # (N,) OpenCV keypoint angle (deg)
-    octave: np.ndarray  # (N,) OpenCV's packed octave / layer of each keypoint
+    """What :meth:`SIFTExtractor.sample` needs of an image: the grey image and its keypoints'
+    positions (COLMAP convention), OpenCV sizes, angles (deg) and packed octaves (octave & 255 |
+    layer << 8). A localizer never samples, so the sizes, angles and octaves are read from the
+    OpenCV keypoints on first use (reading cv2.KeyPoint attributes costs ~1 us each, ~5 ms per
+    4,096-keypoint query)."""
+
+    def __init__(self, gray, xy, size=None, angle=None, octave=None, keypoints=None):
+        self.gray, self.xy = gray, xy
+        self._size, self._angle, self._octave = size, angle, octave
+        self._keypoints = keypoints  # the kept cv2.KeyPoints, in the order of xy
+
+    def _read(self):
+        if self._size is None:
+            kp = self._keypoints or ()
+            self._size = np.fromiter((k.size for k in kp), np.float32, len(kp))
+            self._angle = np.fromiter((k.angle for k in kp), np.float32, len(kp))
+            self._octave = np.fromiter((k.octave for k in kp), np.int64, len(kp))
+            self._keypoints = None
+
+    def __getstate__(self):  # pickling (Ray tasks, process pools): arrays only, cv2.KeyPoint does not pickle
+        self._read()
+        return dict(self.__dict__)
+
+    @property
+    def size(self) -> np.ndarray:  # (N,) OpenCV keypoint size
+        self._read()
+        return self._size
+
+    @property
+    def angle(self) -> np.ndarray:  # (N,) OpenCV keypoint angle (deg)
+        self._read()
+        return self._angle
+
+    @property
+    def octave(self) -> np.ndarray:  # (N,) OpenCV's packed octave / layer of each keypoint
+        self._read()
+        return self._octave
 
 
 # nOctaveLayers and sigma of cv2.SIFT_create's defaults (used to place a size in the pyramid)
@@ -86,25 +115,17 @@ class SIFTExtractor(Extractor):
         kps, desc = self._sift.detectAndCompute(gray, None)
         if desc is None or not len(kps):
             kps, desc = (), np.zeros((0, 128), np.float32)
-        # every keypoint's x, y, size, angle, response, octave in one pass (reading cv2.KeyPoint
-        # attributes is the slow part of this function)
-        kp = np.array([(*k.pt, k.size, k.angle, k.response, k.octave) for k in kps], np.float64).reshape(-1, 6)
-        order = np.argsort(-kp[:, 4], kind="stable")[: self.max_keypoints]
-        xy = kp[order, :2].astype(np.float32)
+        xy = cv2.KeyPoint_convert(kps).reshape(-1, 2) if len(kps) else np.zeros((0, 2), np.float32)
+        response = np.fromiter((k.response for k in kps), np.float32, len(kps))
+        order = np.argsort(-response, kind="stable")[: self.max_keypoints]
         if self.orientations == "all":
             uniq = order
         else:  # several detections at one position (different orientations): keep the strongest
-            _, first = np.unique(np.round(xy, 1), axis=0, return_index=True)
+            q = np.round(xy[order].astype(np.float64) * 10).astype(np.int64)  # positions to 0.1 px
+            _, first = np.unique((q[:, 0] << 32) + q[:, 1], return_index=True)
             uniq = order[np.sort(first)]
-        state = _SiftState(
-            gray,
-            kp[uniq, :2].astype(np.float32) + 0.5,
-            kp[uniq, 2].astype(np.float32),
-            kp[uniq, 3].astype(np.float32),
-            kp[uniq, 5].astype(np.int64),
-        )
-        scores = kp[uniq, 4].astype(np.float32)
-        return Features(state.xy, scores, _root_sift(desc[uniq]), (image.shape[1], image.shape[0]), state)
+        state = _SiftState(gray, xy[uniq] + 0.5, keypoints=[kps[i] for i in uniq])
+        return Features(state.xy, response[uniq], _root_sift(desc[uniq]), (image.shape[1], image.shape[0]), state)
 
     @classmethod
     def state_arrays(cls, state: _SiftState) -> dict[str, np.ndarray]:
