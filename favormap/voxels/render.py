@@ -66,8 +66,8 @@ def ray_stencils(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: i
     points, and with the node axis second: the outer products of the per-axis hats then run over
     long contiguous rows (..., N). With the node axis last (..., N, R^3) the same products broadcast
     over trailing axes of length 3 and took ~3x longer (fox, 3,000 landmarks x 48 rays x 12
-    samples: 88 -> 33 ms per training iteration for the stencils, 259 -> 137 ms with compositing
-    and its gradient)."""
+    samples, with favormap.heap's policy: 88 -> 33 ms per training iteration for the stencils,
+    259 -> 137 ms with compositing and its gradient)."""
     dirs = F.normalize(dirs, dim=-1)
     t_near, t_far, hit = box_intersections(origins, dirs)
     span = (t_far - t_near).clamp_min(0.0)
