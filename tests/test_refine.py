@@ -115,3 +115,26 @@ def test_the_auto_loss_scale_follows_residuals_larger_than_the_model():
     assert rms(auto) < 0.95 * rms(fixed), (rms(auto), rms(fixed))
     assert np.mean(np.array(auto) < np.array(fixed)) >= 0.6
     assert max(same) < 1e-5  # the same optimum, up to the iterations' convergence
+
+
+def test_the_covariance_can_count_a_subset_of_the_correspondences():
+    """covariance_mask: every correspondence refines the pose, only the masked ones count in its
+    covariance (the localizer's guided matches, chosen near their predicted projections, are not
+    independent evidence). The result is the covariance of the subset at the same pose."""
+    rng = np.random.default_rng(4)
+    X, m = _landmarks(rng, 400)
+    gt = look_at(np.array([2.0, -0.5, -4.0]), np.zeros(3))
+    uv = project(CAM.K, gt, X) + rng.normal(0.0, 0.5, (len(X), 2))
+    start = perturb_pose(gt, 0.05, 1.0, rng)
+    cov = landmark_covariances(m, np.arange(len(X)), 0.5)
+    mask = rng.random(len(X)) < 0.5
+    T_all, c_all = refine_pose(start, X, uv, CAM.K, cov, return_covariance=True)
+    T_sub, c_sub = refine_pose(start, X, uv, CAM.K, cov, return_covariance=True, covariance_mask=mask)
+    np.testing.assert_allclose(T_sub, T_all)  # the same pose
+    ratio = np.trace(c_sub.center) / np.trace(c_all.center)
+    assert 1.5 < ratio < 2.7  # about half the evidence: about twice the variance
+    _, c_alone = refine_pose(T_all, X[mask], uv[mask], CAM.K, cov[mask], iterations=1, return_covariance=True)
+    np.testing.assert_allclose(c_sub.center, c_alone.center, rtol=0.02)
+    few = np.zeros(len(X), bool)
+    few[:5] = True
+    assert refine_pose(start, X, uv, CAM.K, cov, return_covariance=True, covariance_mask=few)[1] is None

@@ -130,6 +130,7 @@ def refine_pose(
     iterations: int = 10,
     return_covariance: bool = False,
     variance_factor: np.ndarray | None = None,
+    covariance_mask: np.ndarray | None = None,
 ):
     """Gauss-Newton refinement of ``cam_from_world`` (4x4) from correspondences ``points`` (N, 3)
     -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
@@ -140,7 +141,8 @@ def refine_pose(
     left out. ``variance_factor`` (N,) scales each residual's covariance (a group of matches
     known to be noisier than the model). Returns the refined pose (the input when fewer than 6
     points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
-    (None when it cannot be computed)."""
+    (None when it cannot be computed); ``covariance_mask`` (N,) bool restricts the covariance to
+    those correspondences (the evidence independent of the pose; all refine the pose)."""
     if not keypoint_sigma_px > 0:
         raise ValueError("keypoint_sigma_px must be > 0")
     T = np.array(cam_from_world, np.float64)
@@ -198,8 +200,11 @@ def refine_pose(
         # weights would count a 1-sigma residual half and overstate the spread), scaled by the
         # residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
         # never below 1: the noise model is a floor
-        H0 = J.reshape(-1, 6).T @ SiJ.reshape(-1, 6)
-        scale = max(float(np.median(chi2)) / (2 * np.log(2)), 1.0)
+        keep = np.ones(len(J), bool) if covariance_mask is None else np.asarray(covariance_mask, bool)[front]
+        if keep.sum() < 6:
+            return T, None
+        H0 = J[keep].reshape(-1, 6).T @ SiJ[keep].reshape(-1, 6)
+        scale = max(float(np.median(chi2[keep])) / (2 * np.log(2)), 1.0)
         try:
             cov = PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
         except np.linalg.LinAlgError:
