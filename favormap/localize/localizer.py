@@ -35,7 +35,14 @@ from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
-from .refine import PoseCovariance, landmark_covariances, mapping_pixel_sigma, projection_information, refine_pose
+from .refine import (
+    PoseCovariance,
+    landmark_covariances,
+    mahalanobis2,
+    mapping_pixel_sigma,
+    projection_information,
+    refine_pose,
+)
 
 
 @dataclass
@@ -404,7 +411,7 @@ def match_near(
     if gate is not None:
         info, d2_max = gate
         r = keypoints[kj] - uv[li]
-        inside = np.einsum("ni,nij,nj->n", r, info[li], r) <= d2_max
+        inside = mahalanobis2(info[li], r) <= d2_max
         li, kj = li[inside], kj[inside]
     sim = np.einsum("ij,ij->i", rendered[li], query[kj])
     best_l = np.full(len(rendered), -3.0, np.float32)
@@ -720,17 +727,15 @@ class Localizer:
         # errors follow the pose's. Fox extrapolation (20 queries, /tmp script in the issue-11 note):
         # median NEES 19.4 with every inlier, 8.0 with the descriptor ones (a right covariance: 2.37);
         # hold-out 1.7 -> 1.1
-        independent = last["by_descriptor"][last["inliers"]] if "by_descriptor" in last else None
-        if cfg.guided_reweight and "by_descriptor" in last:
-            by_desc = last["by_descriptor"][last["inliers"]]
-            if by_desc.sum() >= 6 and (~by_desc).any():
-                T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, cfg.keypoint_sigma_px)
-                uv, info = projection_information(T1, X, q.cam.K, Xcov, cfg.keypoint_sigma_px)
-                d2 = np.einsum("ni,nij,nj->n", kp - uv, info, kp - uv)
-                m_desc = float(np.nanmedian(d2[by_desc]))
-                m_proj = float(np.nanmedian(d2[~by_desc]))
-                factor = np.where(by_desc, 1.0, max(m_proj / max(m_desc, 1e-12), 1.0))
-                it.cam_from_world = T1
+        by_desc = last["by_descriptor"][last["inliers"]] if "by_descriptor" in last else None
+        if cfg.guided_reweight and by_desc is not None and by_desc.sum() >= 6 and (~by_desc).any():
+            T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, cfg.keypoint_sigma_px)
+            uv, info = projection_information(T1, X, q.cam.K, Xcov, cfg.keypoint_sigma_px)
+            d2 = mahalanobis2(info, kp - uv)
+            m_desc = float(np.nanmedian(d2[by_desc]))
+            m_proj = float(np.nanmedian(d2[~by_desc]))
+            factor = np.where(by_desc, 1.0, max(m_proj / max(m_desc, 1e-12), 1.0))
+            it.cam_from_world = T1
         it.cam_from_world, cov = refine_pose(
             it.cam_from_world,
             X,
@@ -741,7 +746,7 @@ class Localizer:
             loss_scale=cfg.refine_loss_scale,
             return_covariance=True,
             variance_factor=factor,
-            covariance_mask=independent if independent is not None and independent.sum() >= 6 else None,
+            covariance_mask=by_desc if by_desc is not None and by_desc.sum() >= 6 else None,
         )
         t["pnp"] += time.perf_counter() - s
         return cov
@@ -763,7 +768,7 @@ class Localizer:
         inl = last["matches"][last["inliers"]]
         uv, info = self._noise_model(q, pose, inl[:, 0])
         r = q.feats.keypoints[inl[:, 1]] - uv
-        d2 = np.einsum("ni,nij,nj->n", r, info, r)
+        d2 = mahalanobis2(info, r)
         d2 = d2[np.isfinite(d2)]
         return max(float(np.median(d2)) / (2 * np.log(2)), 1.0) if len(d2) else 1.0
 

@@ -88,8 +88,9 @@ def _inverse2(S: np.ndarray) -> np.ndarray:
     return Si
 
 
-def _quadratic2(S: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """(n,) r_i^T S_i r_i of symmetric 2 x 2 blocks ``S`` (n, 2, 2) and vectors ``r`` (n, 2)."""
+def mahalanobis2(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(n,) r_i^T S_i r_i of symmetric 2 x 2 blocks ``S`` (n, 2, 2) (information matrices) and
+    residuals ``r`` (n, 2): the squared Mahalanobis distances of the refinement's noise model."""
     return S[:, 0, 0] * r[:, 0] ** 2 + 2 * S[:, 0, 1] * r[:, 0] * r[:, 1] + S[:, 1, 1] * r[:, 1] ** 2
 
 
@@ -167,7 +168,7 @@ def refine_pose(
         if variance_factor is not None:
             Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
         SiJ = Si @ J  # (n, 2, 6)
-        chi2 = _quadratic2(Si, r)  # squared whitened residual r^T S^-1 r
+        chi2 = mahalanobis2(Si, r)  # squared whitened residual r^T S^-1 r
         c = loss_scale
         if loss_scale == "auto":  # the residuals' robust scale at this iterate (never below the model's)
             c = max(float(np.sqrt(np.median(chi2) / (2 * np.log(2)))), 1.0)
