@@ -533,7 +533,7 @@ class Localizer:
                 "without a prior, matching against all landmarks "
                 f"found no pose ({it.num_matches} matches, {it.num_inliers} inliers)",
             )
-        res = self._refine(q, coarse, (first.iterations if first is not None else []) + [it], t)
+        res = self._refine(q, coarse, (first.iterations if first is not None else []) + [it], t, anchor=coarse)
         self._confirm(q, res, coarse, t)  # the refinement must stay where the coarse pose put it
         if not res.success and first is not None:
             res.message = f"{first.message}; from a coarse pose found without the prior: {res.message}"
@@ -633,7 +633,19 @@ class Localizer:
         t["visibility"] += time.perf_counter() - s
         return rows
 
-    def _refine(self, q: _Query, start: np.ndarray, iters: list[IterationResult], t: dict) -> LocalizationResult:
+    def _refine(
+        self, q: _Query, start: np.ndarray, iters: list[IterationResult], t: dict, anchor: np.ndarray | None = None
+    ) -> LocalizationResult:
+        """The rendering iterations from ``start``, then the guided step and the weighted refinement.
+
+        ``anchor``: the prior-free estimate this refinement starts from. A pose with fewer than
+        ``checks.confirm_below_inliers`` inliers that leaves it by more than
+        ``checks.max_iteration_change`` would be refused by :meth:`_confirm`; for such a RANSAC
+        solution the iteration takes the pose it rendered from, refined on its own inliers among the
+        same matches (:meth:`_local_pnp`), instead. On the fox's wallpaper (query 0072 of the
+        extrapolation split) RANSAC preferred a false consensus 6.8 units away (46 inliers at 4 px,
+        on one repeated flower) to the correct pose (38 inliers at 4 px, 0.015 units from the truth):
+        a larger inlier set is no evidence against a pose that the prior-free estimate confirms."""
         cfg = self.config
         pose = start
         last = None
@@ -651,7 +663,10 @@ class Localizer:
             m = _distinct_pairs(m, drows, len(rows))
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
-            ans = self._pnp(q, self.map.positions[drows[m[:, 0]]], m[:, 1], t)
+            points = self.map.positions[drows[m[:, 0]]]
+            ans = self._pnp(q, points, m[:, 1], t)
+            if anchor is not None and ans is not None and self._leaves(ans, anchor):
+                ans = self._local_pnp(q, pose, points, m[:, 1], t)
             n_in = int(ans["num_inliers"]) if ans is not None else 0
             ok = ans is not None and n_in >= cfg.checks.min_inliers
             new_pose = from_rigid3d(ans["cam_from_world"]) if ok else pose
@@ -678,6 +693,49 @@ class Localizer:
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None
         return res
+
+    def _leaves(self, ans: dict, anchor: np.ndarray) -> bool:
+        """Whether a PnP solution ``ans`` with few inliers lies beyond ``checks.max_iteration_change``
+        of ``anchor`` (so that :meth:`_confirm` would refuse it)."""
+        c = self.config.checks
+        if int(ans["num_inliers"]) >= c.confirm_below_inliers:
+            return False
+        dt, dr = pose_error(from_rigid3d(ans["cam_from_world"]), anchor)
+        return dt / self.scale > c.max_iteration_change[0] or dr > c.max_iteration_change[1]
+
+    def _local_pnp(self, q: _Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, t: dict, rounds: int = 3):
+        """``pose`` refined on its own inliers (within ``ransac_max_error_px``) among the matches
+        ``points`` <-> ``q.feats.keypoints[kp_idx]``, repeated until the inlier set stops changing: the
+        local optimisation of RANSAC with ``pose`` as the only hypothesis. Returns a dict shaped as
+        pycolmap's estimate (cam_from_world, num_inliers, inlier_mask), or None."""
+        import pycolmap
+
+        from ..geometry import to_rigid3d
+
+        s = time.perf_counter()
+        thr = self.config.ransac_max_error_px
+        uv = q.feats.keypoints[kp_idx].astype(np.float64)
+        X = np.asarray(points, np.float64)
+
+        def inliers(T):
+            p, z = project(q.cam.K, T, X, with_depth=True)
+            return (z > 0) & (np.linalg.norm(p - uv, axis=1) < thr)
+
+        out, mask = None, inliers(pose)
+        for _ in range(rounds):
+            if mask.sum() < 4:
+                break
+            r = pycolmap.refine_absolute_pose(to_rigid3d(pose), uv, X, mask, q.cam.to_pycolmap())
+            if r is None:
+                break
+            pose = from_rigid3d(r["cam_from_world"])
+            new = inliers(pose)
+            out = dict(cam_from_world=r["cam_from_world"], num_inliers=int(new.sum()), inlier_mask=new)
+            if np.array_equal(new, mask):
+                break
+            mask = new
+        t["pnp"] += time.perf_counter() - s
+        return out
 
     def _guided_steps(
         self, q: _Query, pose: np.ndarray, iters: list[IterationResult], found: dict, weighted: bool, t: dict
