@@ -461,6 +461,19 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
         )
 
 
+def track_mean_descriptors(rays: TrainingRays, n_landmarks: int, patch_size: int, mean_patch: int = 0) -> np.ndarray:
+    """(L, C) unit mean descriptor of each landmark: the mean over its observations of the central
+    ``mean_patch`` x ``mean_patch`` pixels of each training patch (0, or at least ``patch_size``: the
+    whole patch), as ``landmarks/mean_descriptor`` stores it."""
+    if mean_patch < 0:
+        raise ValueError(f"VoxelConfig.mean_patch must be >= 0 (0: the whole patch), not {mean_patch}")
+    half = (mean_patch or patch_size) / 2
+    central = np.flatnonzero(np.abs(patch_offsets(patch_size)).max(1) < half)
+    out = np.zeros((n_landmarks, rays.targets.shape[-1]), np.float64)
+    np.add.at(out, rays.obs_landmark, rays.targets[:, central].mean(1))
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+
+
 def build_map(
     seq: Sequence,
     config: BuildConfig | None = None,
@@ -563,9 +576,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         obs.on_train_step(it, loss, psnr)
     channels = rays.targets.shape[-1]
     view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
-    mean_desc = np.zeros((len(lms), channels), np.float64)
-    np.add.at(mean_desc, rays.obs_landmark, rays.targets.mean(1))
-    mean_desc /= np.maximum(np.linalg.norm(mean_desc, axis=1, keepdims=True), 1e-12)
+    mean_desc = track_mean_descriptors(rays, len(lms), config.voxel.patch_size, config.voxel.mean_patch)
     stats = {
         "frames": len(seq.frames),
         "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,

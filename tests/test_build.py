@@ -124,3 +124,30 @@ def test_ray_option_without_ray_is_one_clear_error(monkeypatch, small_sequence, 
     assert rc == 1 and "\n" not in err, err
     assert "Ray, which is not installed: pip install 'favormap[distributed]'" in err
     assert not out.exists()
+
+
+def test_the_stored_mean_descriptor_averages_the_central_pixels_of_each_patch():
+    """build.track_mean_descriptors (VoxelConfig.mean_patch): with 5 x 5 patches and mean_patch 3 a
+    landmark's mean is the unit mean of the 3 x 3 central targets of its observations; 0 (or a window
+    as large as the patch) averages every pixel."""
+    from favormap.build import track_mean_descriptors
+    from favormap.features import patch_offsets
+    from favormap.voxels import TrainingRays
+
+    rng = np.random.default_rng(0)
+    S, O, C = 5, 7, 4
+    obs_lm = np.array([0, 0, 0, 1, 1, 2, 2])
+    targets = rng.normal(size=(O, S * S, C)).astype(np.float32)
+    rays = TrainingRays(np.zeros((3, 3)), np.ones(3), obs_lm, np.zeros((O, 3)), np.zeros((O, S * S, 3)), targets)
+    central = np.abs(patch_offsets(S)).max(1) <= 1
+    assert central.sum() == 9
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+    want3 = unit(np.stack([targets[obs_lm == k][:, central].mean(1).sum(0) for k in range(3)]))
+    want_all = unit(np.stack([targets[obs_lm == k].mean(1).sum(0) for k in range(3)]))
+    np.testing.assert_allclose(track_mean_descriptors(rays, 3, S, 3), want3, atol=1e-6)
+    np.testing.assert_allclose(track_mean_descriptors(rays, 3, S, 0), want_all, atol=1e-6)
+    np.testing.assert_allclose(track_mean_descriptors(rays, 3, S, 9), want_all, atol=1e-6)
+    assert not np.allclose(want3, want_all)

@@ -50,6 +50,9 @@ class VoxelConfig:
     # -- model ------------------------------------------------------------------------------
     resolution: int = 3  # R: nodes per axis of each landmark's grid
     patch_size: int = 7  # S: training patch S x S pixels around each observation
+    # the stored mean descriptor (the prior-free step's and the "mean" baseline's) averages the central
+    # mean_patch x mean_patch pixels of each patch (0: the whole patch)
+    mean_patch: int = 0
     box_factor: float = 7.0  # voxel side = box_factor * min_i l_ij / f_i (paper eq. 2: S; reference code: 12)
     samples: int = 12  # N samples per ray (training and rendering)
     density_init: float = 1.0  # initial sigma per voxel side, uniform
