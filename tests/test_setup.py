@@ -163,3 +163,42 @@ def test_benchmark_help_works(script):
     """Each benchmark's --help prints its usage (a '%' in a help text once broke bench_accuracy's)."""
     r = subprocess.run([sys.executable, str(REPO / "tools" / script), "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "usage:" in r.stdout, r.stderr[-500:]
+
+
+def test_accuracy_benchmark_groups_rows_across_training_seeds():
+    """tools/bench_accuracy.py --train-seeds: the rows of a map's seed copies (NAME-sK, or sK for the
+    default map) are grouped with that map's rows, per split, prior and method."""
+    import importlib.util
+
+    from favormap.build import BuildConfig
+
+    spec = importlib.util.spec_from_file_location("bench_accuracy", REPO / "tools" / "bench_accuracy.py")
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules["bench_accuracy"] = bench  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(bench)
+    finally:
+        del sys.modules["bench_accuracy"]
+
+    def cfg(seed):
+        c = BuildConfig()
+        c.voxel.seed = seed
+        return c
+
+    build_cfgs = [("", cfg(0)), ("s2", cfg(2)), ("b", cfg(0)), ("b-s2", cfg(2))]
+
+    def row(variant, method, med, loc=3, fs=0):
+        return dict(split="fox", prior="noise", map_variant=variant, method=method, median_translation=med,
+                    localized=loc, queries=3, false_successes=fs)  # fmt: skip
+
+    rows = [
+        row("", "rendered", 0.002),
+        row("s2", "s2 rendered", 0.004, loc=2, fs=1),
+        row("b", "b rendered", 0.003),
+        row("b-s2", "b-s2 rendered", None, loc=0),
+        dict(split="fox", prior="none", method="pycolmap-SIFT", median_translation=0.001),  # no map: left out
+    ]
+    table = bench.seed_table(rows, build_cfgs).splitlines()
+    assert table[2] == "| fox | noise | rendered | 0,2 | 0.0020 / 0.0040 | 0.0020-0.0040 | 0.0030 | 5/6 | 1 |"
+    assert table[3] == "| fox | noise | b rendered | 0,2 | 0.0030 / - | 0.0030-0.0030 | 0.0030 | 3/6 | 0 |"
+    assert len(table) == 4
