@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import from_rigid3d, pose_error, project
+from ..geometry import from_rigid3d, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
@@ -578,11 +578,11 @@ class Localizer:
             return
         coarse, it = self._global_pose(q, t)
         if coarse is not None:
-            dt, dr = pose_error(coarse, res.cam_from_world)
-            res.checks["confirmation_change"], res.checks["confirmation_change_deg"] = dt / self.scale, dr
-            if dt / self.scale <= c.max_iteration_change[0] and dr <= c.max_iteration_change[1]:
+            change = self._change(coarse, res.cam_from_world)
+            res.checks["confirmation_change"], res.checks["confirmation_change_deg"] = change
+            if not self._apart(change):
                 return
-            why = f"it lies {dt / self.scale:.3f} x landmark depth, {dr:.2f} deg from the estimate without the prior"
+            why = f"it lies {change[0]:.3f} x landmark depth, {change[1]:.2f} deg from the estimate without the prior"
         else:
             res.checks["confirmation_change"] = None
             why = f"without the prior no pose was found ({it.num_matches} matches, {it.num_inliers} inliers)"
@@ -694,14 +694,22 @@ class Localizer:
         res.covariance = cov if res.success else None
         return res
 
+    def _change(self, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+        """How far apart two poses are: (translation / median landmark depth, rotation in deg)."""
+        dt, dr = pose_error(a, b)
+        return dt / self.scale, dr
+
+    def _apart(self, change: tuple[float, float]) -> bool:
+        """Whether a :meth:`_change` exceeds ``checks.max_iteration_change``."""
+        limit = self.config.checks.max_iteration_change
+        return change[0] > limit[0] or change[1] > limit[1]
+
     def _leaves(self, ans: dict, anchor: np.ndarray) -> bool:
         """Whether a PnP solution ``ans`` with few inliers lies beyond ``checks.max_iteration_change``
         of ``anchor`` (so that :meth:`_confirm` would refuse it)."""
-        c = self.config.checks
-        if int(ans["num_inliers"]) >= c.confirm_below_inliers:
+        if int(ans["num_inliers"]) >= self.config.checks.confirm_below_inliers:
             return False
-        dt, dr = pose_error(from_rigid3d(ans["cam_from_world"]), anchor)
-        return dt / self.scale > c.max_iteration_change[0] or dr > c.max_iteration_change[1]
+        return self._apart(self._change(from_rigid3d(ans["cam_from_world"]), anchor))
 
     def _local_pnp(self, q: _Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, t: dict, rounds: int = 3):
         """``pose`` refined on its own inliers (within ``ransac_max_error_px``) among the matches
@@ -709,8 +717,6 @@ class Localizer:
         local optimisation of RANSAC with ``pose`` as the only hypothesis. Returns a dict shaped as
         pycolmap's estimate (cam_from_world, num_inliers, inlier_mask), or None."""
         import pycolmap
-
-        from ..geometry import to_rigid3d
 
         s = time.perf_counter()
         thr = self.config.ransac_max_error_px
@@ -933,9 +939,8 @@ class Localizer:
         g = max([i for i, it in enumerate(iters) if it.kind == "global"], default=-1)
         render_iters = iters[g + 1 :]  # the refinement (render, guided) that gave this pose
         if len(render_iters) >= 2:
-            dt, dr = pose_error(render_iters[-1].cam_from_world, render_iters[-2].cam_from_world)
-            vals["iteration_change"] = dt / self.scale
-            vals["iteration_change_deg"] = dr
+            change = self._change(render_iters[-1].cam_from_world, render_iters[-2].cam_from_world)
+            vals["iteration_change"], vals["iteration_change_deg"] = change
         rows = last["matches"][last["inliers"], 0]
         vis = (
             visible_mask(
@@ -956,10 +961,7 @@ class Localizer:
                 vals,
                 f"low inlier ratio ({final.num_inliers} of {final.num_matches} matches; need {c.min_inlier_ratio:.0%})",
             )
-        if len(render_iters) >= 2 and (
-            vals["iteration_change"] > c.max_iteration_change[0]
-            or vals["iteration_change_deg"] > c.max_iteration_change[1]
-        ):
+        if len(render_iters) >= 2 and self._apart(change):
             return vals, (
                 f"iterations disagree (last two estimates {vals['iteration_change']:.3f} x landmark depth, "
                 f"{vals['iteration_change_deg']:.2f} deg apart)"
