@@ -19,9 +19,10 @@ import numpy as np
 import torch
 
 from . import features as feats_mod
-from .errors import FavormapError, SequenceError
+from .errors import FavormapError, InputError, SequenceError
 from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
+from .features.base import check_patch
 from .features.cache import FeatureCache, source_stamp
 from .geometry import camera_centers, direction_cones, project, unproject
 from .heap import release_free_memory
@@ -293,9 +294,11 @@ def training_rays(
     box_factor: float | None = None,
     executor: Executor | None = None,
     progress=None,
+    patch_stride: int = 1,
 ) -> TrainingRays:
-    """Descriptor patches S x S around the projection of each landmark in each of its frames, and
-    the viewing rays of their pixels. One ``extractor.sample`` task per frame.
+    """Descriptor patches S x S around the projection of each landmark in each of its frames (every
+    ``patch_stride``-th pixel: features.patch_offsets), and the viewing rays of their pixels. One
+    ``extractor.sample`` task per frame.
 
     Voxel side of landmark j: ``box_factor * min_i l_ij / f_i`` (paper eq. 2 uses the patch size S,
     the reference code 12 for S = 7); ``box_factor`` None means S."""
@@ -306,7 +309,7 @@ def training_rays(
     Ks = np.stack([c.K for c in ff.cameras])
     X = lms.positions[tid]
     uv = project(Ks[fi], T[fi], X)
-    offs = patch_offsets(patch_size)
+    offs = patch_offsets(patch_size, patch_stride)
     pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
     order = np.argsort(fi, kind="stable")
@@ -448,6 +451,10 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
 
     if not seq.frames:
         raise SequenceError(f"sequence {seq.root} has no frames")
+    try:
+        check_patch(config.voxel.patch_size, config.voxel.patch_stride)
+    except ValueError as e:
+        raise InputError(f"VoxelConfig: {e}") from None
     problems = check_frames(
         seq.cameras,
         [f.name for f in seq.frames],
@@ -461,14 +468,16 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
         )
 
 
-def track_mean_descriptors(rays: TrainingRays, n_landmarks: int, patch_size: int, mean_patch: int = 0) -> np.ndarray:
+def track_mean_descriptors(
+    rays: TrainingRays, n_landmarks: int, patch_size: int, mean_patch: int = 0, patch_stride: int = 1
+) -> np.ndarray:
     """(L, C) unit mean descriptor of each landmark: the mean over its observations of the central
     ``mean_patch`` x ``mean_patch`` pixels of each training patch (0, or at least ``patch_size``: the
     whole patch), as ``landmarks/mean_descriptor`` stores it."""
     if mean_patch < 0:
         raise ValueError(f"VoxelConfig.mean_patch must be >= 0 (0: the whole patch), not {mean_patch}")
     half = (mean_patch or patch_size) / 2
-    central = np.flatnonzero(np.abs(patch_offsets(patch_size)).max(1) < half)
+    central = np.flatnonzero(np.abs(patch_offsets(patch_size, patch_stride)).max(1) < half)
     out = np.zeros((n_landmarks, rays.targets.shape[-1]), np.float64)
     np.add.at(out, rays.obs_landmark, rays.targets[:, central].mean(1))
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
@@ -566,7 +575,14 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     with pr.stage("patches"):
         rays = training_rays(
-            lms, ff, extractor, config.voxel.patch_size, config.voxel.box_factor, executor, pr.callback
+            lms,
+            ff,
+            extractor,
+            config.voxel.patch_size,
+            config.voxel.box_factor,
+            executor,
+            pr.callback,
+            config.voxel.patch_stride,
         )
     release_free_memory()
     with pr.stage("train"):
@@ -576,7 +592,9 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         obs.on_train_step(it, loss, psnr)
     channels = rays.targets.shape[-1]
     view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
-    mean_desc = track_mean_descriptors(rays, len(lms), config.voxel.patch_size, config.voxel.mean_patch)
+    mean_desc = track_mean_descriptors(
+        rays, len(lms), config.voxel.patch_size, config.voxel.mean_patch, config.voxel.patch_stride
+    )
     stats = {
         "frames": len(seq.frames),
         "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from favormap.geometry import camera_centers
@@ -151,3 +152,33 @@ def test_the_stored_mean_descriptor_averages_the_central_pixels_of_each_patch():
     np.testing.assert_allclose(track_mean_descriptors(rays, 3, S, 0), want_all, atol=1e-6)
     np.testing.assert_allclose(track_mean_descriptors(rays, 3, S, 9), want_all, atol=1e-6)
     assert not np.allclose(want3, want_all)
+
+
+def test_a_strided_patch_describes_the_same_pixels_as_the_full_patch(small_sequence):
+    """VoxelConfig.patch_stride: a 7 x 7 patch described every 3 px is the 3 x 3 grid of the full
+    patch's corner, edge-centre and centre pixels, with the same descriptors and rays (SIFT describes
+    each point on its own), and a build with it trains on those 9 rays per observation."""
+    from favormap.build import BuildConfig, BuildObserver, ExtractorSpec, build_map, training_rays
+    from favormap.features import patch_offsets
+    from favormap.voxels import VoxelConfig
+
+    class Keep(BuildObserver):
+        def on_landmarks(self, lms, ff):
+            self.lms, self.ff = lms, ff
+
+    keep = Keep()
+    cfg = BuildConfig(max_landmarks=60, voxel=VoxelConfig(solver="lstsq", patch_stride=3, density_init=20.0))
+    m = build_map(small_sequence, cfg, observer=keep)
+    assert len(m.positions) == len(keep.lms) > 20
+    ex = ExtractorSpec(cfg.extractor, cfg.max_keypoints)
+    full = training_rays(keep.lms, keep.ff, ex, 7)
+    strided = training_rays(keep.lms, keep.ff, ex, 7, patch_stride=3)
+    offs7, offs3 = patch_offsets(7), patch_offsets(7, 3)
+    at = np.array([np.flatnonzero((offs7 == o).all(1))[0] for o in offs3])
+    assert len(at) == 9 and at[4] == 24  # the centre stays the middle ray
+    assert strided.targets.shape == (len(full.targets), 9, 128)
+    np.testing.assert_allclose(strided.targets, full.targets[:, at], atol=1e-6)
+    np.testing.assert_allclose(strided.ray_dirs, full.ray_dirs[:, at], atol=1e-6)
+    np.testing.assert_array_equal(strided.sizes, full.sizes)  # the voxel box does not depend on the stride
+    with pytest.raises(ValueError, match="multiple of the stride"):
+        patch_offsets(7, 2)

@@ -165,12 +165,8 @@ def test_benchmark_help_works(script):
     assert r.returncode == 0 and "usage:" in r.stdout, r.stderr[-500:]
 
 
-def test_accuracy_benchmark_groups_rows_across_training_seeds():
-    """tools/bench_accuracy.py --train-seeds: the rows of a map's seed copies (NAME-sK, or sK for the
-    default map) are grouped with that map's rows, per split, prior and method."""
+def _bench_accuracy():
     import importlib.util
-
-    from favormap.build import BuildConfig
 
     spec = importlib.util.spec_from_file_location("bench_accuracy", REPO / "tools" / "bench_accuracy.py")
     bench = importlib.util.module_from_spec(spec)
@@ -179,6 +175,41 @@ def test_accuracy_benchmark_groups_rows_across_training_seeds():
         spec.loader.exec_module(bench)
     finally:
         del sys.modules["bench_accuracy"]
+    return bench
+
+
+def test_accuracy_benchmark_reuses_a_map_built_before_a_config_field_existed():
+    """tools/bench_accuracy.py --reuse: a map stamped with a config that lacks a field added since
+    (at its default) is the same map; any other difference (a field's value, the frames) is not."""
+    import json
+
+    from favormap.build import BuildConfig
+
+    bench = _bench_accuracy()
+
+    def key(cfg, frames=("a", "b")):
+        return json.dumps(cfg.to_dict(), sort_keys=True, default=str) + str(list(frames))
+
+    now = BuildConfig()
+    old = now.to_dict()
+    del old["voxel"]["patch_stride"], old["max_side"]  # as written before these fields existed
+    stamp = json.dumps(old, sort_keys=True, default=str) + str(["a", "b"])
+    assert bench.same_build(stamp, key(now)) and bench.same_build(key(now), key(now))
+    other = BuildConfig()
+    other.voxel.patch_stride = 3  # the new field, not at its default
+    assert not bench.same_build(stamp, key(other))
+    other = BuildConfig()
+    other.voxel.seed = 1
+    assert not bench.same_build(stamp, key(other))
+    assert not bench.same_build(stamp, key(now, ("a", "c")))
+
+
+def test_accuracy_benchmark_groups_rows_across_training_seeds():
+    """tools/bench_accuracy.py --train-seeds: the rows of a map's seed copies (NAME-sK, or sK for the
+    default map) are grouped with that map's rows, per split, prior and method."""
+    from favormap.build import BuildConfig
+
+    bench = _bench_accuracy()
 
     def cfg(seed):
         c = BuildConfig()

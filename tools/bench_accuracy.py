@@ -136,6 +136,14 @@ VARIANTS = {
     "rendered uncertainty-map": ("rendered", {"landmark_sigma_px": "map"}),
     "rendered uncertainty-landmark": ("rendered", {"landmark_sigma_px": "landmark"}),
     "mean uncertainty-map": ("mean", {"landmark_sigma_px": "map"}),
+    # the final refinement's noise model fitted to each query's inliers (LocalizeConfig.refine_noise:
+    # the landmark covariances and the keypoint noise scaled by maximum likelihood), or as the map says
+    "rendered noise-estimated": ("rendered", {"refine_noise": "estimated"}),
+    "mean noise-estimated": ("mean", {"refine_noise": "estimated"}),
+    "nearest-view noise-estimated": ("nearest", {"refine_noise": "estimated"}),
+    "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
+    "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
+    "nearest-view noise-fixed": ("nearest", {"refine_noise": "fixed"}),
 }
 DEFAULT_VARIANTS = (
     "rendered",
@@ -222,6 +230,42 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
     return Split("orbit", mapping, queries, nearest_view_angle(queries, mapping))
 
 
+def same_build(stamp: str, key: str) -> bool:
+    """Whether a map built with ``stamp`` (an earlier build_or_load key: the config's JSON, then the
+    mapping frames) is the map ``key`` asks for. A config field added since, at its default, does
+    not make it another map (new fields default to the earlier behaviour)."""
+    dec = json.JSONDecoder()
+    try:
+        old, end_old = dec.raw_decode(stamp)
+        new, end_new = dec.raw_decode(key)
+    except ValueError:
+        return stamp == key
+    if stamp[end_old:] != key[end_new:]:  # the mapping frames
+        return False
+    defaults = json.loads(json.dumps(type_defaults(), sort_keys=True, default=str))
+
+    def fill(o, n, d):
+        for k in set(n) - set(o):  # fields the stamp's version did not have: at their default?
+            if k not in d or n[k] != d[k]:
+                return False
+        return all(
+            fill(o[k], n[k], d.get(k, {}))
+            if isinstance(n[k], dict) and isinstance(o.get(k), dict)
+            else o.get(k) == n[k]
+            for k in n
+            if k in o
+        ) and set(o) <= set(n)
+
+    return fill(old, new, defaults)
+
+
+def type_defaults() -> dict:
+    """BuildConfig().to_dict(): every field at its default (the VoxelConfig's included)."""
+    from favormap.build import BuildConfig
+
+    return BuildConfig().to_dict()
+
+
 def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = "", device: str = "cpu"):
     from favormap.build import build_map
     from favormap.mapfile import write_map
@@ -229,7 +273,7 @@ def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str 
     path = workdir / f"{split.name}{tag}.h5"
     key = json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in split.mapping.frames])
     stamp = path.with_suffix(".config")
-    if reuse and path.exists() and stamp.exists() and stamp.read_text() == key:
+    if reuse and path.exists() and stamp.exists() and same_build(stamp.read_text(), key):
         return path, None
     t = time.perf_counter()
     write_map(build_map(split.mapping, build_cfg, device=device), path)

@@ -57,6 +57,13 @@ def register(sub):
         "--patch", type=int, default=None, help="descriptor patch size S (default: the preset's: 7, quick 3)"
     )
     p.add_argument(
+        "--patch-stride",
+        type=int,
+        default=None,
+        metavar="K",
+        help="describe every K-th pixel of the patch, from its centre out to its edges (default: the preset's, 1)",
+    )
+    p.add_argument(
         "--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)"
     )
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
@@ -97,14 +104,28 @@ def config_from_args(args):
     from ..errors import InputError
     from ..voxels import VoxelConfig
 
-    for name in ("min_track", "max_landmarks", "grid", "patch", "iterations", "max_keypoints", "train_batch"):
+    for name in (
+        "min_track",
+        "max_landmarks",
+        "grid",
+        "patch",
+        "patch_stride",
+        "iterations",
+        "max_keypoints",
+        "train_batch",
+    ):
         if getattr(args, name) is not None and getattr(args, name) < (2 if name in ("min_track", "grid") else 1):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
         raise InputError("--resize must be >= 0")
     over = {
         k: v
-        for k, v in (("resolution", args.grid), ("patch_size", args.patch), ("iterations", args.iterations))
+        for k, v in (
+            ("resolution", args.grid),
+            ("patch_size", args.patch),
+            ("patch_stride", args.patch_stride),
+            ("iterations", args.iterations),
+        )
         if v is not None
     }
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), **over)

@@ -115,8 +115,25 @@ def create(name: str, **kwargs) -> Extractor:
     return extractor_class(name)(**kwargs)
 
 
-def patch_offsets(size: int) -> np.ndarray:
-    """(S*S, 2) pixel offsets of an S x S patch centred on 0, row-major (v, then u)."""
-    r = (np.arange(size) - (size - 1) / 2.0).astype(np.float32)
+def check_patch(size: int, stride: int = 1) -> None:
+    """ValueError unless an S x S patch can be sampled every ``stride`` pixels (patch_offsets)."""
+    if not (isinstance(size, (int, np.integer)) and size >= 1):
+        raise ValueError(f"patch size must be an integer >= 1, not {size!r}")
+    if not (isinstance(stride, (int, np.integer)) and stride >= 1):
+        raise ValueError(f"patch stride must be an integer >= 1, not {stride!r}")
+    if stride > 1 and (size % 2 == 0 or ((size - 1) // 2) % stride):
+        raise ValueError(
+            f"a patch of {size} px sampled every {stride} px must be odd with a half-width ({(size - 1) / 2:g}) "
+            f"that is a multiple of the stride, so that its centre and edges are sampled"
+        )
+
+
+def patch_offsets(size: int, stride: int = 1) -> np.ndarray:
+    """(n*n, 2) pixel offsets of an S x S patch centred on 0, row-major (v, then u): every pixel
+    (``stride`` 1, n = S), or every ``stride``-th pixel from the centre out to the patch's edges (an
+    odd S whose half-width (S - 1) / 2 is a multiple of ``stride``, so the centre and the edges are
+    kept: n = (S - 1) / stride + 1)."""
+    check_patch(size, stride)
+    r = (np.arange(0, size, stride) - (size - 1) / 2.0).astype(np.float32)
     vv, uu = np.meshgrid(r, r, indexing="ij")
     return np.stack([uu.ravel(), vv.ravel()], axis=1)

@@ -37,6 +37,7 @@ from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
 from .refine import (
     PoseCovariance,
+    estimate_noise,
     landmark_covariances,
     mahalanobis2,
     mapping_pixel_sigma,
@@ -135,6 +136,11 @@ class LocalizeConfig:
     # better; but 0.0079 against 0.0071 on a quick map (8 of 20 better) and 0.0290 against 0.0167 on
     # an XFeat map (7 of 17): not a robust gain, so an option; hold-out and orbit unchanged
     refine_loss_scale: float | str = 1.0
+    # the noise model of that refinement: "fixed" (the map's landmark covariances and
+    # keypoint_sigma_px as they are) or "estimated" (both scaled to this query's inliers by maximum
+    # likelihood, favormap.localize.refine.estimate_noise: far from the mapping path the landmarks'
+    # errors are several times what their covariances say, mostly along their depth)
+    refine_noise: str = "fixed"
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
@@ -163,6 +169,8 @@ class LocalizeConfig:
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
             raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
+        if self.refine_noise not in ("fixed", "estimated"):
+            raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         c = self.refine_loss_scale
         if not (c == "auto" or (isinstance(c, (int, float)) and 0 < c < float("inf"))):
             raise InputError(f"refine_loss_scale must be 'auto' or a number > 0, not {c!r}")
@@ -785,6 +793,10 @@ class Localizer:
         inl = last["matches"][last["inliers"]]
         X, kp = self.map.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
+        ksig = cfg.keypoint_sigma_px
+        if cfg.refine_noise == "estimated" and len(inl) >= 6:
+            it.cam_from_world, scale, ksig = estimate_noise(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
+            Xcov = scale * Xcov
         factor = None
         # the covariance counts the matches found by descriptor only: the guided step picks its extra
         # ones near where the pose predicts them, so their residuals are small by selection and their
@@ -793,8 +805,8 @@ class Localizer:
         # hold-out 1.7 -> 1.1
         by_desc = last["by_descriptor"][last["inliers"]] if "by_descriptor" in last else None
         if cfg.guided_reweight and by_desc is not None and by_desc.sum() >= 6 and (~by_desc).any():
-            T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, cfg.keypoint_sigma_px)
-            uv, info = projection_information(T1, X, q.cam.K, Xcov, cfg.keypoint_sigma_px)
+            T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
+            uv, info = projection_information(T1, X, q.cam.K, Xcov, ksig)
             d2 = mahalanobis2(info, kp - uv)
             m_desc = float(np.nanmedian(d2[by_desc]))
             m_proj = float(np.nanmedian(d2[~by_desc]))
@@ -806,7 +818,7 @@ class Localizer:
             kp,
             q.cam.K,
             Xcov,
-            cfg.keypoint_sigma_px,
+            ksig,
             loss_scale=cfg.refine_loss_scale,
             return_covariance=True,
             variance_factor=factor,

@@ -213,6 +213,48 @@ def refine_pose(
     return T, cov
 
 
+def estimate_noise(
+    cam_from_world: np.ndarray,
+    points: np.ndarray,
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    point_cov: np.ndarray,
+    keypoint_sigma_px: float = 0.5,
+    rounds: int = 6,
+) -> tuple[np.ndarray, float, float]:
+    """The noise model of :func:`refine_pose` fitted to one query's correspondences: the residual
+    covariance ``landmark_scale * J point_cov J^T + keypoint_sigma^2 I`` with both factors estimated
+    by maximum likelihood (variance-component estimation, Foerstner's fixed point: each factor is
+    multiplied by sum r^T C^-1 V C^-1 r / sum tr(C^-1 V) of its component V), alternating with the
+    pose's refinement. The landmark factor says how much the map's position covariances understate
+    (> 1) or overstate (< 1) the landmarks' errors as this query sees them; the keypoint term is
+    what is left, isotropic. Returns (cam_from_world refined under the fitted model, landmark_scale,
+    keypoint_sigma_px); the inputs are the starting point."""
+    T = np.array(cam_from_world, np.float64)
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    cov = np.asarray(point_cov, np.float64)
+    lam, sig2 = 1.0, float(keypoint_sigma_px) ** 2
+    for _ in range(rounds):
+        T = refine_pose(T, X, kp, K, lam * cov, float(np.sqrt(sig2)))
+        P = X @ T[:3, :3].T + T[:3, 3]
+        front = P[:, 2] > 1e-9
+        if front.sum() < 6:
+            break
+        r = project(K, T, X[front]) - kp[front]
+        V = _image_covariances(_projection_jacobians(P[front], K), T[:3, :3], cov[front], np.zeros((2, 2)))
+        Ci = _inverse2(lam * V + sig2 * np.eye(2))
+        Cir = np.einsum("nij,nj->ni", Ci, r)
+        lam_new = lam * np.einsum("ni,nij,nj->", Cir, V, Cir) / max(np.einsum("nij,nji->", Ci, V), 1e-300)
+        sig2_new = sig2 * np.einsum("ni,ni->", Cir, Cir) / max(np.einsum("nii->", Ci), 1e-300)
+        lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), float(np.clip(sig2_new, 1e-4, 100.0))
+        done = abs(np.log(lam_new / lam)) < 0.01 and abs(np.log(sig2_new / sig2)) < 0.01
+        lam, sig2 = lam_new, sig2_new
+        if done:
+            break
+    return T, lam, float(np.sqrt(sig2))
+
+
 @dataclass
 class PoseCovariance:
     """Uncertainty of a ``cam_from_world`` estimate: ``rotation`` (3, 3) rad^2 of the small rotation

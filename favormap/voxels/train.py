@@ -50,6 +50,9 @@ class VoxelConfig:
     # -- model ------------------------------------------------------------------------------
     resolution: int = 3  # R: nodes per axis of each landmark's grid
     patch_size: int = 7  # S: training patch S x S pixels around each observation
+    # described every patch_stride pixels from the centre out to the patch's edges (1: every pixel;
+    # S = 7 with stride 3: a 3 x 3 grid spanning the same 7 x 7 pixels, 5.4x fewer descriptors)
+    patch_stride: int = 1
     # the stored mean descriptor (the prior-free step's and the "mean" baseline's) averages the central
     # mean_patch x mean_patch pixels of each patch (0: the whole patch)
     mean_patch: int = 0
