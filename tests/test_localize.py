@@ -166,33 +166,35 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
 
 def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries):
     """The default refines the last estimate on its inliers weighted by each landmark's position
-    uncertainty (favormap.localize.refine); 0 keeps RANSAC's refinement. Both converge; the weighted
-    pose is the weighted refinement of the plain one's inliers."""
-    from favormap.localize.refine import landmark_covariances, mapping_pixel_sigma, refine_pose
+    uncertainty (favormap.localize.refine), under a noise model fitted to those inliers
+    (refine_noise="estimated"), or as the map gives it ("fixed"); landmark_sigma_px=0 keeps RANSAC's
+    refinement. All converge; the weighted poses are the weighted refinements of the plain one's
+    inliers."""
+    from favormap.localize.refine import estimate_noise, landmark_covariances, mapping_pixel_sigma, refine_pose
 
     _, path = small_map
     rng = np.random.default_rng(5)
     plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0, guided_radius_px=0))
     weighted = Localizer(path, LocalizeConfig(guided_radius_px=0))
-    assert weighted.config.landmark_sigma_px == "landmark"
+    fixed = Localizer(path, LocalizeConfig(guided_radius_px=0, refine_noise="fixed"))
+    cfg = weighted.config
+    assert cfg.landmark_sigma_px == "landmark" and cfg.refine_noise == "estimated"
     moved = []
     for img, T in queries[:3]:
         prior = perturb_pose(T, 0.3, 15.0, rng)
-        a, b = plain.localize(img, prior), weighted.localize(img, prior)
-        assert a.success and b.success, (a.message, b.message)
-        assert pose_error(a.cam_from_world, T)[0] < 0.01 and pose_error(b.cam_from_world, T)[0] < 0.01
+        a, b, c = plain.localize(img, prior), weighted.localize(img, prior), fixed.localize(img, prior)
+        assert a.success and b.success and c.success, (a.message, b.message, c.message)
+        for r in (a, b, c):
+            assert pose_error(r.cam_from_world, T)[0] < 0.01
         inl = a.matches[a.inlier_mask]
         q_cam = plain.prepare(img)[1]
         m = plain.map
-        expect = refine_pose(
-            a.cam_from_world,
-            m.positions[inl[:, 0]],
-            a.keypoints[inl[:, 1]],
-            q_cam.K,
-            landmark_covariances(m, inl[:, 0], mapping_pixel_sigma(m, inl[:, 0])),
-            weighted.config.keypoint_sigma_px,
-            loss_scale=weighted.config.refine_loss_scale,
-        )
+        X, kp = m.positions[inl[:, 0]], a.keypoints[inl[:, 1]]
+        cov = landmark_covariances(m, inl[:, 0], mapping_pixel_sigma(m, inl[:, 0]))
+        expect = refine_pose(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px, cfg.refine_loss_scale)
+        assert pose_error(c.cam_from_world, expect)[0] < 1e-9
+        start, scale, sigma = estimate_noise(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px)
+        expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma, cfg.refine_loss_scale)
         assert pose_error(b.cam_from_world, expect)[0] < 1e-9
         moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
     assert max(moved) > 1e-6  # the weighting did change the pose
@@ -202,6 +204,8 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         LocalizeConfig(refine_loss_scale=0.0)
     with pytest.raises(InputError, match="keypoint_sigma_px"):
         LocalizeConfig(keypoint_sigma_px=0)
+    with pytest.raises(InputError, match="refine_noise"):
+        LocalizeConfig(refine_noise="guessed")
 
 
 def test_landmarks_with_two_descriptors_each_localize(small_map, queries):

@@ -136,11 +136,8 @@ VARIANTS = {
     "rendered uncertainty-map": ("rendered", {"landmark_sigma_px": "map"}),
     "rendered uncertainty-landmark": ("rendered", {"landmark_sigma_px": "landmark"}),
     "mean uncertainty-map": ("mean", {"landmark_sigma_px": "map"}),
-    # the final refinement's noise model fitted to each query's inliers (LocalizeConfig.refine_noise:
-    # the landmark covariances and the keypoint noise scaled by maximum likelihood), or as the map says
-    "rendered noise-estimated": ("rendered", {"refine_noise": "estimated"}),
-    "mean noise-estimated": ("mean", {"refine_noise": "estimated"}),
-    "nearest-view noise-estimated": ("nearest", {"refine_noise": "estimated"}),
+    # the final refinement's noise model as the map says (before 2026-11-27's twelfth session), not
+    # fitted to each query's inliers (LocalizeConfig.refine_noise)
     "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
     "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
     "nearest-view noise-fixed": ("nearest", {"refine_noise": "fixed"}),
@@ -154,6 +151,8 @@ DEFAULT_VARIANTS = (
     "nearest-view no-guided",
     "rendered gated every pose",
     "rendered loss-auto",
+    "rendered noise-fixed",
+    "mean noise-fixed",
     "rendered no-guided no-uncertainty",
     "rendered 8px no-mutual (old default)",
     "rendered no-checks",
