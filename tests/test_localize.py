@@ -196,6 +196,9 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         start, scale, sigma = estimate_noise(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px)
         expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma, cfg.refine_loss_scale)
         assert pose_error(b.cam_from_world, expect)[0] < 1e-9
+        noise = b.to_json()["uncertainty"]["noise_model"]  # the fitted factors come with the pose
+        assert np.isclose(noise["landmark_scale"], scale) and np.isclose(noise["keypoint_sigma_px"], sigma)
+        assert "noise_model" not in c.to_json()["uncertainty"]
         moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
     assert max(moved) > 1e-6  # the weighting did change the pose
     with pytest.raises(InputError, match="landmark_sigma_px"):

@@ -46,6 +46,7 @@ def test_localize_and_query_name_conventions_and_units(small_map, small_sequence
     assert "cam_from_world: q_xyzw" in out and "world_from_cam: q_xyzw" in out
     assert "camera centre in world" in out and "scene units" in out and "timings (ms)" in out
     assert "uncertainty (1 sigma): camera centre (" in out and "scene units along x, y, z; rotation" in out
+    assert "noise model fitted to the inliers: landmark position errors " in out and "x the map's variance" in out
     assert main(["query", str(path), "--near", "0", "0", "0", "--knn", "3"]) == 0
     out = capsys.readouterr().out
     assert "scene units" in out and "PSNR dB" in out

@@ -295,4 +295,10 @@ def print_result(name: str, res) -> None:
                 f"  uncertainty (1 sigma): camera centre ({', '.join(f'{v:.4f}' for v in sd)}) scene units along "
                 f"x, y, z; rotation {res.covariance.rotation_std_deg:.3f} deg"
             )
+            cov = res.covariance
+            if cov.landmark_scale is not None:
+                print(
+                    f"  noise model fitted to the inliers: landmark position errors {cov.landmark_scale:.2f}x "
+                    f"the map's variance, keypoint noise {cov.keypoint_sigma_px:.2f} px"
+                )
     print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))

@@ -800,7 +800,7 @@ class Localizer:
         inl = last["matches"][last["inliers"]]
         X, kp = self.map.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
-        ksig = cfg.keypoint_sigma_px
+        ksig, scale = cfg.keypoint_sigma_px, None
         if cfg.refine_noise == "estimated" and len(inl) >= 6:
             it.cam_from_world, scale, ksig = estimate_noise(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
             Xcov = scale * Xcov
@@ -831,6 +831,8 @@ class Localizer:
             variance_factor=factor,
             covariance_mask=by_desc if by_desc is not None and by_desc.sum() >= 6 else None,
         )
+        if cov is not None and scale is not None:
+            cov.landmark_scale, cov.keypoint_sigma_px = float(scale), float(ksig)
         t["pnp"] += time.perf_counter() - s
         return cov
 

@@ -15,6 +15,10 @@ the pose on reprojection errors whitened by the landmark's covariance projected 
 the query keypoint's own noise, with a Cauchy loss (iteratively reweighted), as COLMAP's does, and
 gives the pose's covariance (:class:`PoseCovariance`) from the same noise model.
 
+:func:`estimate_noise` fits that noise model to one query's correspondences (a scale on the landmark
+covariances and the keypoint noise, by maximum likelihood): far from the mapping path the landmarks'
+depth errors are several times what their covariances say (LocalizeConfig.refine_noise).
+
 Measured (tools/bench_accuracy.py, the ``rendered no-uncertainty`` variant is the former refinement):
 see LocalizeConfig.landmark_sigma_px. The exact triangulation covariance (information summed over a
 landmark's stored observations) localized the same as this approximation (README, Accuracy).
@@ -259,11 +263,15 @@ def estimate_noise(
 class PoseCovariance:
     """Uncertainty of a ``cam_from_world`` estimate: ``rotation`` (3, 3) rad^2 of the small rotation
     applied on the camera side (T -> exp(w) T), ``center`` (3, 3) map units^2 of the camera centre in
-    world axes, ``cross`` (3, 3) their covariance (rotation rows, centre columns)."""
+    world axes, ``cross`` (3, 3) their covariance (rotation rows, centre columns). With a noise model
+    fitted to the query (:func:`estimate_noise`), also its factors: how many times the map's landmark
+    covariances the landmarks' errors were (variance), and the keypoint noise (px)."""
 
     rotation: np.ndarray
     center: np.ndarray
     cross: np.ndarray
+    landmark_scale: float | None = None
+    keypoint_sigma_px: float | None = None
 
     @classmethod
     def from_left_perturbation(cls, cam_from_world: np.ndarray, cov6: np.ndarray) -> PoseCovariance:
@@ -289,4 +297,11 @@ class PoseCovariance:
             "rotation_std_deg": self.rotation_std_deg,
             "center_covariance": self.center.tolist(),
             "rotation_covariance": self.rotation.tolist(),
+            **(
+                {}
+                if self.landmark_scale is None
+                else {
+                    "noise_model": {"landmark_scale": self.landmark_scale, "keypoint_sigma_px": self.keypoint_sigma_px}
+                }
+            ),
         }
