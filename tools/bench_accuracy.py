@@ -615,15 +615,16 @@ def main():
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="VoxelConfig override for every map built (repeatable; e.g. --set init=lstsq --set iterations=60)",
+        help="VoxelConfig or BuildConfig override for every map built (repeatable; e.g. --set init=lstsq "
+        "--set iterations=60)",
     )
     ap.add_argument(
         "--build-variant",
         action="append",
         default=[],
         metavar="NAME:KEY=VALUE,...",
-        help="also build a map with these VoxelConfig overrides (repeatable; one map each, its rows prefixed "
-        "with NAME; e.g. --build-variant cf-dens20:solver=lstsq,density_init=20)",
+        help="also build a map with these VoxelConfig or BuildConfig overrides (repeatable; one map each, its rows "
+        "prefixed with NAME; e.g. --build-variant cf-dens20:solver=lstsq,density_init=20 or w6:match_window=6)",
     )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
@@ -701,9 +702,10 @@ def main():
             build_cfg.voxel.solver = solver
         for kv in args.set + vset:
             k, _, v = kv.partition("=")
-            if not hasattr(build_cfg.voxel, k) or not v:
-                ap.error(f"{kv!r}: expected KEY=VALUE with KEY a VoxelConfig field")
-            setattr(build_cfg.voxel, k, json.loads(v) if v[:1] in '0123456789-[{tfn".' else v)
+            target = build_cfg.voxel if hasattr(build_cfg.voxel, k) else build_cfg
+            if not v or k == "voxel" or not hasattr(target, k):
+                ap.error(f"{kv!r}: expected KEY=VALUE with KEY a VoxelConfig or BuildConfig field")
+            setattr(target, k, json.loads(v) if v[:1] in '0123456789-[{tfn".' else v)
         for k in ("min_track", "max_landmarks"):
             if getattr(args, k) is not None:
                 setattr(build_cfg, k, getattr(args, k))
