@@ -233,36 +233,23 @@ def same_build(stamp: str, key: str) -> bool:
     """Whether a map built with ``stamp`` (an earlier build_or_load key: the config's JSON, then the
     mapping frames) is the map ``key`` asks for. A config field added since, at its default, does
     not make it another map (new fields default to the earlier behaviour)."""
+    from favormap.build import BuildConfig
+
     dec = json.JSONDecoder()
     try:
         old, end_old = dec.raw_decode(stamp)
         new, end_new = dec.raw_decode(key)
     except ValueError:
         return stamp == key
-    if stamp[end_old:] != key[end_new:]:  # the mapping frames
-        return False
-    defaults = json.loads(json.dumps(type_defaults(), sort_keys=True, default=str))
 
-    def fill(o, n, d):
-        for k in set(n) - set(o):  # fields the stamp's version did not have: at their default?
-            if k not in d or n[k] != d[k]:
-                return False
-        return all(
-            fill(o[k], n[k], d.get(k, {}))
-            if isinstance(n[k], dict) and isinstance(o.get(k), dict)
-            else o.get(k) == n[k]
-            for k in n
-            if k in o
-        ) and set(o) <= set(n)
+    def with_defaults(defaults, given):  # the stamp's config, with the fields it lacks at their default
+        return {
+            **defaults,
+            **{k: with_defaults(defaults[k], v) if isinstance(defaults.get(k), dict) else v for k, v in given.items()},
+        }
 
-    return fill(old, new, defaults)
-
-
-def type_defaults() -> dict:
-    """BuildConfig().to_dict(): every field at its default (the VoxelConfig's included)."""
-    from favormap.build import BuildConfig
-
-    return BuildConfig().to_dict()
+    defaults = json.loads(json.dumps(BuildConfig().to_dict(), sort_keys=True, default=str))
+    return stamp[end_old:] == key[end_new:] and with_defaults(defaults, old) == new
 
 
 def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = "", device: str = "cpu"):
