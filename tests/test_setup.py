@@ -233,3 +233,40 @@ def test_accuracy_benchmark_groups_rows_across_training_seeds():
     assert table[2] == "| fox | noise | rendered | 0,2 | 0.0020 / 0.0040 | 0.0020-0.0040 | 0.0030 | 5/6 | 1 |"
     assert table[3] == "| fox | noise | b rendered | 0,2 | 0.0030 / - | 0.0030-0.0030 | 0.0030 | 3/6 | 0 |"
     assert len(table) == 4
+
+
+def test_accuracy_benchmark_pairs_each_method_with_the_reference_query_by_query():
+    """tools/bench_accuracy.py's paired table: a method's errors over the reference's, query by query
+    on the same map and prior mode (geometric mean, bootstrap interval, lower/higher counts), the
+    baseline against the first map's reference, per angle bin where queries have angles."""
+    bench = _bench_accuracy()
+
+    def q(name, err, angle=None, ok=True):
+        return dict(name=name, t_err=err, success=ok, **({} if angle is None else {"angle_deg": angle}))
+
+    ref = [q("a", 1e-3, 5), q("b", 2e-3, 15), q("c", 4e-3, 15), q("d", 1e-3, 50)]
+    half = [q(x["name"], x["t_err"] / 2, x["angle_deg"]) for x in ref]  # twice as accurate on every query
+    mixed = [q("a", 2e-3, 5), q("b", 1e-3, 15), q("c", 4e-3, 15), q("d", 1e-3, 50, ok=False)]
+    rows = [
+        dict(split="orbit", prior="noise", map_variant="", method="rendered", per_query=ref),
+        dict(split="orbit", prior="noise", map_variant="", method="mean", per_query=half),
+        dict(split="orbit", prior="noise", map_variant="w6", method="w6 mean", per_query=mixed),
+        dict(split="orbit", prior="noise", map_variant="w6", method="w6 rendered", per_query=half),
+        dict(split="orbit", prior="none", method="pycolmap-SIFT", per_query=mixed),  # the baseline
+    ]
+    pr = {(p["method"], p["reference"]): p for p in bench.paired_rows(rows)}
+    assert set(pr) == {("mean", "rendered"), ("w6 mean", "w6 rendered"), ("pycolmap-SIFT", "rendered")}
+    p = pr["mean", "rendered"]
+    assert p["all"]["ratio"] == pytest.approx(0.5) and p["all"]["ci95"] == pytest.approx([0.5, 0.5])
+    assert (p["all"]["lower"], p["all"]["higher"], p["failed"]) == (4, 0, (0, 0))
+    assert p["bins"]["10-20"]["queries"] == 2 and p["bins"]["40-180"] is None  # one query: no ratio
+    w = pr["w6 mean", "w6 rendered"]  # (2/0.5, 1/1, 4/2) on the three localized queries
+    assert w["failed"] == (1, 0) and w["all"]["queries"] == 3
+    assert w["all"]["ratio"] == pytest.approx((4 * 1 * 2) ** (1 / 3))
+    assert (w["all"]["lower"], w["all"]["higher"]) == (0, 2)  # one tie
+    lo, hi = w["all"]["ci95"]
+    assert 1 <= lo <= w["all"]["ratio"] <= hi <= 4
+    b = pr["pycolmap-SIFT", "rendered"]  # against the default map's rendered: (2, 0.5, 1)
+    assert b["all"]["ratio"] == pytest.approx(1.0) and (b["all"]["lower"], b["all"]["higher"]) == (1, 1)
+    table = bench.paired_table(rows).splitlines()
+    assert table[-1].startswith("| orbit | none | pycolmap-SIFT | 1.00 [") and len(table) == 7
