@@ -17,6 +17,8 @@ Splits:
                second half (--extrap-step 2: every 2nd, as before 2026-11-26's seventh session)
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
+  orbit-dense  the orbit's map, 75 queries at 4-degree steps beyond both ends of the arc and raised
+               above it (not in the default set: --splits orbit-dense)
   custom       --map SEQ --queries SEQ (any readable sequences)
 
 Columns: median / 90th-percentile translation (scene units, and % of the scene extent: the 5-95 %
@@ -165,6 +167,11 @@ class Split:
     mapping: object  # Sequence
     queries: object  # Sequence
     angle: np.ndarray | None = None  # per query: rotation to the nearest mapping view (deg)
+    map_name: str | None = None  # the map (and baseline) files: another split's of the same mapping frames
+
+    @property
+    def files(self) -> str:
+        return self.map_name or self.name
 
 
 def fox_splits(which: list[str], extrap_step: int = 1) -> list[Split]:
@@ -194,9 +201,14 @@ def nearest_view_angle(queries, mapping) -> np.ndarray:
     )
 
 
-def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
+def orbit_split(workdir: Path, n_map: int, width: int, height: int, dense: bool = False) -> Split:
     """Mapping frames along part of the room orbit; queries (a) between mapping views, (b) orbiting
-    on beyond the last mapping view, (c) raised above the path; binned by angle to the nearest view."""
+    on beyond the last mapping view, (c) raised above the path; binned by angle to the nearest view.
+
+    ``dense`` ("orbit-dense", the same map): 75 queries instead of 25, at 2-degree steps from 6 to
+    60 degrees beyond both ends of the arc and raised above the path from four places along it. The
+    standard set has 5 queries in the 10-20 degree bin, whose errors there lie at the pose's noise
+    floor: a method's median over 5 of them moves more between two close methods than they differ."""
     from favormap.geometry import inverse, rotation_about
     from favormap.synthetic import camera_path, make_room, random_views_near, write_sequence
 
@@ -223,10 +235,20 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int) -> Split:
     # of the angle table more than a couple of queries
     for deg in (10, 20, 45, 55):
         q.append(about(first, [0, 0, 1], -sign * deg))
+    if dense:
+        q = []
+        for end, s in ((last, sign), (first, -sign)):
+            q += [about(end, [0, 0, 1], s * deg) for deg in range(7, 61, 4)]
+        for k in (1, 2, 3, 4):
+            base = poses[k * len(poses) // 5]
+            q += [about(base, inverse(base)[:3, 0], -deg) for deg in range(6, 47, 4)]
     q = [T for T in q if scene.camera_is_valid(inverse(T)[:3, 3])]
     mapping = write_sequence(workdir / "orbit_map", n_frames=n_map, width=width, height=height, scene=scene)
-    queries = write_sequence(workdir / "orbit_queries", poses=q, width=width, height=height, scene=scene)
-    return Split("orbit", mapping, queries, nearest_view_angle(queries, mapping))
+    name = "orbit-dense" if dense else "orbit"
+    queries = write_sequence(
+        workdir / f"{name.replace('-', '_')}_queries", poses=q, width=width, height=height, scene=scene
+    )
+    return Split(name, mapping, queries, nearest_view_angle(queries, mapping), map_name="orbit")
 
 
 def same_build(stamp: str, key: str) -> bool:
@@ -256,7 +278,7 @@ def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str 
     from favormap.build import build_map
     from favormap.mapfile import write_map
 
-    path = workdir / f"{split.name}{tag}.h5"
+    path = workdir / f"{split.files}{tag}.h5"
     key = json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in split.mapping.frames])
     stamp = path.with_suffix(".config")
     if reuse and path.exists() and stamp.exists() and same_build(stamp.read_text(), key):
@@ -529,7 +551,7 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
 
     rows = []
     t = time.perf_counter()
-    base = StructureBaseline.build(split.mapping, workdir=Path(args.workdir) / f"{split.name}_baseline")
+    base = StructureBaseline.build(split.mapping, workdir=Path(args.workdir) / f"{split.files}_baseline")
     print(f"[{split.name}] baseline: {len(base.points3d)} points ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
     budgets = [("pycolmap-SIFT", base)]
     if args.baseline_budget:
@@ -824,6 +846,8 @@ def main():
         splits += fox_splits(which, args.extrap_step)
         if "orbit" in which:
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
+        if "orbit-dense" in which:
+            splits.append(orbit_split(workdir, args.orbit_frames, 640, 480, dense=True))
     rows = []
     for sp in splits:
         rows += run_split(sp, args, build_cfgs)
