@@ -270,3 +270,51 @@ def test_accuracy_benchmark_pairs_each_method_with_the_reference_query_by_query(
     assert b["all"]["ratio"] == pytest.approx(1.0) and (b["all"]["lower"], b["all"]["higher"]) == (1, 1)
     table = bench.paired_table(rows).splitlines()
     assert table[-1].startswith("| orbit | none | pycolmap-SIFT | 1.00 [") and len(table) == 7
+
+
+def test_accuracy_benchmark_pairs_map_variants_with_the_default_map_over_seeds():
+    """tools/bench_accuracy.py --train-seeds / --build-variant: each method of each map variant is
+    paired with the default map's reference of the same seed, query by query, the log ratios
+    averaged over the seeds; the baseline with every seed's reference."""
+    import numpy as np
+
+    from favormap.build import BuildConfig
+
+    bench = _bench_accuracy()
+
+    def cfg(seed):
+        c = BuildConfig()
+        c.voxel.seed = seed
+        return c
+
+    build_cfgs = [("", cfg(0)), ("s1", cfg(1)), ("b", cfg(0)), ("b-s1", cfg(1))]
+
+    def row(variant, method, errs, prior="noise"):
+        pq = [dict(name=n, t_err=e, success=np.isfinite(e), angle_deg=a) for (n, a), e in zip(queries, errs)]
+        return dict(split="orbit", prior=prior, map_variant=variant, method=method, per_query=pq)
+
+    queries = [("a", 5.0), ("b", 15.0), ("c", 15.0)]
+    ref0, ref1 = [1.0, 2.0, 4.0], [2.0, 2.0, 2.0]
+    rows = [
+        row("", "rendered", ref0),
+        row("", "mean", [2.0, 4.0, 8.0]),  # seed 0: twice the reference on every query
+        row("s1", "s1 rendered", ref1),
+        row("s1", "s1 mean", [2.0, 2.0, 2.0]),  # seed 1: the same
+        row("b", "b rendered", [0.5, 1.0, np.inf]),  # failed on c
+        row("b-s1", "b-s1 rendered", [1.0, 1.0, 1.0]),
+        dict(split="orbit", prior="none", method="pycolmap-SIFT", per_query=row("", "x", [2.0, 2.0, 2.0])["per_query"]),
+    ]
+    pr = {(p["map"], p["method"]): p for p in bench.seed_paired_rows(rows, build_cfgs)}
+    assert set(pr) == {("", "mean"), ("b", "rendered"), ("(baseline)", "pycolmap-SIFT")}
+    mean = pr["", "mean"]  # per query: mean of (log 2, log 1) = log sqrt(2)
+    assert mean["seeds"] == [0, 1] and mean["all"]["ratio"] == pytest.approx(np.sqrt(2))
+    assert mean["all"]["queries"] == 3 and mean["all"]["lower"] == 0 and mean["all"]["higher"] == 3
+    b = pr["b", "rendered"]  # a: (1/2, 1/2), b: (1/2, 1/2); c failed on seed 0: left out
+    assert b["all"]["queries"] == 2 and b["all"]["ratio"] == pytest.approx(0.5)
+    assert b["bins"]["10-20"] is None and b["bins"]["0-10"] is None  # one query each: no interval
+    base = pr["(baseline)", "pycolmap-SIFT"]  # against ref0 (2, 1, 0.5) and ref1 (1, 1, 1)
+    assert base["seeds"] == [0, 1]
+    expected = np.exp(np.mean([np.mean([np.log(2), 0]), 0, np.mean([np.log(0.5), 0])]))
+    assert base["all"]["ratio"] == pytest.approx(expected)
+    table = bench.seed_paired_table(rows, build_cfgs).splitlines()
+    assert table[4].startswith("| orbit | noise | (default) | mean | 0,1 | 1.41 [") and len(table) == 7

@@ -17,8 +17,8 @@ Splits:
                second half (--extrap-step 2: every 2nd, as before 2026-11-26's seventh session)
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
-  orbit-dense  the orbit's map, 75 queries at 4-degree steps beyond both ends of the arc and raised
-               above it (not in the default set: --splits orbit-dense)
+  orbit-dense  the orbit's map, 53 queries at 4-degree steps beyond both ends of the arc and raised
+               above it, 14 of them 10-20 deg from the nearest view (not in the default set)
   custom       --map SEQ --queries SEQ (any readable sequences)
 
 Columns: median / 90th-percentile translation (scene units, and % of the scene extent: the 5-95 %
@@ -205,10 +205,11 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int, dense: bool 
     """Mapping frames along part of the room orbit; queries (a) between mapping views, (b) orbiting
     on beyond the last mapping view, (c) raised above the path; binned by angle to the nearest view.
 
-    ``dense`` ("orbit-dense", the same map): 75 queries instead of 25, at 2-degree steps from 6 to
-    60 degrees beyond both ends of the arc and raised above the path from four places along it. The
+    ``dense`` ("orbit-dense", the same map): 53 queries instead of 25, at 4-degree steps orbiting
+    7-59 degrees beyond both ends of the arc and raised 6-46 degrees above the path from four places
+    along it (those whose camera leaves the room are dropped), 10 / 14 / 19 / 10 per angle bin. The
     standard set has 5 queries in the 10-20 degree bin, whose errors there lie at the pose's noise
-    floor: a method's median over 5 of them moves more between two close methods than they differ."""
+    floor: a median over 5 of them moves more between two close methods than they differ."""
     from favormap.geometry import inverse, rotation_about
     from favormap.synthetic import camera_path, make_room, random_views_near, write_sequence
 
@@ -410,7 +411,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 outs.append(o)
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
             rows[-1].update(
-                per_query=[per_query(o, None if split.angle is None else a) for o, a in zip(outs, _angles(split))],
+                per_query=[per_query(o, a) for o, a in zip(outs, _angles(split))],
                 extractor=build_cfg.extractor,
                 solver_tag=f" {build_cfg.voxel.solver}",
                 map_variant=prefix.strip(),
@@ -514,6 +515,91 @@ def paired_rows(rows: list[dict], reference: str = "rendered") -> list[dict]:
     return out
 
 
+def _map_and_seed(r: dict, seed_of: dict) -> tuple[str, int, str]:
+    """A row's map variant without its seed suffix (NAME-sK / sK -> NAME / ""), the seed, and the
+    method without the map's prefix."""
+    import re
+
+    name = r.get("map_variant")
+    if name is None:
+        return None, 0, r["method"]
+    base = re.sub(r"(^|-)s\d+$", "", name) if seed_of.get(name) else name
+    method = re.sub(rf"^{re.escape(name)} ?", "", r["method"]) if name else r["method"]
+    return base, seed_of.get(name, 0), method
+
+
+def seed_paired_rows(rows: list[dict], build_cfgs, reference: str = "rendered") -> list[dict]:
+    """Every method of every map variant (and the baseline) against ``reference`` on the default map
+    of the same training seed, query by query, with each query's log ratio averaged over the seeds
+    before the bootstrap: one decision per (split, prior, map variant, method) over all seeds."""
+    seed_of = {name: cfg.voxel.seed for name, cfg in build_cfgs}
+    refs: dict[tuple, dict] = {}
+    groups: dict[tuple, list[tuple[int, dict]]] = {}
+    for r in rows:
+        if not r.get("per_query"):
+            continue
+        base, seed, method = _map_and_seed(r, seed_of)
+        if base == "" and method == reference:
+            refs[(r["split"], r["prior"], seed)] = r
+        groups.setdefault((r["split"], r["prior"], base, method), []).append((seed, r))
+    out = []
+    for (split, prior, base, method), members in groups.items():
+        if base == "" and method == reference:
+            continue
+        logs, names, angle, seeds = [], None, None, set()
+        for seed, r in members:
+            if base is None:  # the baseline has no seed: against the default map of every seed
+                against = [(k[2], v) for k, v in refs.items() if k[0] == split and k[1] == "noise"]
+            else:
+                against = [(seed, refs[split, prior, seed])] if (split, prior, seed) in refs else []
+            for ref_seed, ref in against:
+                if names is None:
+                    names = [q["name"] for q in ref["per_query"]]
+                    angle = np.array([q.get("angle_deg", np.nan) for q in ref["per_query"]], np.float64)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    logs.append(np.log(_errors(r, names) / _errors(ref, names)))
+                seeds.add(ref_seed)
+        if not logs:
+            continue
+        d = np.mean(logs, axis=0)  # nan / inf where a seed failed or tied at 0: left out below
+        row = {"split": split, "prior": prior, "map": base if base is not None else "(baseline)", "method": method}
+        row["seeds"] = sorted(seeds)
+        row["all"] = paired_ratio(np.exp(d), np.ones_like(d))
+        if np.isfinite(angle).any():
+            row["bins"] = {
+                f"{lo}-{hi}": paired_ratio(
+                    np.exp(d[(angle >= lo) & (angle < hi)]), np.ones(((angle >= lo) & (angle < hi)).sum())
+                )
+                for lo, hi in ANGLE_BINS
+            }
+        out.append(row)
+    return out
+
+
+def seed_paired_table(rows: list[dict], build_cfgs, reference: str = "rendered") -> str:
+    """Markdown of :func:`seed_paired_rows`."""
+    pr = seed_paired_rows(rows, build_cfgs, reference)
+    if not pr:
+        return ""
+    out = [
+        f"Paired with `{reference}` of the default map and the same training seed (per query, the log error ratio "
+        "averaged over the seeds; geometric mean [95 % bootstrap interval over the queries], queries lower / higher):",
+        "",
+        "| split | prior | map | method | seeds | all queries | "
+        + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS)
+        + " |",
+        "|---|---|---|---|---|---|" + "---|" * len(ANGLE_BINS),
+    ]
+    for p in pr:
+        bins = p.get("bins") or {}
+        cells = [_ratio_cell(bins.get(f"{lo}-{hi}")) if bins else "" for lo, hi in ANGLE_BINS]
+        out.append(
+            f"| {p['split']} | {p['prior']} | {p['map'] or '(default)'} | {p['method']} | "
+            f"{','.join(map(str, p['seeds']))} | {_ratio_cell(p['all'])} | " + " | ".join(cells) + " |"
+        )
+    return "\n".join(out)
+
+
 def _ratio_cell(p: dict | None) -> str:
     if p is None:
         return "-"
@@ -574,7 +660,7 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
                 )
             outs.append(o)
         rows.append(record(split, name, "none", outs, 1, extent, len(b.points3d)))
-        rows[-1]["per_query"] = [per_query(o, None if split.angle is None else a) for o, a in zip(outs, _angles(split))]
+        rows[-1]["per_query"] = [per_query(o, a) for o, a in zip(outs, _angles(split))]
     return rows
 
 
@@ -858,6 +944,8 @@ def main():
     if len(train_seeds) > 1:
         print("\nAcross training seeds " + ", ".join(map(str, train_seeds)) + ":\n")
         print(seed_table(rows, build_cfgs))
+    if len(build_cfgs) > 1:
+        print("\n" + seed_paired_table(rows, build_cfgs))
     builds = {
         (r["split"], r["extractor"] + r.get("solver_tag", "") + f" {r.get('map_variant', '')}".rstrip()): r["build_s"]
         for r in rows
