@@ -340,6 +340,23 @@ def test_a_sift_map_localizes_with_every_orientation_of_the_query(small_map, que
     assert len(np.unique(matched_at, axis=0)) == len(res.matches)  # a location is matched at most once
 
 
+def test_the_query_sift_contrast_is_an_option_of_the_localizer(small_map, queries):
+    """LocalizeConfig.sift_contrast: None keeps the map's threshold; a lower one extracts more query
+    keypoints and still localizes; a bad value is an input error."""
+    _, path = small_map
+    img, T = queries[4]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(6))
+    default = Localizer(path)
+    low = Localizer(path, LocalizeConfig(sift_contrast=0.005))
+    assert default.extractor.contrast_threshold == 0.02 and low.extractor.contrast_threshold == 0.005
+    a, b = default.localize(img, prior), low.localize(img, prior)
+    assert len(b.keypoints) > len(a.keypoints)
+    assert b.success and pose_error(b.cam_from_world, T)[0] < 0.01, b.message
+    for bad in (0, -1.0, float("inf")):
+        with pytest.raises(InputError, match="sift_contrast"):
+            LocalizeConfig(sift_contrast=bad)
+
+
 def test_search_by_projection_matches_like_full_matching_within_the_radius():
     """match_near compares only pairs within the radius: with a radius covering the image it gives
     exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only
@@ -538,6 +555,12 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     assert main(args + ["--landmark-sigma", "-1"]) != 0
     err = capsys.readouterr().err
     assert "--landmark-sigma" in err and "Traceback" not in err
+    assert main(args + ["--sift-contrast", "0.01"]) == 0  # the query's SIFT threshold
+    res = json.loads(capsys.readouterr().out)
+    assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
+    assert main(args + ["--sift-contrast", "0"]) != 0
+    err = capsys.readouterr().err
+    assert "--sift-contrast" in err and "Traceback" not in err
 
 
 def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):

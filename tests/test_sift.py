@@ -40,6 +40,21 @@ def test_all_orientations_keep_every_keypoint_opencv_finds_at_a_location(room_im
         features.create("sift", orientations="some")
 
 
+def test_a_lower_contrast_threshold_adds_weaker_keypoints_to_the_same_ones(room_image):
+    """SIFTExtractor(contrast_threshold=...): the maps' default finds a subset of what a lower
+    threshold finds (the extra keypoints are the weaker ones); a threshold must be a number > 0."""
+    default = features.create("sift", max_keypoints=100_000).extract(room_image)
+    low = features.create("sift", max_keypoints=100_000, contrast_threshold=0.005).extract(room_image)
+    assert features.create("sift").contrast_threshold == 0.02
+    assert len(low) > 1.1 * len(default)  # 1,196 against 1,035 on this image
+    have = {tuple(p) for p in np.round(low.keypoints, 1).tolist()}
+    assert np.mean([tuple(p) in have for p in np.round(default.keypoints, 1).tolist()]) > 0.95
+    assert np.median(low.scores) < np.median(default.scores)
+    for bad in (0, -0.01, float("nan"), "0.01"):
+        with pytest.raises(ValueError, match="contrast_threshold"):
+            features.create("sift", contrast_threshold=bad)
+
+
 def test_descriptors_survive_an_in_plane_rotation(room_image):
     """Rotate the image by 40 degrees: mutual nearest neighbours with the ratio test must mostly
     land on the rotated keypoint (an upright, fixed-size descriptor fails this)."""

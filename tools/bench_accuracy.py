@@ -105,6 +105,8 @@ VARIANTS = {
     "rendered no-confirmation": ("rendered", {"checks": {"confirm_below_inliers": 0}}),
     # SIFT maps: every orientation OpenCV finds at a query location, matched as one keypoint
     "rendered all-orientations": ("rendered", {"sift_orientations": "all"}),
+    "rendered contrast-0.01": ("rendered", {"sift_contrast": 0.01}),
+    "mean contrast-0.01": ("mean", {"sift_contrast": 0.01}),
     "rendered+mean all-orientations": ("rendered+mean", {"sift_orientations": "all"}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),

@@ -44,6 +44,13 @@ def add_localize_options(p):
         "keypoint; better far from the mapping path, slightly worse near it: README, Accuracy)",
     )
     p.add_argument(
+        "--sift-contrast",
+        type=float,
+        default=None,
+        help="SIFT maps: OpenCV contrast threshold of the query's keypoints (default: the map's, 0.02; lower "
+        "finds more, weaker ones: 0.01 was better far from the mapping path and worse near it, README, Accuracy)",
+    )
+    p.add_argument(
         "--landmark-sigma",
         default="landmark",
         help="final refinement weighted by each landmark's position uncertainty, for this keypoint noise of the "
@@ -138,6 +145,9 @@ def config_from_args(args):
     guided_below = LocalizeConfig.guided_below_inliers if guided_below is None else guided_below
     if guided_below is not None and guided_below < 0:
         raise InputError("--guided-below must be a number of inliers >= 0")
+    contrast = getattr(args, "sift_contrast", None)
+    if contrast is not None and not 0 < contrast < float("inf"):
+        raise InputError("--sift-contrast must be a number > 0")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):
         try:
@@ -157,6 +167,7 @@ def config_from_args(args):
         global_fallback=not args.no_global,
         descriptors=getattr(args, "descriptors", "rendered"),
         sift_orientations=args.sift_orientations,
+        sift_contrast=contrast,
         landmark_sigma_px=sigma,
         guided_radius_px=guided,
         guided_below_inliers=guided_below,

@@ -61,6 +61,9 @@ class _SiftState:
         return self._octave
 
 
+# OpenCV's contrast threshold (its default 0.04 halved: more keypoints on low-texture surfaces); maps
+# are always built with it. A query may use a lower one (LocalizeConfig.sift_contrast)
+CONTRAST_THRESHOLD = 0.02
 # nOctaveLayers and sigma of cv2.SIFT_create's defaults (used to place a size in the pyramid)
 _LAYERS, _SIGMA = 3, 1.6
 # a keypoint on the upsampled first octave (-1, layer 1): added to every compute() call so that
@@ -97,6 +100,7 @@ class SIFTExtractor(Extractor):
         size: float = 12.0,
         support_px: float = 4.0,
         orientations: str = "strongest",
+        contrast_threshold: float = CONTRAST_THRESHOLD,
     ):
         super().__init__(max_keypoints, device)
         self.size = float(size)
@@ -108,7 +112,10 @@ class SIFTExtractor(Extractor):
         if orientations not in ("strongest", "all"):
             raise ValueError(f"orientations must be 'strongest' or 'all', not {orientations!r}")
         self.orientations = orientations
-        self._sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=0.02)
+        if not (isinstance(contrast_threshold, (int, float)) and 0 < contrast_threshold < float("inf")):
+            raise ValueError(f"contrast_threshold must be a number > 0, not {contrast_threshold!r}")
+        self.contrast_threshold = float(contrast_threshold)
+        self._sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=self.contrast_threshold)
 
     def extract(self, image: np.ndarray) -> Features:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)

@@ -82,6 +82,12 @@ class LocalizeConfig:
     # SIFT maps: query keypoints per location, "strongest" orientation or "all" (grouped in matching,
     # KeypointGroups)
     sift_orientations: str = "strongest"
+    # SIFT maps: the query's OpenCV contrast threshold (None: the maps' own, features.sift.CONTRAST_THRESHOLD,
+    # 0.02). Lower finds more, weaker keypoints. tools/bench_accuracy.py (thirteenth session, three
+    # training seeds, noise priors): at 0.01 fox extrapolation 0.0051 / 0.0057 / 0.0058 units against
+    # 0.0060 / 0.0068 / 0.0061, but the hold-out 0.0014 against 0.0012 on every seed and the orbit
+    # worse: an option for queries far from the mapping path, not the default
+    sift_contrast: float | None = None
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
     # The guided step, after the rendering iterations (search by projection; the pose's last step
@@ -176,6 +182,9 @@ class LocalizeConfig:
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
             raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
+        c = self.sift_contrast
+        if c is not None and not (isinstance(c, (int, float)) and 0 < c < float("inf")):
+            raise InputError(f"sift_contrast must be a number > 0 (or None: the map's), not {c!r}")
         if self.refine_noise not in ("fixed", "estimated"):
             raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         c = self.refine_loss_scale
@@ -471,7 +480,7 @@ class Localizer:
             self.map.extractor,
             max_keypoints=self.config.max_keypoints,
             device=None if self.config.device == "cpu" else self.config.device,
-            **({"orientations": self.config.sift_orientations} if self.map.extractor == "sift" else {}),
+            **(self._sift_options() if self.map.extractor == "sift" else {}),
         )
         self.index = SpatialIndex(self.map.positions)
         self.default_camera = (
@@ -489,6 +498,13 @@ class Localizer:
 
     def close(self):
         self.map.close()
+
+    def _sift_options(self) -> dict:
+        """The query's SIFT settings (LocalizeConfig.sift_orientations, sift_contrast)."""
+        opts = {"orientations": self.config.sift_orientations}
+        if self.config.sift_contrast is not None:
+            opts["contrast_threshold"] = self.config.sift_contrast
+        return opts
 
     def keypoint_groups(self, feats) -> KeypointGroups | None:
         """The query keypoints sharing a location, for an extractor that gives several descriptors
