@@ -580,26 +580,28 @@ def seed_paired_rows(rows: list[dict], build_cfgs, reference: str = "rendered") 
 
 def seed_paired_table(rows: list[dict], build_cfgs, reference: str = "rendered") -> str:
     """Markdown of :func:`seed_paired_rows`."""
-    pr = seed_paired_rows(rows, build_cfgs, reference)
-    if not pr:
-        return ""
-    out = [
+    return _ratio_table(
         f"Paired with `{reference}` of the default map and the same training seed (per query, the log error ratio "
         "averaged over the seeds; geometric mean [95 % bootstrap interval over the queries], queries lower / higher):",
-        "",
-        "| split | prior | map | method | seeds | all queries | "
-        + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS)
-        + " |",
-        "|---|---|---|---|---|---|" + "---|" * len(ANGLE_BINS),
-    ]
-    for p in pr:
-        bins = p.get("bins") or {}
-        cells = [_ratio_cell(bins.get(f"{lo}-{hi}")) if bins else "" for lo, hi in ANGLE_BINS]
-        out.append(
-            f"| {p['split']} | {p['prior']} | {p['map'] or '(default)'} | {p['method']} | "
-            f"{','.join(map(str, p['seeds']))} | {_ratio_cell(p['all'])} | " + " | ".join(cells) + " |"
-        )
-    return "\n".join(out)
+        ["split", "prior", "map", "method", "seeds"],
+        [
+            ([p["split"], p["prior"], p["map"] or "(default)", p["method"], ",".join(map(str, p["seeds"]))], p)
+            for p in seed_paired_rows(rows, build_cfgs, reference)
+        ],
+    )
+
+
+def paired_table(rows: list[dict], reference: str = "rendered") -> str:
+    """Markdown of :func:`paired_rows`: ratio [95 % interval] and queries lower/higher."""
+    return _ratio_table(
+        f"Paired with `{reference}` of the same map (error / reference error, geometric mean over the queries both "
+        "localized [95 % bootstrap interval], queries lower / higher; < 1: better than the reference):",
+        ["split", "prior", "method", "failed (method / ref.)"],
+        [
+            ([p["split"], p["prior"], p["method"], f"{p['failed'][0]} / {p['failed'][1]}"], p)
+            for p in paired_rows(rows, reference)
+        ],
+    )
 
 
 def _ratio_cell(p: dict | None) -> str:
@@ -608,26 +610,23 @@ def _ratio_cell(p: dict | None) -> str:
     return f"{p['ratio']:.2f} [{p['ci95'][0]:.2f}, {p['ci95'][1]:.2f}] {p['lower']}/{p['higher']}"
 
 
-def paired_table(rows: list[dict], reference: str = "rendered") -> str:
-    """Markdown of :func:`paired_rows`: ratio [95 % interval] and queries lower/higher."""
-    pr = paired_rows(rows, reference)
-    if not pr:
+def _ratio_table(intro: str, lead: list[str], entries: list[tuple[list[str], dict]]) -> str:
+    """A markdown table of paired ratios: the ``lead`` columns, then all queries and each angle bin."""
+    if not entries:
         return ""
+    bins = [f"{lo}-{hi}" for lo, hi in ANGLE_BINS]
     out = [
-        f"Paired with `{reference}` of the same map (error / reference error, geometric mean over the queries both "
-        "localized [95 % bootstrap interval], queries lower / higher; < 1: better than the reference):",
+        intro,
         "",
-        "| split | prior | method | all queries | failed (method / ref.) | "
-        + " | ".join(f"{lo}-{hi}" for lo, hi in ANGLE_BINS)
-        + " |",
-        "|---|---|---|---|---|" + "---|" * len(ANGLE_BINS),
+        "| " + " | ".join(lead + ["all queries"] + bins) + " |",
+        "|---" * (len(lead) + 1 + len(bins)) + "|",
     ]
-    for p in pr:
-        bins = p.get("bins") or {}
-        cells = [_ratio_cell(bins.get(f"{lo}-{hi}")) if bins else "" for lo, hi in ANGLE_BINS]
+    for cells, p in entries:
+        b = p.get("bins") or {}
         out.append(
-            f"| {p['split']} | {p['prior']} | {p['method']} | {_ratio_cell(p['all'])} | {p['failed'][0]} / "
-            f"{p['failed'][1]} | " + " | ".join(cells) + " |"
+            "| "
+            + " | ".join(cells + [_ratio_cell(p["all"])] + [_ratio_cell(b.get(k)) if b else "" for k in bins])
+            + " |"
         )
     return "\n".join(out)
 
