@@ -357,6 +357,29 @@ def test_the_query_sift_contrast_is_an_option_of_the_localizer(small_map, querie
             LocalizeConfig(sift_contrast=bad)
 
 
+def test_the_guided_step_alone_searches_the_weaker_query_keypoints(small_map, queries):
+    """LocalizeConfig.guided_sift_contrast: the query is extracted down to that threshold, the
+    keypoints of the default threshold first. Without a guided step the pose is exactly the default
+    localizer's (the descriptor matching sees the same keypoints); with one, it searches them all."""
+    _, path = small_map
+    img, T = queries[4]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(6))
+    off = dict(guided_below_inliers=0)
+    a = Localizer(path, LocalizeConfig(**off)).localize(img, prior)
+    b = Localizer(path, LocalizeConfig(guided_sift_contrast=0.005, **off)).localize(img, prior)
+    assert len(b.keypoints) > len(a.keypoints) and np.allclose(b.keypoints[: len(a.keypoints)], a.keypoints)
+    np.testing.assert_allclose(b.cam_from_world, a.cam_from_world, atol=1e-9)
+    on = dict(guided_below_inliers=100_000)
+    c = Localizer(path, LocalizeConfig(guided_sift_contrast=0.005, **on)).localize(img, prior)
+    assert c.success and c.iterations[-1].kind == "guided" and pose_error(c.cam_from_world, T)[0] < 0.01
+    assert len(c.keypoints) == len(b.keypoints)  # the guided step had the weaker keypoints to search
+    for bad in (dict(guided_sift_contrast=0.02), dict(guided_sift_contrast=0.01, sift_contrast=0.005)):
+        with pytest.raises(InputError, match="below sift_contrast"):
+            LocalizeConfig(**bad)
+    with pytest.raises(InputError, match="strongest"):
+        LocalizeConfig(guided_sift_contrast=0.01, sift_orientations="all")
+
+
 def test_search_by_projection_matches_like_full_matching_within_the_radius():
     """match_near compares only pairs within the radius: with a radius covering the image it gives
     exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only

@@ -107,6 +107,8 @@ VARIANTS = {
     "rendered all-orientations": ("rendered", {"sift_orientations": "all"}),
     "rendered contrast-0.01": ("rendered", {"sift_contrast": 0.01}),
     "mean contrast-0.01": ("mean", {"sift_contrast": 0.01}),
+    "rendered guided-contrast-0.01": ("rendered", {"guided_sift_contrast": 0.01}),
+    "mean guided-contrast-0.01": ("mean", {"guided_sift_contrast": 0.01}),
     "rendered+mean all-orientations": ("rendered+mean", {"sift_orientations": "all"}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),

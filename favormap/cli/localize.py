@@ -51,6 +51,13 @@ def add_localize_options(p):
         "finds more, weaker ones: 0.01 was better far from the mapping path and worse near it, README, Accuracy)",
     )
     p.add_argument(
+        "--guided-sift-contrast",
+        type=float,
+        default=None,
+        help="SIFT maps: the guided step (queries far from the mapping path) also searches weaker query keypoints, "
+        "down to this contrast threshold (below --sift-contrast; e.g. 0.01; README, Accuracy)",
+    )
+    p.add_argument(
         "--landmark-sigma",
         default="landmark",
         help="final refinement weighted by each landmark's position uncertainty, for this keypoint noise of the "
@@ -148,6 +155,9 @@ def config_from_args(args):
     contrast = getattr(args, "sift_contrast", None)
     if contrast is not None and not 0 < contrast < float("inf"):
         raise InputError("--sift-contrast must be a number > 0")
+    guided_contrast = getattr(args, "guided_sift_contrast", None)
+    if guided_contrast is not None and not 0 < guided_contrast < (contrast or 0.02):
+        raise InputError("--guided-sift-contrast must be a number > 0 below --sift-contrast (default 0.02)")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):
         try:
@@ -168,6 +178,7 @@ def config_from_args(args):
         descriptors=getattr(args, "descriptors", "rendered"),
         sift_orientations=args.sift_orientations,
         sift_contrast=contrast,
+        guided_sift_contrast=guided_contrast,
         landmark_sigma_px=sigma,
         guided_radius_px=guided,
         guided_below_inliers=guided_below,

@@ -88,6 +88,10 @@ class LocalizeConfig:
     # 0.0060 / 0.0068 / 0.0061, but the hold-out 0.0014 against 0.0012 on every seed and the orbit
     # worse: an option for queries far from the mapping path, not the default
     sift_contrast: float | None = None
+    # SIFT maps: the guided step (only) also searches the query's weaker keypoints, down to this
+    # contrast threshold (below sift_contrast); the rendering iterations and the prior-free step match
+    # the keypoints of sift_contrast alone. None: off. See README, Accuracy
+    guided_sift_contrast: float | None = None
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
     # The guided step, after the rendering iterations (search by projection; the pose's last step
@@ -182,9 +186,17 @@ class LocalizeConfig:
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
             raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
-        c = self.sift_contrast
-        if c is not None and not (isinstance(c, (int, float)) and 0 < c < float("inf")):
-            raise InputError(f"sift_contrast must be a number > 0 (or None: the map's), not {c!r}")
+        for name in ("sift_contrast", "guided_sift_contrast"):
+            c = getattr(self, name)
+            if c is not None and not (isinstance(c, (int, float)) and 0 < c < float("inf")):
+                raise InputError(f"{name} must be a number > 0 (or None), not {c!r}")
+        if self.guided_sift_contrast is not None:
+            from ..features.sift import CONTRAST_THRESHOLD
+
+            if self.guided_sift_contrast >= (self.sift_contrast or CONTRAST_THRESHOLD):
+                raise InputError("guided_sift_contrast must lie below sift_contrast (the maps' 0.02 when None)")
+            if self.sift_orientations != "strongest":
+                raise InputError("guided_sift_contrast needs sift_orientations='strongest'")
         if self.refine_noise not in ("fixed", "estimated"):
             raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         c = self.refine_loss_scale
@@ -500,11 +512,31 @@ class Localizer:
         self.map.close()
 
     def _sift_options(self) -> dict:
-        """The query's SIFT settings (LocalizeConfig.sift_orientations, sift_contrast)."""
-        opts = {"orientations": self.config.sift_orientations}
-        if self.config.sift_contrast is not None:
-            opts["contrast_threshold"] = self.config.sift_contrast
+        """The query's SIFT settings (LocalizeConfig.sift_orientations, sift_contrast; the extractor
+        detects down to guided_sift_contrast when that is set, _strong_first splits them)."""
+        cfg = self.config
+        opts = {"orientations": cfg.sift_orientations}
+        contrast = cfg.guided_sift_contrast or cfg.sift_contrast
+        if contrast is not None:
+            opts["contrast_threshold"] = contrast
         return opts
+
+    def _strong_first(self, feats):
+        """(features, n): with guided_sift_contrast, the query's keypoints reordered so that the n that
+        pass sift_contrast come first (OpenCV keeps a SIFT extremum whose response is at least
+        contrastThreshold / nOctaveLayers, so these are the keypoints an extraction at sift_contrast
+        finds); otherwise (feats, None)."""
+        cfg = self.config
+        if cfg.guided_sift_contrast is None or self.map.extractor != "sift":
+            return feats, None
+        from ..features.sift import _LAYERS, CONTRAST_THRESHOLD
+
+        strong = np.asarray(feats.scores) >= (cfg.sift_contrast or CONTRAST_THRESHOLD) / _LAYERS
+        order = np.r_[np.flatnonzero(strong), np.flatnonzero(~strong)]
+        f = dataclasses.replace(
+            feats, keypoints=feats.keypoints[order], scores=feats.scores[order], descriptors=feats.descriptors[order]
+        )
+        return f, int(strong.sum())
 
     def keypoint_groups(self, feats) -> KeypointGroups | None:
         """The query keypoints sharing a location, for an extractor that gives several descriptors
@@ -538,10 +570,10 @@ class Localizer:
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
-        feats = self.extractor.extract(img)
+        feats, strong = self._strong_first(self.extractor.extract(img))
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
-        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats))
+        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats), strong=strong)
 
         if prior is not None:
             res = self._refine(q, prior, [], t)
@@ -641,7 +673,9 @@ class Localizer:
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
-        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio, groups=q.groups)
+        m = match_descriptors(
+            d, q.match_desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio, groups=q.groups
+        )
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -687,10 +721,10 @@ class Localizer:
             if cfg.search_radius_px > 0 and last is not None:
                 uv = project(q.cam.K, pose, self.map.positions[drows])
                 m = match_near(
-                    rend, q.desc, uv, q.feats.keypoints, cfg.search_radius_px, cfg.match_threshold, cfg.mutual
+                    rend, q.match_desc, uv, q.match_keypoints, cfg.search_radius_px, cfg.match_threshold, cfg.mutual
                 )
             else:
-                m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
+                m = match_descriptors(rend, q.match_desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
             m = _distinct_pairs(m, drows, len(rows))
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
@@ -1018,6 +1052,15 @@ class _Query:
     cam: Camera
     groups: KeypointGroups | None = None  # query keypoints sharing a position (several orientations)
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
+    strong: int | None = None  # descriptor matching uses the first `strong` keypoints (None: all; the guided step: all)
+
+    @property
+    def match_desc(self) -> np.ndarray:
+        return self.desc if self.strong is None else self.desc[: self.strong]
+
+    @property
+    def match_keypoints(self) -> np.ndarray:
+        return self.feats.keypoints if self.strong is None else self.feats.keypoints[: self.strong]
 
 
 def localize(
