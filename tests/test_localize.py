@@ -373,9 +373,20 @@ def test_the_guided_step_alone_searches_the_weaker_query_keypoints(small_map, qu
     c = Localizer(path, LocalizeConfig(guided_sift_contrast=0.005, **on)).localize(img, prior)
     assert c.success and c.iterations[-1].kind == "guided" and pose_error(c.cam_from_world, T)[0] < 0.01
     assert len(c.keypoints) == len(b.keypoints)  # the guided step had the weaker keypoints to search
-    for bad in (dict(guided_sift_contrast=0.02), dict(guided_sift_contrast=0.01, sift_contrast=0.005)):
-        with pytest.raises(InputError, match="below sift_contrast"):
-            LocalizeConfig(**bad)
+    # the other way round: descriptor matching sees the weaker keypoints, the guided step does not
+    d = Localizer(path, LocalizeConfig(sift_contrast=0.005, guided_sift_contrast=0.02, **on)).localize(img, prior)
+    e = Localizer(path, LocalizeConfig(sift_contrast=0.005, **off)).localize(img, prior)
+    np.testing.assert_allclose(d.keypoints, b.keypoints)  # the same extraction and order
+    assert d.success and pose_error(d.cam_from_world, T)[0] < 0.01 and e.success
+    # the rendering iteration saw every keypoint (in another order), the guided step only the strong ones
+    assert (d.iterations[0].num_matches, d.iterations[0].num_inliers) == (
+        e.iterations[0].num_matches,
+        e.iterations[0].num_inliers,
+    )
+    assert d.by_projection is not None and d.by_projection.any()
+    assert d.matches[d.by_projection][:, 1].max() < len(a.keypoints)
+    with pytest.raises(InputError, match="guided_sift_contrast"):
+        LocalizeConfig(guided_sift_contrast=-1.0)
     with pytest.raises(InputError, match="strongest"):
         LocalizeConfig(guided_sift_contrast=0.01, sift_orientations="all")
 

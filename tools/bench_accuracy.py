@@ -109,6 +109,8 @@ VARIANTS = {
     "mean contrast-0.01": ("mean", {"sift_contrast": 0.01}),
     "rendered guided-contrast-0.01": ("rendered", {"guided_sift_contrast": 0.01}),
     "mean guided-contrast-0.01": ("mean", {"guided_sift_contrast": 0.01}),
+    "rendered matching-contrast-0.01": ("rendered", {"sift_contrast": 0.01, "guided_sift_contrast": 0.02}),
+    "mean matching-contrast-0.01": ("mean", {"sift_contrast": 0.01, "guided_sift_contrast": 0.02}),
     "rendered+mean all-orientations": ("rendered+mean", {"sift_orientations": "all"}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),

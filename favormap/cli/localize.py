@@ -54,8 +54,8 @@ def add_localize_options(p):
         "--guided-sift-contrast",
         type=float,
         default=None,
-        help="SIFT maps: the guided step (queries far from the mapping path) also searches weaker query keypoints, "
-        "down to this contrast threshold (below --sift-contrast; e.g. 0.01; README, Accuracy)",
+        help="SIFT maps: contrast threshold of the query keypoints the guided step searches (default: "
+        "--sift-contrast's; README, Accuracy)",
     )
     p.add_argument(
         "--landmark-sigma",
@@ -156,8 +156,8 @@ def config_from_args(args):
     if contrast is not None and not 0 < contrast < float("inf"):
         raise InputError("--sift-contrast must be a number > 0")
     guided_contrast = getattr(args, "guided_sift_contrast", None)
-    if guided_contrast is not None and not 0 < guided_contrast < (contrast or 0.02):
-        raise InputError("--guided-sift-contrast must be a number > 0 below --sift-contrast (default 0.02)")
+    if guided_contrast is not None and not 0 < guided_contrast < float("inf"):
+        raise InputError("--guided-sift-contrast must be a number > 0")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):
         try:

@@ -88,9 +88,8 @@ class LocalizeConfig:
     # 0.0060 / 0.0068 / 0.0061, but the hold-out 0.0014 against 0.0012 on every seed and the orbit
     # worse: an option for queries far from the mapping path, not the default
     sift_contrast: float | None = None
-    # SIFT maps: the guided step (only) also searches the query's weaker keypoints, down to this
-    # contrast threshold (below sift_contrast); the rendering iterations and the prior-free step match
-    # the keypoints of sift_contrast alone. None: off. See README, Accuracy
+    # SIFT maps: the contrast threshold of the query keypoints the guided step searches (None: the same
+    # as sift_contrast). One extraction at the lower of the two serves both steps. See README, Accuracy
     guided_sift_contrast: float | None = None
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
@@ -190,13 +189,8 @@ class LocalizeConfig:
             c = getattr(self, name)
             if c is not None and not (isinstance(c, (int, float)) and 0 < c < float("inf")):
                 raise InputError(f"{name} must be a number > 0 (or None), not {c!r}")
-        if self.guided_sift_contrast is not None:
-            from ..features.sift import CONTRAST_THRESHOLD
-
-            if self.guided_sift_contrast >= (self.sift_contrast or CONTRAST_THRESHOLD):
-                raise InputError("guided_sift_contrast must lie below sift_contrast (the maps' 0.02 when None)")
-            if self.sift_orientations != "strongest":
-                raise InputError("guided_sift_contrast needs sift_orientations='strongest'")
+        if self.guided_sift_contrast is not None and self.sift_orientations != "strongest":
+            raise InputError("guided_sift_contrast needs sift_orientations='strongest'")
         if self.refine_noise not in ("fixed", "estimated"):
             raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         c = self.refine_loss_scale
@@ -511,32 +505,40 @@ class Localizer:
     def close(self):
         self.map.close()
 
+    def _contrasts(self) -> tuple[float, float]:
+        """The query's SIFT contrast thresholds of descriptor matching and of the guided step."""
+        from ..features.sift import CONTRAST_THRESHOLD
+
+        matching = self.config.sift_contrast or CONTRAST_THRESHOLD
+        return matching, self.config.guided_sift_contrast or matching
+
     def _sift_options(self) -> dict:
-        """The query's SIFT settings (LocalizeConfig.sift_orientations, sift_contrast; the extractor
-        detects down to guided_sift_contrast when that is set, _strong_first splits them)."""
+        """The query's SIFT settings (LocalizeConfig.sift_orientations; one extraction at the lower of
+        sift_contrast and guided_sift_contrast, split by _strong_first)."""
         cfg = self.config
         opts = {"orientations": cfg.sift_orientations}
-        contrast = cfg.guided_sift_contrast or cfg.sift_contrast
-        if contrast is not None:
-            opts["contrast_threshold"] = contrast
+        if cfg.sift_contrast is not None or cfg.guided_sift_contrast is not None:
+            opts["contrast_threshold"] = min(self._contrasts())
         return opts
 
-    def _strong_first(self, feats):
-        """(features, n): with guided_sift_contrast, the query's keypoints reordered so that the n that
-        pass sift_contrast come first (OpenCV keeps a SIFT extremum whose response is at least
-        contrastThreshold / nOctaveLayers, so these are the keypoints an extraction at sift_contrast
-        finds); otherwise (feats, None)."""
-        cfg = self.config
-        if cfg.guided_sift_contrast is None or self.map.extractor != "sift":
-            return feats, None
-        from ..features.sift import _LAYERS, CONTRAST_THRESHOLD
+    def _strong_first(self, feats) -> tuple[object, int | None, int | None]:
+        """(features, matching_n, guided_n): where descriptor matching and the guided step use
+        different SIFT contrast thresholds, the query's keypoints reordered so that those passing the
+        higher one come first, and how many leading keypoints each step uses (None: all). OpenCV keeps
+        a SIFT extremum whose response is at least contrastThreshold / nOctaveLayers, so these are the
+        keypoints an extraction at the higher threshold finds."""
+        matching, guided = self._contrasts()
+        if matching == guided or self.map.extractor != "sift":
+            return feats, None, None
+        from ..features.sift import _LAYERS
 
-        strong = np.asarray(feats.scores) >= (cfg.sift_contrast or CONTRAST_THRESHOLD) / _LAYERS
+        strong = np.asarray(feats.scores) >= max(matching, guided) / _LAYERS
         order = np.r_[np.flatnonzero(strong), np.flatnonzero(~strong)]
         f = dataclasses.replace(
             feats, keypoints=feats.keypoints[order], scores=feats.scores[order], descriptors=feats.descriptors[order]
         )
-        return f, int(strong.sum())
+        n = int(strong.sum())
+        return (f, n, None) if matching > guided else (f, None, n)
 
     def keypoint_groups(self, feats) -> KeypointGroups | None:
         """The query keypoints sharing a location, for an extractor that gives several descriptors
@@ -570,10 +572,10 @@ class Localizer:
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
-        feats, strong = self._strong_first(self.extractor.extract(img))
+        feats, matching_n, guided_n = self._strong_first(self.extractor.extract(img))
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
-        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats), strong=strong)
+        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats), matching_n=matching_n, guided_n=guided_n)
 
         if prior is not None:
             res = self._refine(q, prior, [], t)
@@ -932,9 +934,9 @@ class Localizer:
             uv = project(q.cam.K, pose, self.map.positions[drows])
         m = match_near(
             rend,
-            q.desc,
+            q.desc[: q.guided_n],
             uv,
-            q.feats.keypoints,
+            q.feats.keypoints[: q.guided_n],
             cfg.guided_radius_px,
             cfg.match_threshold if cfg.guided_match_threshold is None else cfg.guided_match_threshold,
             mutual=True,
@@ -1052,15 +1054,18 @@ class _Query:
     cam: Camera
     groups: KeypointGroups | None = None  # query keypoints sharing a position (several orientations)
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
-    strong: int | None = None  # descriptor matching uses the first `strong` keypoints (None: all; the guided step: all)
+    # descriptor matching / the guided step use the first n keypoints (None: all; LocalizeConfig.sift_contrast,
+    # guided_sift_contrast)
+    matching_n: int | None = None
+    guided_n: int | None = None
 
     @property
     def match_desc(self) -> np.ndarray:
-        return self.desc if self.strong is None else self.desc[: self.strong]
+        return self.desc[: self.matching_n]
 
     @property
     def match_keypoints(self) -> np.ndarray:
-        return self.feats.keypoints if self.strong is None else self.feats.keypoints[: self.strong]
+        return self.feats.keypoints[: self.matching_n]
 
 
 def localize(
