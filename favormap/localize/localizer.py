@@ -82,11 +82,13 @@ class LocalizeConfig:
     # SIFT maps: query keypoints per location, "strongest" orientation or "all" (grouped in matching,
     # KeypointGroups)
     sift_orientations: str = "strongest"
-    # SIFT maps: the query's OpenCV contrast threshold (None: the maps' own, features.sift.CONTRAST_THRESHOLD,
-    # 0.02). Lower finds more, weaker keypoints. tools/bench_accuracy.py (thirteenth session, three
-    # training seeds, noise priors): at 0.01 fox extrapolation 0.0051 / 0.0057 / 0.0058 units against
-    # 0.0060 / 0.0068 / 0.0061, but the hold-out 0.0014 against 0.0012 on every seed and the orbit
-    # worse: an option for queries far from the mapping path, not the default
+    # SIFT maps: the OpenCV contrast threshold of the query keypoints that descriptor matching uses
+    # (None: the maps' own, features.sift.CONTRAST_THRESHOLD, 0.02); lower finds more, weaker ones.
+    # tools/bench_accuracy.py (thirteenth session, three training seeds, noise priors), with
+    # guided_sift_contrast=0.02 (variant "rendered matching-contrast-0.01"): fox extrapolation
+    # 0.0055 / 0.0052 / 0.0059 units against 0.0060 / 0.0068 / 0.0061, rendered descriptors 20-30 %
+    # better than mean ones there; hold-out unchanged; the orbit's 10-40 deg bins 7-9 % worse. An
+    # option for queries far from the mapping path, not the default
     sift_contrast: float | None = None
     # SIFT maps: the contrast threshold of the query keypoints the guided step searches (None: the same
     # as sift_contrast). One extraction at the lower of the two serves both steps. See README, Accuracy
