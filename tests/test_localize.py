@@ -360,7 +360,9 @@ def test_the_query_sift_contrast_is_an_option_of_the_localizer(small_map, querie
 def test_the_guided_step_alone_searches_the_weaker_query_keypoints(small_map, queries):
     """LocalizeConfig.guided_sift_contrast: the query is extracted down to that threshold, the
     keypoints of the default threshold first. Without a guided step the pose is exactly the default
-    localizer's (the descriptor matching sees the same keypoints); with one, it searches them all."""
+    localizer's on this image (the descriptor matching sees the same keypoints; where OpenCV gives
+    several orientations at a location, the one kept may differ between thresholds, which this image
+    does not show); with one, it searches them all."""
     _, path = small_map
     img, T = queries[4]
     prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(6))
