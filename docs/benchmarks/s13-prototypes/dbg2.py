@@ -1,3 +1,5 @@
+# Session 13 prototype (2026-11-27), kept with the figures quoted in docs/benchmarks/accuracy-2026-11-27-s13.md.
+# Reads the maps/sequences that 'python tools/bench_accuracy.py --workdir /tmp/acc12' writes. Not part of the package.
 import sys, numpy as np
 sys.path.insert(0, "/work/main/tools")
 import bench_accuracy as B

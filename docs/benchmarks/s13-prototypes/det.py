@@ -1,3 +1,5 @@
+# Session 13 prototype (2026-11-27), kept with the figures quoted in docs/benchmarks/accuracy-2026-11-27-s13.md.
+# Reads the maps/sequences that 'python tools/bench_accuracy.py --workdir /tmp/acc12' writes. Not part of the package.
 import numpy as np, cv2, glob
 from favormap import features
 img = cv2.cvtColor(cv2.imread(sorted(glob.glob("/tmp/acc12/orbit_queries/images/*.png"))[16]), cv2.COLOR_BGR2RGB)
