@@ -72,6 +72,13 @@ _LAYERS, _SIGMA = 3, 1.6
 _ANCHOR_OCTAVE = (-1 & 255) | (1 << 8)
 
 
+def min_response(contrast_threshold: float) -> float:
+    """The smallest keypoint response OpenCV keeps at ``contrast_threshold`` (it drops an extremum
+    whose |DoG| * nOctaveLayers is below the threshold): the keypoints of an extraction at a lower
+    threshold with at least this response are those an extraction at this one finds."""
+    return contrast_threshold / _LAYERS
+
+
 def octave_of_size(size: np.ndarray) -> np.ndarray:
     """OpenCV's packed octave (octave & 255 | layer << 8) of keypoints of diameter ``size`` (px):
     the inverse of detection's size = 2 sigma 2^(octave + layer / nOctaveLayers)."""

@@ -526,15 +526,14 @@ class Localizer:
     def _strong_first(self, feats) -> tuple[object, int | None, int | None]:
         """(features, matching_n, guided_n): where descriptor matching and the guided step use
         different SIFT contrast thresholds, the query's keypoints reordered so that those passing the
-        higher one come first, and how many leading keypoints each step uses (None: all). OpenCV keeps
-        a SIFT extremum whose response is at least contrastThreshold / nOctaveLayers, so these are the
-        keypoints an extraction at the higher threshold finds."""
+        higher one come first (features.sift.min_response: the keypoints an extraction at that
+        threshold finds), and how many leading keypoints each step uses (None: all)."""
         matching, guided = self._contrasts()
         if matching == guided or self.map.extractor != "sift":
             return feats, None, None
-        from ..features.sift import _LAYERS
+        from ..features.sift import min_response
 
-        strong = np.asarray(feats.scores) >= max(matching, guided) / _LAYERS
+        strong = np.asarray(feats.scores) >= min_response(max(matching, guided))
         order = np.r_[np.flatnonzero(strong), np.flatnonzero(~strong)]
         f = dataclasses.replace(
             feats, keypoints=feats.keypoints[order], scores=feats.scores[order], descriptors=feats.descriptors[order]
