@@ -7,6 +7,7 @@ dataclass to the next; ``build_map`` runs them and records timings and statistic
 from __future__ import annotations
 
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from collections.abc import Sequence as SequenceABC
@@ -129,13 +130,18 @@ class ExtractorSpec:
         return self.name in ("xfeat", "disk")
 
 
-@lru_cache(maxsize=8)
-def _cached_extractor(name: str, max_keypoints: int, device: str | None) -> Extractor:
+@lru_cache(maxsize=64)
+def _cached_extractor(name: str, max_keypoints: int, device: str | None, thread: int = 0) -> Extractor:
     return feats_mod.create(name, max_keypoints=max_keypoints, device=device)
 
 
 def _extractor(ex: Extractor | ExtractorSpec, device: str | None = None) -> Extractor:
-    return ex.create(device) if isinstance(ex, ExtractorSpec) else ex
+    if not isinstance(ex, ExtractorSpec):
+        return ex
+    if ex.uses_device:  # a torch model: one per device, shared by threads (inference does not change it)
+        return ex.create(device)
+    # OpenCV's extractor objects: one per thread (LocalExecutor's pool), they are cheap to create
+    return _cached_extractor(ex.name, ex.max_keypoints, None, threading.get_ident())
 
 
 def _on_cpu(x):
@@ -180,7 +186,17 @@ MEMORY_FRAMES = 300
 MAP_CHUNK = 64  # tasks per executor.map call of a streamed stage (results held at once)
 
 
-def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False, progress=None, chunk: int = MAP_CHUNK):
+def map_into(
+    executor: Executor,
+    fn,
+    tasks,
+    total: int,
+    sink,
+    gpu: bool = False,
+    progress=None,
+    chunk: int = MAP_CHUNK,
+    multithreaded: bool = False,
+):
     """``executor.map`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
     ``sink(i, result)`` (in order) as its chunk completes: only one chunk of results is ever held."""
     it = iter(tasks)
@@ -191,7 +207,7 @@ def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False,
             break
         off = done
         report = (lambda d, off=off: progress(off + d)) if progress else None
-        out = executor.map(fn, block, len(block), gpu=gpu, progress=report)
+        out = executor.map(fn, block, len(block), gpu=gpu, progress=report, multithreaded=multithreaded)
         for k, r in enumerate(out):
             sink(off + k, r)
         done += len(block)
@@ -333,6 +349,7 @@ def training_rays(
         n,
         sink,
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
+        multithreaded=True,  # OpenCV's pool describes one frame's points faster than a thread per frame
     )
     targets = held[0] if held else np.zeros((len(tid), P, 0), np.float32)
     # ray directions in world
@@ -349,10 +366,12 @@ def training_rays(
 
 @dataclass
 class TrainTask:
-    """One batch of landmarks to train (``config.seed`` already the batch's)."""
+    """Landmarks to train: one batch or several consecutive ones (``seed_blocks``: their sizes, batch k
+    of the task drawing from seed ``config.seed + k``; ``config.seed`` already the first batch's)."""
 
     rays: TrainingRays
     config: VoxelConfig
+    seed_blocks: tuple[int, ...] | None = None
 
 
 def train_batch(task: TrainTask, device: str | None = None, report=None) -> VoxelGrids:
@@ -363,6 +382,7 @@ def train_batch(task: TrainTask, device: str | None = None, report=None) -> Voxe
         cfg,
         progress=(lambda it, loss, psnr: report((it + 1) / iters)) if report else None,
         device=device or "cpu",
+        seed_blocks=task.seed_blocks,
     )
     return VoxelGrids(g.descriptors.cpu(), g.density.cpu(), g.psnr, g.cosine, g.history)
 
@@ -396,21 +416,33 @@ def train_batches(
     rays: TrainingRays, cfg: VoxelConfig, batch: int, executor: Executor | None = None, progress=None
 ) -> VoxelGrids:
     """All landmarks' voxels, trained in batches of ``batch`` landmarks (batch b seeded ``cfg.seed + b``;
-    one batch is exactly ``train_voxels(rays, cfg)``). History: landmark-weighted mean over the batches."""
+    one batch is exactly ``train_voxels(rays, cfg)``). History: landmark-weighted mean over the batches.
+
+    The executor may run several consecutive batches as one task (``Executor.train_group``: a local
+    GPU takes up to 16 at once); each batch still draws its own random rays, so the grids are the
+    same either way up to floating-point rounding (tests/test_build.py)."""
+    executor = executor or LocalExecutor()
     bounds = batch_bounds(len(rays.centers), batch)
-    tasks = (
-        TrainTask(rays_subset(rays, lo, hi), replace(cfg, seed=cfg.seed + b))
-        for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
-    )
     nb = len(bounds) - 1
-    total = nb * cfg.iterations
-    parts = (executor or LocalExecutor()).map(
-        train_batch,
-        tasks,
-        nb,
-        gpu=True,
-        progress=(lambda d: progress("train", int(d * cfg.iterations), total)) if progress else None,
+    per = max(1, int(executor.train_group()))
+    starts = list(range(0, nb, per))
+    ends = [min(nb, b + per) for b in starts]
+    tasks = (
+        TrainTask(
+            rays_subset(rays, bounds[b0], bounds[b1]),
+            replace(cfg, seed=cfg.seed + b0),
+            tuple(int(n) for n in np.diff(bounds[b0 : b1 + 1])) if b1 - b0 > 1 else None,
+        )
+        for b0, b1 in zip(starts, ends)
     )
+    total = nb * cfg.iterations
+
+    def report(d):  # d tasks done (fractional) -> batches done, in iterations
+        k = min(int(d), len(starts) - 1)
+        progress("train", int((starts[k] + (d - k) * (ends[k] - starts[k])) * cfg.iterations), total)
+
+    parts = executor.map(train_batch, tasks, len(starts), gpu=True, progress=report if progress else None)
+    bounds = bounds[[*starts, nb]]  # the tasks' landmark bounds
     w = np.diff(bounds) / bounds[-1]
     history = [
         (
@@ -530,7 +562,9 @@ def build_map(
 
 def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
-    executor = executor or LocalExecutor(device)
+    if executor is None:  # this process: CPU stages on as many threads as configure_threads allows
+        with LocalExecutor(device) as ex:
+            return _build(seq, config, progress, observer, ex, device, cache)
     pr = _Progress(progress)
     obs = observer or BuildObserver()
     if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)

@@ -5,7 +5,7 @@ training per landmark batch) are lists of independent tasks ``fn(task, device=No
 with ``fn`` a module-level function and ``task`` a dataclass. An executor runs them and returns
 their results in order; the build code is the same whichever executor runs it:
 
-- :class:`LocalExecutor` (the default): one after the other, in this process;
+- :class:`LocalExecutor` (the default): in this process, CPU-only tasks on a pool of threads;
 - :class:`favormap.distributed.RayExecutor`: as Ray tasks on a Ray cluster (``pip install
   favormap[distributed]``), the driver only tracking, triangulating and writing.
 
@@ -17,6 +17,7 @@ one task (a no-op where nobody listens).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 
 TaskFn = Callable[..., object]
 
@@ -33,14 +34,22 @@ class Executor:
         total: int,
         gpu: bool = False,
         progress: Callable[[float], None] | None = None,
+        multithreaded: bool = False,
     ) -> list:
         """``[fn(t) for t in tasks]`` (``total`` of them), in order. ``gpu``: the task can use a
-        GPU. ``progress(done)`` is called with the number of tasks done (fractional while one runs)."""
+        GPU. ``multithreaded``: one task keeps every core busy itself (OpenCV's pool), so a local
+        executor runs the tasks one after the other. ``progress(done)`` is called with the number of
+        tasks done (fractional while one runs)."""
         raise NotImplementedError
 
     def describe(self) -> dict:
         """What ran the build (recorded in the map's provenance)."""
         return {"name": self.name}
+
+    def train_group(self) -> int:
+        """How many consecutive training batches one task may train together (the same grids
+        either way): 1, except on a local GPU, where fewer, larger steps are faster."""
+        return 1
 
     def close(self) -> None:
         """Release what the executor holds (processes, connections)."""
@@ -53,22 +62,73 @@ class Executor:
 
 
 class LocalExecutor(Executor):
-    """Every task in this process, one after the other (torch and OpenCV use their own threads);
-    tasks that can use a GPU run on ``device``."""
+    """Every task in this process. Tasks that can use a GPU run one after the other on ``device``
+    (torch uses its own threads), and so do tasks that are ``multithreaded`` themselves (SIFT
+    descriptors of the patches: OpenCV's pool, 6.9 µs per descriptor on 16 cores against 9.6 µs
+    with 16 threads of one core each, tools/bench_build.py); other CPU tasks (SIFT extraction) run
+    on a pool of ``workers`` threads (OpenCV releases the GIL; its own pool is held at one thread meanwhile,
+    favormap.threads.serial_opencv, so each thread has one core). ``workers`` None:
+    the thread count favormap.threads configured for this process; 1: one after the other.
+
+    Results are the same whatever the worker count (tests/test_build.py): each task is a pure
+    function of its input and results are returned in task order."""
 
     name = "local"
 
-    def __init__(self, device: str = "cpu"):
+    def __init__(self, device: str = "cpu", workers: int | None = None):
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+            raise ValueError(f"workers must be a positive integer or None, got {workers!r}")
         self.device = device
+        self.workers = workers
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_size = 0
 
     def describe(self) -> dict:
-        return {"name": self.name, "device": self.device}
+        return {"name": self.name, "device": self.device, "workers": self._workers()}
 
-    def map(self, fn, tasks, total, gpu=False, progress=None):
-        out = []
-        for i, t in enumerate(tasks):
-            report = (lambda f, i=i: progress(i + f)) if progress else None
-            out.append(fn(t, device=self.device if gpu else "cpu", report=report))
-            if progress:
-                progress(i + 1)
-        return out
+    def train_group(self) -> int:
+        # a GPU's training steps are bound by kernel launches, not arithmetic: 3,000 fox landmarks
+        # train in 2.6 s as one task, 5.1 s as three (H200, tools/bench_train.py); 16 batches of
+        # 1,024 landmarks keep a task's training data at a few GB
+        return 1 if str(self.device) == "cpu" else 16
+
+    def _workers(self) -> int:
+        if self.workers is not None:
+            return self.workers
+        from .threads import configure_threads
+
+        return configure_threads()
+
+    def map(self, fn, tasks, total, gpu=False, progress=None, multithreaded=False):
+        n = 1 if gpu or multithreaded else min(self._workers(), total)
+        if n <= 1:
+            out = []
+            for i, t in enumerate(tasks):
+                report = (lambda f, i=i: progress(i + f)) if progress else None
+                out.append(fn(t, device=self.device if gpu else "cpu", report=report))
+                if progress:
+                    progress(i + 1)
+            return out
+        if self._pool is None or self._pool_size != n:
+            self.close()
+            self._pool, self._pool_size = ThreadPoolExecutor(n, thread_name_prefix="favormap"), n
+        from .threads import serial_opencv
+
+        with serial_opencv():  # one core per thread (see there)
+            futures = [self._pool.submit(fn, t, device="cpu") for t in tasks]
+            try:
+                out = []
+                for i, f in enumerate(futures):
+                    out.append(f.result())
+                    if progress:
+                        progress(i + 1)
+                return out
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._pool_size = None, 0

@@ -32,6 +32,7 @@ import os
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import InputError
@@ -155,6 +156,7 @@ def others_busy(since: _Sample, now: _Sample) -> float | None:
 _start = _Sample()  # at import: the CLI imports this module first, so the window spans its imports
 _lock = threading.Lock()
 _torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
+_opencv_serial = 0  # open serial_opencv() blocks: OpenCV's pool stays at one thread meanwhile
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
@@ -255,12 +257,36 @@ def _set_pools(n: int, first: bool) -> None:
             except RuntimeError:  # inter-op pool already started (set by the caller or used): leave it
                 pass
         _torch_sized = True
+    if _opencv_serial:  # a pool of Python threads runs OpenCV calls: its pool is sized on leaving
+        return
     try:
         import cv2
 
         cv2.setNumThreads(n)
     except ImportError:  # pragma: no cover - opencv is a core dependency
         pass
+
+
+@contextmanager
+def serial_opencv():
+    """OpenCV calls run in the calling thread while the block runs (``cv2.setNumThreads(1)``), for
+    a pool of Python threads that each run OpenCV calls (favormap.executor.LocalExecutor): one core
+    per thread instead of every thread's calls queueing for OpenCV's one pool (OpenCV runs a call
+    serially while its pool is busy with another thread's, and that call's share of the cores
+    idles). On leaving, the pool gets the configured count again."""
+    global _opencv_serial
+    import cv2
+
+    with _lock:
+        _opencv_serial += 1
+        cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        with _lock:
+            _opencv_serial -= 1
+            if not _opencv_serial:
+                cv2.setNumThreads(_applied if _applied is not None else resolve_threads())
 
 
 def _positive_int(s: str) -> int:

@@ -169,6 +169,31 @@ def test_voxel_training_fits_patches(solver):
         assert grids.history[-1][1] < grids.history[0][1]  # loss went down
 
 
+@pytest.mark.parametrize("solver", ["adam", "lstsq"])
+def test_training_several_batches_as_one_task_gives_the_same_grids(solver):
+    """train_batches: an executor that trains consecutive batches together (a local GPU does, 16 at a
+    time) gets the grids of training them one by one: each batch draws its own random rays, and the
+    landmarks are independent. Batches of 3 landmarks: 5, 5 and 4 of them, trained as one task."""
+    from favormap.build import train_batches
+    from favormap.executor import LocalExecutor
+    from favormap.voxels import VoxelConfig, train_voxels
+
+    class Grouping(LocalExecutor):
+        def train_group(self):
+            return 16
+
+    data = _patch_rays(L=14, C=8, S=5)
+    cfg = VoxelConfig(resolution=3, patch_size=5, iterations=30, rays_per_landmark=16, solver=solver, seed=3)
+    one_by_one = train_batches(data, cfg, 5, LocalExecutor("cpu", workers=1))
+    together = train_batches(data, cfg, 5, Grouping("cpu", workers=1))
+    np.testing.assert_allclose(together.descriptors.numpy(), one_by_one.descriptors.numpy(), atol=2e-5)
+    np.testing.assert_allclose(together.density.numpy(), one_by_one.density.numpy(), atol=2e-4, rtol=1e-5)
+    np.testing.assert_allclose(together.psnr, one_by_one.psnr, atol=1e-3)
+    # not trivially: one generator for all 14 landmarks (what train_voxels alone does) draws other rays
+    single = train_voxels(data, cfg)
+    assert np.abs(single.descriptors.numpy() - one_by_one.descriptors.numpy()).max() > 1e-3
+
+
 def test_adam_from_the_closed_form_starts_where_the_mean_init_does_not_reach_quickly():
     """init="lstsq": Adam starts from the closed-form descriptors, so its first loss is already below
     the mean initialisation's, and a short run ends at least as low."""

@@ -2,7 +2,8 @@
 
 Skipped without a CUDA GPU. On a GPU machine: ``bash tools/gpu_check.sh`` (prepares the data here,
 runs these there). Training draws its random numbers from a CPU generator, so a CUDA build sees the
-same rays as a CPU build and the results agree up to floating-point noise."""
+same rays as a CPU build and the results agree up to floating-point noise; the GPU trains several
+batches as one task, each batch drawing its own rays, so that too gives the CPU's grids."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ def maps(small_sequence):
 
     out = {}
     for dev in ("cpu", "cuda"):
-        out[dev] = build_map(small_sequence, small_build_config(max_landmarks=300), device=dev)
+        # batches of 100 landmarks: the CPU trains them one by one, the GPU as one task (train_group)
+        out[dev] = build_map(small_sequence, small_build_config(max_landmarks=300, train_batch=100), device=dev)
     return out
 
 
@@ -32,6 +34,7 @@ def test_build_on_cuda_equals_cpu(maps):
     cos = torch.nn.functional.cosine_similarity(a, b, dim=1)
     assert float(cos.min()) >= 0.999, f"per-landmark grid cosine CPU vs CUDA: min {float(cos.min()):.5f}"
     np.testing.assert_allclose(gpu.quality, cpu.quality, atol=0.05)
+    assert gpu.provenance["executor"]["device"] == "cuda" and len(gpu.positions) > 200  # > 2 batches
 
 
 def test_render_on_cuda_equals_cpu(maps):

@@ -143,9 +143,9 @@ def test_map_into_hands_results_in_order_one_chunk_at_a_time():
     class Counting(LocalExecutor):
         sizes: list = []
 
-        def map(self, fn, tasks, total, gpu=False, progress=None):
+        def map(self, fn, tasks, total, gpu=False, progress=None, multithreaded=False):
             self.sizes.append(total)
-            return super().map(fn, tasks, total, gpu, progress)
+            return super().map(fn, tasks, total, gpu, progress, multithreaded)
 
     got, seen = [], []
     ex = Counting()
@@ -156,3 +156,49 @@ def test_map_into_hands_results_in_order_one_chunk_at_a_time():
 
 def _square(x, device=None, report=None):
     return x * x
+
+
+def test_threaded_cpu_stages_build_the_same_map(small_sequence):
+    """LocalExecutor runs extraction and descriptor patches on a pool of threads: the map is the same,
+    to the last bit, as with one thread, and the provenance records the pool's size."""
+    from favormap.build import build_map
+    from favormap.executor import LocalExecutor
+
+    cfg = small_build_config(iterations=20, max_landmarks=150)
+    maps = {}
+    for workers in (1, 3):
+        with LocalExecutor("cpu", workers=workers) as ex:
+            maps[workers] = build_map(small_sequence, cfg, executor=ex, feature_cache=False)
+    _same_map(maps[1], maps[3])
+    assert maps[3].provenance["executor"] == {"name": "local", "device": "cpu", "workers": 3}
+
+
+def test_local_executor_threads_cpu_tasks_in_order_and_keeps_gpu_and_multithreaded_tasks_in_the_caller():
+    import threading
+    import time
+
+    from favormap.executor import LocalExecutor
+
+    def task(t, device=None, report=None):
+        time.sleep(0.02 * (5 - t))  # the first tasks finish last
+        return t, threading.current_thread().name, device
+
+    done = []
+    with LocalExecutor("cuda:0", workers=3) as ex:
+        out = ex.map(task, range(5), 5, progress=done.append)
+        assert [r[0] for r in out] == list(range(5)) and done == [1, 2, 3, 4, 5]
+        assert len({r[1] for r in out}) > 1 and all(r[1].startswith("favormap") and r[2] == "cpu" for r in out)
+        gpu = ex.map(task, range(3), 3, gpu=True)
+        assert {r[1] for r in gpu} == {threading.current_thread().name} and {r[2] for r in gpu} == {"cuda:0"}
+        own = ex.map(task, range(3), 3, multithreaded=True)  # a task that keeps the cores busy itself
+        assert {r[1] for r in own} == {threading.current_thread().name} and {r[2] for r in own} == {"cpu"}
+
+        def fails(t, device=None, report=None):
+            if t == 2:
+                raise ValueError("task 2 failed")
+            return t
+
+        with pytest.raises(ValueError, match="task 2 failed"):
+            ex.map(fails, range(4), 4)
+    with pytest.raises(ValueError, match="workers"):
+        LocalExecutor(workers=0)

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Per-stage build times on a sequence (default: ../shared/data/fox, else a synthetic room).
 
-python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--repeat 1]
+python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--workers N] [--device cuda]
 """
 
 from __future__ import annotations
@@ -28,9 +28,13 @@ def main():
         "--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)"
     )
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--workers", type=int, default=None, help="threads for the CPU stages (default: the thread rule; 1: serial)"
+    )
     args = ap.parse_args()
 
     from favormap.build import BuildConfig, build_map
+    from favormap.executor import LocalExecutor
     from favormap.io import read_sequence
     from favormap.mapfile import write_map
 
@@ -61,7 +65,8 @@ def main():
     if args.iterations:
         cfg.voxel.iterations = args.iterations
     t = time.perf_counter()
-    m = build_map(seq, cfg, device=args.device)
+    with LocalExecutor(args.device, workers=args.workers) as ex:
+        m = build_map(seq, cfg, executor=ex)
     out = Path(tmp.name) / "bench.h5"
     tw = time.perf_counter()
     write_map(m, out)
@@ -71,8 +76,9 @@ def main():
     st = m.provenance["stats"]
     print(
         f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
-        f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, torch threads "
-        f"{torch.get_num_threads()}, cores {os.cpu_count()}"
+        f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, "
+        f"CPU-stage workers {m.provenance['executor']['workers']}, torch threads {torch.get_num_threads()}, "
+        f"cores {os.cpu_count()}"
     )
     print(f"{'stage':<12} {'seconds':>9} {'share':>7}")
     for k, v in timings.items():

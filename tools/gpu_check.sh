@@ -6,8 +6,9 @@
 #                                     # wheel for the GPU machine's Python, the pre-rendered small test sequence
 #                                     # and (when ../shared/data/fox exists) the fox sequence
 #   bash tools/gpu_check.sh run [OUT] # there (needs torch with CUDA, numpy, h5py, opencv, scipy, pytest):
-#                                     # installs the wheels into /tmp/site, runs tests/test_cuda.py, times fox builds
-#                                     # (fast and reference quality) and runs the accuracy benchmark on the GPU
+#                                     # installs the wheels into /tmp/site, runs tests/test_cuda.py and times fox builds
+#                                     # (640 px and full resolution; GPU_REFERENCE=1: also the reference-quality
+#                                     # accuracy run, ~6 minutes)
 # .gpu/ is ignored by git; carry it to the GPU machine (about 55 MB). GPU_PY (default 3.12) is the GPU machine's
 # Python version for the wheel. Results (log, JSON) go to OUT (default: $OUT, else ./gpu-out).
 set -euo pipefail
@@ -27,7 +28,7 @@ import sys
 sys.path.insert(0, "tests")
 from conftest import SMALL
 from favormap.synthetic import write_sequence
-write_sequence(".gpu/small", depth=True, **SMALL)
+write_sequence(".gpu/small", depth=False, **SMALL)  # tests/test_cuda.py needs no depth maps (and the carry limit is 64 MiB)
 PY
     if [ -d ../shared/data/fox ]; then cp -r ../shared/data/fox .gpu/fox; fi
     du -sh .gpu
@@ -46,15 +47,21 @@ run)
         python3 -m pytest -p no:cacheprovider -m cuda tests/test_cuda.py -v -rs 2>&1 || echo "CUDA TESTS FAILED"
         if [ -d .gpu/fox ]; then
             export FAVORMAP_FOX="$PWD/.gpu/fox"
-            echo "== fox build, 640 px, fast quality, GPU"
-            timeout 120 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(fast build failed or timed out)"
-            echo "== accuracy, reference quality, GPU (fox hold-out and extrapolation, with the pycolmap baseline)"
-            timeout "${GPU_ACC_TIMEOUT:-330}" python3 tools/bench_accuracy.py --splits fox-holdout,fox-extrap --quality reference \
-                --device cuda --priors noise,none --variants rendered,mean,nearest-view --workdir /tmp/acc \
-                --json "$out/accuracy-reference.json" || echo "(accuracy run failed or timed out)"
+            echo "== fox build, 640 px, fast quality (the defaults), GPU; CPU stages on a thread per core"
+            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(build failed or timed out)"
+            echo "== the same, CPU stages serial (--workers 1)"
+            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --workers 1 || echo "(build failed or timed out)"
             echo "== fox build, full resolution, fast quality, GPU"
-            timeout 120 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --max-landmarks 20000 \
-                || echo "(full-resolution build failed or timed out)"
+            timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 || echo "(build failed or timed out)"
+            echo "== fox build, full resolution, quick quality, GPU"
+            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --quality quick \
+                || echo "(build failed or timed out)"
+            if [ "${GPU_REFERENCE:-0}" = 1 ]; then
+                echo "== accuracy, reference quality, GPU (fox hold-out and extrapolation, with the pycolmap baseline)"
+                timeout "${GPU_ACC_TIMEOUT:-330}" python3 tools/bench_accuracy.py --splits fox-holdout,fox-extrap \
+                    --quality reference --device cuda --priors noise --variants rendered,mean,nearest-view \
+                    --workdir /tmp/acc --json "$out/accuracy-reference.json" || echo "(accuracy run failed or timed out)"
+            fi
         fi
     } 2>&1 | tee "$out/gpu_check.log"
     ;;
