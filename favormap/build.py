@@ -186,17 +186,7 @@ MEMORY_FRAMES = 300
 MAP_CHUNK = 64  # tasks per executor.map call of a streamed stage (results held at once)
 
 
-def map_into(
-    executor: Executor,
-    fn,
-    tasks,
-    total: int,
-    sink,
-    gpu: bool = False,
-    progress=None,
-    chunk: int = MAP_CHUNK,
-    multithreaded: bool = False,
-):
+def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False, progress=None, chunk: int = MAP_CHUNK):
     """``executor.map`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
     ``sink(i, result)`` (in order) as its chunk completes: only one chunk of results is ever held."""
     it = iter(tasks)
@@ -207,7 +197,7 @@ def map_into(
             break
         off = done
         report = (lambda d, off=off: progress(off + d)) if progress else None
-        out = executor.map(fn, block, len(block), gpu=gpu, progress=report, multithreaded=multithreaded)
+        out = executor.map(fn, block, len(block), gpu=gpu, progress=report)
         for k, r in enumerate(out):
             sink(off + k, r)
         done += len(block)
@@ -349,7 +339,6 @@ def training_rays(
         n,
         sink,
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
-        multithreaded=True,  # OpenCV's pool describes one frame's points faster than a thread per frame
     )
     targets = held[0] if held else np.zeros((len(tid), P, 0), np.float32)
     # ray directions in world

@@ -168,7 +168,7 @@ class RayExecutor(Executor):
             "gpu_tasks": self.use_gpus,
         }
 
-    def map(self, fn, tasks, total, gpu=False, progress=None, multithreaded=False):
+    def map(self, fn, tasks, total, gpu=False, progress=None):
         ray = self.ray
         use_gpu = gpu and self.use_gpus
         remote = self._remote.options(

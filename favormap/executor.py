@@ -34,12 +34,9 @@ class Executor:
         total: int,
         gpu: bool = False,
         progress: Callable[[float], None] | None = None,
-        multithreaded: bool = False,
     ) -> list:
         """``[fn(t) for t in tasks]`` (``total`` of them), in order. ``gpu``: the task can use a
-        GPU. ``multithreaded``: one task keeps every core busy itself (OpenCV's pool), so a local
-        executor runs the tasks one after the other. ``progress(done)`` is called with the number of
-        tasks done (fractional while one runs)."""
+        GPU. ``progress(done)`` is called with the number of tasks done (fractional while one runs)."""
         raise NotImplementedError
 
     def describe(self) -> dict:
@@ -63,15 +60,16 @@ class Executor:
 
 class LocalExecutor(Executor):
     """Every task in this process. Tasks that can use a GPU run one after the other on ``device``
-    (torch uses its own threads), and so do tasks that are ``multithreaded`` themselves (SIFT
-    descriptors of the patches: OpenCV's pool, 6.9 µs per descriptor on 16 cores against 9.6 µs
-    with 16 threads of one core each, tools/bench_build.py); other CPU tasks (SIFT extraction) run
-    on a pool of ``workers`` threads (OpenCV releases the GIL; its own pool is held at one thread meanwhile,
+    (torch uses its own threads); CPU-only tasks (SIFT extraction, descriptor patches) run on a pool
+    of ``workers`` threads (OpenCV releases the GIL; its own pool is held at one thread meanwhile,
     favormap.threads.serial_opencv, so each thread has one core). ``workers`` None:
     the thread count favormap.threads configured for this process; 1: one after the other.
 
-    Results are the same whatever the worker count (tests/test_build.py): each task is a pure
-    function of its input and results are returned in task order."""
+    Results are the same whatever the worker count (tests/test_feature_cache.py): each task is a
+    pure function of its input and results are returned in task order. Measured on 16 cores (H200
+    machine, fox at full resolution, tools/bench_build.py): extraction 8.7 s serial -> 2.3 s on 16
+    threads; descriptor patches 10.6 / 11.8 s serial on OpenCV's pool -> 8.4 s (quick preset: 7.5 ->
+    3.1 s), OpenCV's per-call pyramid being the part its pool does not spread."""
 
     name = "local"
 
@@ -99,8 +97,8 @@ class LocalExecutor(Executor):
 
         return configure_threads()
 
-    def map(self, fn, tasks, total, gpu=False, progress=None, multithreaded=False):
-        n = 1 if gpu or multithreaded else min(self._workers(), total)
+    def map(self, fn, tasks, total, gpu=False, progress=None):
+        n = 1 if gpu else min(self._workers(), total)
         if n <= 1:
             out = []
             for i, t in enumerate(tasks):

@@ -143,9 +143,9 @@ def test_map_into_hands_results_in_order_one_chunk_at_a_time():
     class Counting(LocalExecutor):
         sizes: list = []
 
-        def map(self, fn, tasks, total, gpu=False, progress=None, multithreaded=False):
+        def map(self, fn, tasks, total, gpu=False, progress=None):
             self.sizes.append(total)
-            return super().map(fn, tasks, total, gpu, progress, multithreaded)
+            return super().map(fn, tasks, total, gpu, progress)
 
     got, seen = [], []
     ex = Counting()
@@ -173,7 +173,7 @@ def test_threaded_cpu_stages_build_the_same_map(small_sequence):
     assert maps[3].provenance["executor"] == {"name": "local", "device": "cpu", "workers": 3}
 
 
-def test_local_executor_threads_cpu_tasks_in_order_and_keeps_gpu_and_multithreaded_tasks_in_the_caller():
+def test_local_executor_threads_cpu_tasks_in_order_and_keeps_gpu_tasks_in_the_caller():
     import threading
     import time
 
@@ -190,8 +190,6 @@ def test_local_executor_threads_cpu_tasks_in_order_and_keeps_gpu_and_multithread
         assert len({r[1] for r in out}) > 1 and all(r[1].startswith("favormap") and r[2] == "cpu" for r in out)
         gpu = ex.map(task, range(3), 3, gpu=True)
         assert {r[1] for r in gpu} == {threading.current_thread().name} and {r[2] for r in gpu} == {"cuda:0"}
-        own = ex.map(task, range(3), 3, multithreaded=True)  # a task that keeps the cores busy itself
-        assert {r[1] for r in own} == {threading.current_thread().name} and {r[2] for r in own} == {"cpu"}
 
         def fails(t, device=None, report=None):
             if t == 2:
