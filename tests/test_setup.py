@@ -318,3 +318,39 @@ def test_accuracy_benchmark_pairs_map_variants_with_the_default_map_over_seeds()
     assert base["all"]["ratio"] == pytest.approx(expected)
     table = bench.seed_paired_table(rows, build_cfgs).splitlines()
     assert table[4].startswith("| orbit | noise | (default) | mean | 0,1 | 1.41 [") and len(table) == 7
+
+
+def test_accuracy_benchmark_compares_two_runs_query_by_query_and_seed_by_seed():
+    """tools/bench_accuracy.py --compare REF NEW: the same method of the same map variant and seed in
+    two runs (two versions of the code), paired query by query, log ratios averaged over the seeds
+    that both runs have; rows only one run has are left out."""
+    import numpy as np
+
+    bench = _bench_accuracy()
+    queries = [("a", 5.0), ("b", 15.0), ("c", 25.0)]
+
+    def row(variant, method, errs):
+        pq = [dict(name=n, t_err=e, success=np.isfinite(e), angle_deg=a) for (n, a), e in zip(queries, errs)]
+        return dict(split="orbit", prior="noise", map_variant=variant, method=method, per_query=pq)
+
+    old = [
+        row("", "rendered", [1.0, 2.0, 4.0]),
+        row("s1", "s1 rendered", [2.0, 2.0, 2.0]),
+        row("", "mean", [1.0, 1.0, 1.0]),
+        row("lm6k-s2", "lm6k-s2 rendered", [1.0, 1.0, 1.0]),
+    ]
+    new = [
+        row("", "rendered", [0.5, 1.0, 2.0]),  # seed 0: half on every query
+        row("s1", "s1 rendered", [2.0, 2.0, np.inf]),  # seed 1: the same, failed on c
+        row("s2", "s2 rendered", [9.0, 9.0, 9.0]),  # no seed 2 in the reference run: left out
+        row("lm6k-s2", "lm6k-s2 rendered", [3.0, 3.0, 3.0]),
+    ]
+    got = {(p["map"], p["method"]): p for p in bench.compare_rows(old, new)}
+    assert set(got) == {("", "rendered"), ("lm6k", "rendered")}
+    r = got["", "rendered"]
+    assert r["seeds"] == [0, 1]
+    assert r["all"]["queries"] == 2 and r["all"]["ratio"] == pytest.approx(np.sqrt(0.5))  # c: inf, left out
+    assert r["bins"]["0-10"] is None  # one query: no interval
+    assert got["lm6k", "rendered"]["seeds"] == [2] and got["lm6k", "rendered"]["all"]["ratio"] == pytest.approx(3.0)
+    table = bench.compare_table(old, new).splitlines()
+    assert table[4].startswith("| orbit | noise | (default) | rendered | 0,1 | 0.71 [") and len(table) == 6

@@ -38,6 +38,7 @@ of a chi-square with 3 degrees of freedom, when that covariance is right; larger
     python tools/bench_accuracy.py                       # fox-holdout, fox-extrap, orbit
     python tools/bench_accuracy.py --splits orbit --json out.json
     python tools/bench_accuracy.py --map SEQ --queries SEQ
+    python tools/bench_accuracy.py --compare before.json after.json   # two runs, query by query
 """
 
 from __future__ import annotations
@@ -608,6 +609,73 @@ def paired_table(rows: list[dict], reference: str = "rendered") -> str:
     )
 
 
+def _seed_of_name(r: dict) -> tuple[str | None, int, str]:
+    """A row's map variant without its seed suffix, the seed and the bare method, read from the names
+    the benchmark writes (map "sK" or "NAME-sK" for training seed K > 0; methods prefixed by the map)."""
+    import re
+
+    name = r.get("map_variant")
+    if name is None:
+        return None, 0, r["method"]
+    method = re.sub(rf"^{re.escape(name)} ?", "", r["method"]) if name else r["method"]
+    m = re.fullmatch(r"(?:(.*)-)?s(\d+)", name)
+    return (m.group(1) or "", int(m.group(2)), method) if m else (name, 0, method)
+
+
+def compare_rows(ref_rows: list[dict], new_rows: list[dict]) -> list[dict]:
+    """Two runs of the benchmark (e.g. two versions of the code, the same splits and seeds): every
+    (split, prior, map, method) in both, the new run's error over the reference run's query by query
+    and seed by seed, each query's log ratio averaged over the seeds both runs have."""
+    ref = {}
+    for r in ref_rows:
+        if r.get("per_query"):
+            base, seed, method = _seed_of_name(r)
+            ref[(r["split"], r["prior"], base, method, seed)] = r
+    groups: dict[tuple, list[tuple[int, dict]]] = {}
+    for r in new_rows:
+        if r.get("per_query"):
+            base, seed, method = _seed_of_name(r)
+            if (r["split"], r["prior"], base, method, seed) in ref:
+                groups.setdefault((r["split"], r["prior"], base, method), []).append((seed, r))
+    out = []
+    for (split, prior, base, method), members in groups.items():
+        logs, names, angle = [], None, None
+        for seed, r in sorted(members, key=lambda m: m[0]):
+            old = ref[(split, prior, base, method, seed)]
+            if names is None:
+                names = [q["name"] for q in old["per_query"]]
+                angle = np.array([q.get("angle_deg", np.nan) for q in old["per_query"]], np.float64)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                logs.append(np.log(_errors(r, names) / _errors(old, names)))
+        d = np.mean(logs, axis=0)
+        row = {"split": split, "prior": prior, "map": base if base is not None else "(baseline)", "method": method}
+        row["seeds"] = sorted(m[0] for m in members)
+        row["all"] = paired_ratio(np.exp(d), np.ones_like(d))
+        if np.isfinite(angle).any():
+            row["bins"] = {
+                f"{lo}-{hi}": paired_ratio(
+                    np.exp(d[(angle >= lo) & (angle < hi)]), np.ones(((angle >= lo) & (angle < hi)).sum())
+                )
+                for lo, hi in ANGLE_BINS
+            }
+        out.append(row)
+    return out
+
+
+def compare_table(ref_rows: list[dict], new_rows: list[dict]) -> str:
+    """Markdown of :func:`compare_rows`."""
+    return _ratio_table(
+        "New run / reference run, the same method on the same queries (per query, the log error ratio averaged "
+        "over the seeds; geometric mean [95 % bootstrap interval over the queries], queries lower / higher; "
+        "< 1: the new run is better):",
+        ["split", "prior", "map", "method", "seeds"],
+        [
+            ([p["split"], p["prior"], p["map"] or "(default)", p["method"], ",".join(map(str, p["seeds"]))], p)
+            for p in compare_rows(ref_rows, new_rows)
+        ],
+    )
+
+
 def _ratio_cell(p: dict | None) -> str:
     if p is None:
         return "-"
@@ -864,7 +932,21 @@ def main():
         "the fox extrapolation median by ~11 %%, so compare variants over seeds",
     )
     ap.add_argument("--json", help="write all rows to this JSON file")
+    ap.add_argument(
+        "--compare",
+        nargs=2,
+        metavar=("REF.json", "NEW.json"),
+        help="run nothing: compare two runs' --json rows query by query (e.g. two versions of the code)",
+    )
     args = ap.parse_args()
+    if args.compare:
+        try:
+            ref_rows, new_rows = (json.loads(Path(f).read_text()) for f in args.compare)
+        except (OSError, ValueError) as e:
+            ap.error(f"--compare: {e}")
+        table = compare_table(ref_rows, new_rows)
+        print(table or "--compare: no (split, prior, map, method, seed) in both runs")
+        return 0 if table else 1
     args.priors = [p for p in args.priors.split(",") if p]
     args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in args.variants if v not in VARIANTS]
