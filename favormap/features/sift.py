@@ -122,7 +122,14 @@ class SIFTExtractor(Extractor):
         if not (isinstance(contrast_threshold, (int, float)) and 0 < contrast_threshold < float("inf")):
             raise ValueError(f"contrast_threshold must be a number > 0, not {contrast_threshold!r}")
         self.contrast_threshold = float(contrast_threshold)
-        self._sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=self.contrast_threshold)
+        # nfeatures=0: OpenCV returns every keypoint and extract() keeps the strongest max_keypoints itself.
+        # OpenCV's own cap (KeyPointsFilter.retainBest, an nth_element) reorders keypoints of equal
+        # response, and the orientations OpenCV finds at one location all share its response, so which
+        # one "strongest" kept depended on how many keypoints the whole image had (2-12 % of the
+        # keypoints of fox and orbit images changed orientation between contrast thresholds;
+        # docs/benchmarks/s13-prototypes/orient.py). Uncapped, it is the first of OpenCV's orientation
+        # histogram peaks: a function of the location's own appearance, the same in a map and a query
+        self._sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=self.contrast_threshold)
 
     def extract(self, image: np.ndarray) -> Features:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
