@@ -269,6 +269,25 @@ def extract_sequence(
     return FrameFeatures(cache.view(keys), [cache.camera(k) for k in keys], poses, extracted=n)
 
 
+def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
+    """The build's tracking stage: the frames' features matched into tracks with ``config``'s settings."""
+    return track_features(
+        ff.without_state(),
+        ff.cam_from_world,
+        ff.cameras,
+        config.min_track,
+        config.match_window,
+        config.max_epipolar_px,
+        config.min_similarity,
+    )
+
+
+def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
+    """The build's triangulation stage: every track that triangulates (before :func:`select_landmarks`)."""
+    tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
+    return triangulate(tracks, ff.cam_from_world, np.stack([c.K for c in ff.cameras]), tri_cfg)
+
+
 def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
     """Keep the most persistent (longest track), best triangulated (lowest error) landmarks."""
     if len(lms) <= max_landmarks:
@@ -567,15 +586,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor, cache)
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
-        tracks = track_features(
-            ff.without_state(),
-            ff.cam_from_world,
-            ff.cameras,
-            config.min_track,
-            config.match_window,
-            config.max_epipolar_px,
-            config.min_similarity,
-        )
+        tracks = track_frames(ff, config)
         release_free_memory()
         pr.callback("track", 1, 1)
     obs.on_tracks(tracks, ff)
@@ -585,9 +596,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             "or wrong poses"
         )
     with pr.stage("triangulate"):
-        tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
-        Ks = np.stack([c.K for c in ff.cameras])
-        all_lms = triangulate(tracks, ff.cam_from_world, Ks, tri_cfg)
+        all_lms = triangulate_tracks(tracks, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks)
         n_tracks, n_triangulated = len(tracks), len(all_lms)
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on

@@ -568,19 +568,25 @@ def seed_paired_rows(rows: list[dict], build_cfgs, reference: str = "rendered") 
                 seeds.add(ref_seed)
         if not logs:
             continue
-        d = np.mean(logs, axis=0)  # nan / inf where a seed failed or tied at 0: left out below
-        row = {"split": split, "prior": prior, "map": base if base is not None else "(baseline)", "method": method}
-        row["seeds"] = sorted(seeds)
-        row["all"] = paired_ratio(np.exp(d), np.ones_like(d))
-        if np.isfinite(angle).any():
-            row["bins"] = {
-                f"{lo}-{hi}": paired_ratio(
-                    np.exp(d[(angle >= lo) & (angle < hi)]), np.ones(((angle >= lo) & (angle < hi)).sum())
-                )
-                for lo, hi in ANGLE_BINS
-            }
-        out.append(row)
+        out.append(_seed_mean_row(split, prior, base, method, sorted(seeds), logs, angle))
     return out
+
+
+def _seed_mean_row(split, prior, base, method, seeds, logs, angle) -> dict:
+    """A paired row from per-seed log error ratios (seeds x queries): each query's mean over the
+    seeds (nan / inf where a seed failed or tied at 0: left out), overall and per angle bin."""
+    d = np.mean(logs, axis=0)
+    row = {"split": split, "prior": prior, "map": base if base is not None else "(baseline)", "method": method}
+    row["seeds"] = seeds
+    row["all"] = paired_ratio(np.exp(d), np.ones_like(d))
+    if np.isfinite(angle).any():
+        row["bins"] = {
+            f"{lo}-{hi}": paired_ratio(
+                np.exp(d[(angle >= lo) & (angle < hi)]), np.ones(((angle >= lo) & (angle < hi)).sum())
+            )
+            for lo, hi in ANGLE_BINS
+        }
+    return row
 
 
 def seed_paired_table(rows: list[dict], build_cfgs, reference: str = "rendered") -> str:
@@ -647,18 +653,7 @@ def compare_rows(ref_rows: list[dict], new_rows: list[dict]) -> list[dict]:
                 angle = np.array([q.get("angle_deg", np.nan) for q in old["per_query"]], np.float64)
             with np.errstate(divide="ignore", invalid="ignore"):
                 logs.append(np.log(_errors(r, names) / _errors(old, names)))
-        d = np.mean(logs, axis=0)
-        row = {"split": split, "prior": prior, "map": base if base is not None else "(baseline)", "method": method}
-        row["seeds"] = sorted(m[0] for m in members)
-        row["all"] = paired_ratio(np.exp(d), np.ones_like(d))
-        if np.isfinite(angle).any():
-            row["bins"] = {
-                f"{lo}-{hi}": paired_ratio(
-                    np.exp(d[(angle >= lo) & (angle < hi)]), np.ones(((angle >= lo) & (angle < hi)).sum())
-                )
-                for lo, hi in ANGLE_BINS
-            }
-        out.append(row)
+        out.append(_seed_mean_row(split, prior, base, method, sorted(m[0] for m in members), logs, angle))
     return out
 
 

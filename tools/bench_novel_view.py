@@ -236,12 +236,17 @@ def query_poses(path, train_idx, scene, n_between=3):
 
 def prepare(args) -> dict:
     from favormap import features
-    from favormap.build import BuildConfig, extract_sequence, select_landmarks, training_rays
+    from favormap.build import (
+        BuildConfig,
+        extract_sequence,
+        select_landmarks,
+        track_frames,
+        training_rays,
+        triangulate_tracks,
+    )
     from favormap.geometry import camera_centers
     from favormap.ops.spatial import project_inside
     from favormap.synthetic import camera_path, make_camera, make_room, render, write_sequence
-    from favormap.tracking import track_features
-    from favormap.triangulation import TriangulationConfig, triangulate
 
     key = dict(
         v=CACHE_VERSION, w=args.width, h=args.height, n=args.train_frames, L=args.max_landmarks, ex=args.extractor
@@ -266,25 +271,7 @@ def prepare(args) -> dict:
             Path(tmp) / "room", poses=[path[i] for i in train_idx], width=args.width, height=args.height, scene=scene
         )
         ff = extract_sequence(seq, ex, cfg.max_side)
-    tracks = track_features(
-        ff.features,
-        ff.cam_from_world,
-        ff.cameras,
-        cfg.min_track,
-        cfg.match_window,
-        cfg.max_epipolar_px,
-        cfg.min_similarity,
-    )
-    Ks = np.stack([c.K for c in ff.cameras])
-    lms = select_landmarks(
-        triangulate(
-            tracks,
-            ff.cam_from_world,
-            Ks,
-            TriangulationConfig(cfg.max_reproj_px, cfg.min_angle_deg, min_track=cfg.min_track),
-        ),
-        cfg.max_landmarks,
-    )
+    lms = select_landmarks(triangulate_tracks(track_frames(ff, cfg), ff, cfg), cfg.max_landmarks)
     rays = training_rays(lms, ff, ex, cfg.voxel.patch_size, box_factor=1.0)  # sizes = min l / f
     X = lms.positions
     P = rays.ray_dirs.shape[1]

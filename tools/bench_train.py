@@ -22,28 +22,22 @@ import torch
 
 
 def training_data(seq_path: str, cfg, device: str):
-    from favormap.build import ExtractorSpec, extract_sequence, select_landmarks, training_rays
+    from favormap.build import (
+        ExtractorSpec,
+        extract_sequence,
+        select_landmarks,
+        track_frames,
+        training_rays,
+        triangulate_tracks,
+    )
     from favormap.executor import LocalExecutor
     from favormap.io import read_sequence
-    from favormap.tracking import track_features
-    from favormap.triangulation import TriangulationConfig, triangulate
 
     seq = read_sequence(seq_path)
     spec = ExtractorSpec(cfg.extractor, cfg.max_keypoints)
     with LocalExecutor(device) as ex:
         ff = extract_sequence(seq, spec, cfg.max_side, executor=ex)
-        tracks = track_features(
-            ff.without_state(),
-            ff.cam_from_world,
-            ff.cameras,
-            cfg.min_track,
-            cfg.match_window,
-            cfg.max_epipolar_px,
-            cfg.min_similarity,
-        )
-        Ks = np.stack([c.K for c in ff.cameras])
-        tri = TriangulationConfig(cfg.max_reproj_px, cfg.min_angle_deg, min_track=cfg.min_track)
-        lms = select_landmarks(triangulate(tracks, ff.cam_from_world, Ks, tri), cfg.max_landmarks)
+        lms = select_landmarks(triangulate_tracks(track_frames(ff, cfg), ff, cfg), cfg.max_landmarks)
         return training_rays(
             lms, ff, spec, cfg.voxel.patch_size, cfg.voxel.box_factor, ex, patch_stride=cfg.voxel.patch_stride
         )
