@@ -428,7 +428,7 @@ def train_batches(
 
     The executor may run several consecutive batches as one task (``Executor.train_group``: a local
     GPU takes up to 16 at once); each batch still draws its own random rays, so the grids are the
-    same either way up to floating-point rounding (tests/test_build.py)."""
+    same either way up to floating-point rounding (tests/test_core.py, tests/test_cuda.py)."""
     executor = executor or LocalExecutor()
     bounds = batch_bounds(len(rays.centers), batch)
     nb = len(bounds) - 1
