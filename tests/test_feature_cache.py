@@ -177,17 +177,24 @@ def test_local_executor_threads_cpu_tasks_in_order_and_keeps_gpu_tasks_in_the_ca
     import threading
     import time
 
+    import cv2
+
     from favormap.executor import LocalExecutor
 
     def task(t, device=None, report=None):
         time.sleep(0.02 * (5 - t))  # the first tasks finish last
-        return t, threading.current_thread().name, device
+        return t, threading.current_thread().name, device, cv2.getNumThreads()
+
+    from favormap.threads import configure_threads
 
     done = []
+    configure_threads()  # what the executor applies first
+    before = cv2.getNumThreads()
     with LocalExecutor("cuda:0", workers=3) as ex:
         out = ex.map(task, range(5), 5, progress=done.append)
         assert [r[0] for r in out] == list(range(5)) and done == [1, 2, 3, 4, 5]
         assert len({r[1] for r in out}) > 1 and all(r[1].startswith("favormap") and r[2] == "cpu" for r in out)
+        assert {r[3] for r in out} == {1} and cv2.getNumThreads() == before  # OpenCV serial in the pool only
         gpu = ex.map(task, range(3), 3, gpu=True)
         assert {r[1] for r in gpu} == {threading.current_thread().name} and {r[2] for r in gpu} == {"cuda:0"}
 
