@@ -522,17 +522,21 @@ def paired_rows(rows: list[dict], reference: str = "rendered") -> list[dict]:
     return out
 
 
-def _map_and_seed(r: dict, seed_of: dict) -> tuple[str, int, str]:
+def _map_and_seed(r: dict, seed_of: dict | None = None) -> tuple[str | None, int, str]:
     """A row's map variant without its seed suffix (NAME-sK / sK -> NAME / ""), the seed, and the
-    method without the map's prefix."""
+    method without the map's prefix. ``seed_of``: {map name: training seed} of the run's builds; None:
+    the seed read from the name as the benchmark writes it ("sK" / "NAME-sK" for seed K > 0)."""
     import re
 
     name = r.get("map_variant")
     if name is None:
         return None, 0, r["method"]
-    base = re.sub(r"(^|-)s\d+$", "", name) if seed_of.get(name) else name
     method = re.sub(rf"^{re.escape(name)} ?", "", r["method"]) if name else r["method"]
-    return base, seed_of.get(name, 0), method
+    if seed_of is not None:
+        base = re.sub(r"(^|-)s\d+$", "", name) if seed_of.get(name) else name
+        return base, seed_of.get(name, 0), method
+    m = re.fullmatch(r"(?:(.*)-)?s(\d+)", name)
+    return (m.group(1) or "", int(m.group(2)), method) if m else (name, 0, method)
 
 
 def seed_paired_rows(rows: list[dict], build_cfgs, reference: str = "rendered") -> list[dict]:
@@ -615,19 +619,6 @@ def paired_table(rows: list[dict], reference: str = "rendered") -> str:
     )
 
 
-def _seed_of_name(r: dict) -> tuple[str | None, int, str]:
-    """A row's map variant without its seed suffix, the seed and the bare method, read from the names
-    the benchmark writes (map "sK" or "NAME-sK" for training seed K > 0; methods prefixed by the map)."""
-    import re
-
-    name = r.get("map_variant")
-    if name is None:
-        return None, 0, r["method"]
-    method = re.sub(rf"^{re.escape(name)} ?", "", r["method"]) if name else r["method"]
-    m = re.fullmatch(r"(?:(.*)-)?s(\d+)", name)
-    return (m.group(1) or "", int(m.group(2)), method) if m else (name, 0, method)
-
-
 def compare_rows(ref_rows: list[dict], new_rows: list[dict]) -> list[dict]:
     """Two runs of the benchmark (e.g. two versions of the code, the same splits and seeds): every
     (split, prior, map, method) in both, the new run's error over the reference run's query by query
@@ -635,12 +626,12 @@ def compare_rows(ref_rows: list[dict], new_rows: list[dict]) -> list[dict]:
     ref = {}
     for r in ref_rows:
         if r.get("per_query"):
-            base, seed, method = _seed_of_name(r)
+            base, seed, method = _map_and_seed(r)
             ref[(r["split"], r["prior"], base, method, seed)] = r
     groups: dict[tuple, list[tuple[int, dict]]] = {}
     for r in new_rows:
         if r.get("per_query"):
-            base, seed, method = _seed_of_name(r)
+            base, seed, method = _map_and_seed(r)
             if (r["split"], r["prior"], base, method, seed) in ref:
                 groups.setdefault((r["split"], r["prior"], base, method), []).append((seed, r))
     out = []

@@ -84,11 +84,11 @@ class LocalizeConfig:
     sift_orientations: str = "strongest"
     # SIFT maps: the OpenCV contrast threshold of the query keypoints that descriptor matching uses
     # (None: the maps' own, features.sift.CONTRAST_THRESHOLD, 0.02); lower finds more, weaker ones.
-    # tools/bench_accuracy.py (thirteenth session, three training seeds, noise priors), with
-    # guided_sift_contrast=0.02 (variant "rendered matching-contrast-0.01"): fox extrapolation
-    # 0.0055 / 0.0052 / 0.0059 units against 0.0060 / 0.0068 / 0.0061, rendered descriptors 20-30 %
-    # better than mean ones there; hold-out unchanged; the orbit's 10-40 deg bins 7-9 % worse. An
-    # option for queries far from the mapping path, not the default
+    # tools/bench_accuracy.py, three training seeds, noise priors, with guided_sift_contrast=0.02
+    # (variant "rendered matching-contrast-0.01"), paired with the default: fox extrapolation 1.02x
+    # [0.94, 1.13], hold-out 1.03x, orbit 1.00x (fourteenth session, uncapped SIFT; with the earlier
+    # capped SIFT it gained 7 % on fox extrapolation and lost 5 % on the orbit, both the orientation
+    # tie of features.sift). Not the default
     sift_contrast: float | None = None
     # SIFT maps: the contrast threshold of the query keypoints the guided step searches (None: the same
     # as sift_contrast). One extraction at the lower of the two serves both steps. See README, Accuracy
@@ -935,9 +935,9 @@ class Localizer:
             uv = project(q.cam.K, pose, self.map.positions[drows])
         m = match_near(
             rend,
-            q.desc[: q.guided_n],
+            q.guided_desc,
             uv,
-            q.feats.keypoints[: q.guided_n],
+            q.guided_keypoints,
             cfg.guided_radius_px,
             cfg.match_threshold if cfg.guided_match_threshold is None else cfg.guided_match_threshold,
             mutual=True,
@@ -1067,6 +1067,14 @@ class _Query:
     @property
     def match_keypoints(self) -> np.ndarray:
         return self.feats.keypoints[: self.matching_n]
+
+    @property
+    def guided_desc(self) -> np.ndarray:
+        return self.desc[: self.guided_n]
+
+    @property
+    def guided_keypoints(self) -> np.ndarray:
+        return self.feats.keypoints[: self.guided_n]
 
 
 def localize(
