@@ -41,7 +41,7 @@ def add_localize_options(p):
         choices=["strongest", "all"],
         default="strongest",
         help="SIFT maps: keep the strongest orientation per query location, or all of them (matched as one "
-        "keypoint; better far from the mapping path, slightly worse near it: README, Accuracy)",
+        "keypoint; measured better far from the mapping path before the guided step existed: docs/accuracy.md)",
     )
     p.add_argument(
         "--sift-contrast",
@@ -49,14 +49,14 @@ def add_localize_options(p):
         default=None,
         help="SIFT maps: OpenCV contrast threshold of the query keypoints that descriptor matching uses (default: "
         "the map's, 0.02; lower finds more, weaker ones. With --guided-sift-contrast 0.02, 0.01 localized as well "
-        "as the default, within 3 %%, on fox and the synthetic orbit: README, Accuracy)",
+        "as the default, within 3 %%, on fox and the synthetic orbit: docs/accuracy.md)",
     )
     p.add_argument(
         "--guided-sift-contrast",
         type=float,
         default=None,
         help="SIFT maps: contrast threshold of the query keypoints the guided step searches (default: "
-        "--sift-contrast's; README, Accuracy)",
+        "--sift-contrast's; docs/accuracy.md)",
     )
     p.add_argument(
         "--landmark-sigma",
@@ -71,7 +71,7 @@ def add_localize_options(p):
         default=None,
         help="guided step after the iterations: match every visible landmark to the query keypoints this close "
         "(px) to its projection and within 3 sigma of its predicted uncertainty, and solve again "
-        "(default 8; 0: off; README, Accuracy)",
+        "(default 8; 0: off; docs/accuracy.md)",
     )
     p.add_argument(
         "--guided-below",
@@ -120,7 +120,7 @@ def register(sub):
         choices=["rendered", "mean", "rendered+mean"],
         default="rendered",
         help="landmark descriptors: rendered from the voxels (FaVoR, default), the stored mean, or both "
-        "(each landmark matched through either; better far from the mapping path: README, Accuracy)",
+        "(each landmark matched through either; no gain on the benchmark since SIFT is uncapped: docs/accuracy.md)",
     )
     add_localize_options(p)
     p.add_argument(

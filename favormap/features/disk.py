@@ -69,7 +69,7 @@ class _DiskState:
 @register("disk")
 class DISKExtractor(Extractor):
     channels = 128
-    match_ratio = 1.0  # Lowe ratio when matching against a whole map; see the README's accuracy notes
+    match_ratio = 1.0  # Lowe ratio when matching against a whole map; see docs/accuracy.md
     _models: dict = {}
 
     def __init__(

@@ -91,7 +91,7 @@ class LocalizeConfig:
     # tie of features.sift). Not the default
     sift_contrast: float | None = None
     # SIFT maps: the contrast threshold of the query keypoints the guided step searches (None: the same
-    # as sift_contrast). One extraction at the lower of the two serves both steps. See README, Accuracy
+    # as sift_contrast). One extraction at the lower of the two serves both steps. See docs/accuracy.md
     guided_sift_contrast: float | None = None
     ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
     checks: SuccessChecks = field(default_factory=SuccessChecks)
@@ -118,7 +118,7 @@ class LocalizeConfig:
     guided_match_threshold: float | None = None  # cosine threshold of the guided step (None: match_threshold)
     # the weighted refinement after the guided step weighs the matches found only by projection down
     # by how much larger their residuals are than those of the matches found by descriptor (median
-    # squared Mahalanobis residual of each group at the pose); off: see README, Accuracy
+    # squared Mahalanobis residual of each group at the pose); off: see docs/accuracy.md
     guided_reweight: bool = False
     # > 0: after the first successful iteration, a landmark is matched only against query keypoints
     # this close to its projection from the current estimate (search by projection; the first

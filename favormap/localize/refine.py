@@ -21,7 +21,7 @@ depth errors are several times what their covariances say (LocalizeConfig.refine
 
 Measured (tools/bench_accuracy.py, the ``rendered no-uncertainty`` variant is the former refinement):
 see LocalizeConfig.landmark_sigma_px. The exact triangulation covariance (information summed over a
-landmark's stored observations) localized the same as this approximation (README, Accuracy).
+landmark's stored observations) localized the same as this approximation (docs/accuracy.md).
 """
 
 from __future__ import annotations
