@@ -50,6 +50,12 @@ class BuildConfig:
     match_window: int = 3
     max_epipolar_px: float = 2.0
     min_similarity: float = 0.7
+    # tracking variants, each measured and lost (three seeds, docs/benchmarks/accuracy-2026-11-27-s16-tracking.md):
+    # the epipolar constraint before the descriptors; conflicting components rebuilt instead of dropped
+    # (fox extrapolation 0.0074-0.0078 against 0.0060-0.0063); Lowe's ratio (0.9: hold-out 1.14x, 0.8: 1.42x)
+    epipolar_first: bool = False
+    split_conflicts: bool = False
+    match_ratio: float = 1.0
     max_reproj_px: float = 5.0
     min_angle_deg: float = 1.0
     max_landmarks: int = 3000
@@ -279,6 +285,9 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
         config.match_window,
         config.max_epipolar_px,
         config.min_similarity,
+        config.epipolar_first,
+        config.split_conflicts,
+        config.match_ratio,
     )
 
 

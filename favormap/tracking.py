@@ -4,6 +4,11 @@ Frames are matched with their next ``window`` neighbours by mutual nearest neigh
 descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
 are joined into tracks by connected components; a track that holds two different keypoints of one
 frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
+
+Options (off by default; each lost on the accuracy benchmark, docs/accuracy.md): Lowe's ratio on
+top of mutual matching (``ratio``), the epipolar constraint applied before the descriptors choose
+(``epipolar_first``), and conflicting components rebuilt strongest match first instead of dropped
+(``split_conflicts``).
 """
 
 from __future__ import annotations
@@ -101,13 +106,96 @@ def epipolar_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarr
     )
 
 
-def mutual_nn(da: torch.Tensor, db: torch.Tensor, min_sim: float) -> tuple[np.ndarray, np.ndarray]:
-    sim = da @ db.T
+def mutual_nn(
+    da: torch.Tensor, db: torch.Tensor, min_sim: float, ratio: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours with similarity >= ``min_sim`` (and, with ``ratio`` < 1, Lowe's ratio
+    both ways): (rows of da, rows of db, their similarity)."""
+    return _mutual(da @ db.T, min_sim, ratio)
+
+
+def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
     ab = sim.argmax(1)
     ba = sim.argmax(0)
-    ia = torch.arange(len(da))
+    ia = torch.arange(sim.shape[0])
     ok = (ba[ab] == ia) & (sim[ia, ab] >= min_sim)
-    return ia[ok].numpy(), ab[ok].numpy()
+    if ratio < 1.0 and sim.shape[1] > 1 and sim.shape[0] > 1:
+        # unit descriptors: distance^2 = 2 - 2 sim
+        dist = lambda v: (2.0 - 2.0 * v).clamp_min(0.0).sqrt()  # noqa: E731
+        ta = sim.topk(2, dim=1).values
+        tb = sim.topk(2, dim=0).values
+        ok &= (dist(ta[:, 0]) < ratio * dist(ta[:, 1])) & (dist(tb[0, ab]) < ratio * dist(tb[1, ab]))
+    return ia[ok].numpy(), ab[ok].numpy(), sim[ia, ab][ok].numpy()
+
+
+def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> torch.Tensor:
+    """(Na, Nb) symmetric epipolar distances (px) of every keypoint pair: :func:`epipolar_distance`
+    for all pairs at once."""
+    Ft = torch.as_tensor(F, dtype=torch.float64)
+    ha = torch.cat([torch.as_tensor(xa, dtype=torch.float64), torch.ones(len(xa), 1, dtype=torch.float64)], 1)
+    hb = torch.cat([torch.as_tensor(xb, dtype=torch.float64), torch.ones(len(xb), 1, dtype=torch.float64)], 1)
+    la = ha @ Ft.T  # (Na, 3) lines in b
+    lb = hb @ Ft  # (Nb, 3) lines in a
+    num = (la @ hb.T).abs()  # (Na, Nb)
+    inv_a = 1.0 / la[:, :2].norm(dim=1).clamp_min(1e-12)
+    inv_b = 1.0 / lb[:, :2].norm(dim=1).clamp_min(1e-12)
+    return (0.5 * num * (inv_a[:, None] + inv_b[None, :])).float()
+
+
+def epipolar_mutual_nn(
+    da: torch.Tensor,
+    db: torch.Tensor,
+    ka: np.ndarray,
+    kb: np.ndarray,
+    F: np.ndarray,
+    max_px: float,
+    min_sim: float,
+    ratio: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`mutual_nn` among the pairs that the known poses allow (within ``max_px`` of each
+    other's epipolar line, F from a to b): the poses pick the candidates before the descriptors
+    choose, so a repeated pattern elsewhere in the image no longer takes a keypoint's match."""
+    sim = (da @ db.T).masked_fill(epipolar_distance_matrix(F, ka, kb) > max_px, -2.0)
+    return _mutual(sim, min_sim, ratio)
+
+
+def _split_conflicts(label, bad_labels, r, c, sim, node_frame) -> np.ndarray:
+    """New component labels where the components ``bad_labels`` (which hold two keypoints of one
+    frame) are rebuilt from their matches, strongest first, refusing every match that would join two
+    keypoints of one frame (a greedy union-find, as COLMAP's track building). Only the conflicting
+    components' matches go through this loop."""
+    bad = np.zeros(label.max() + 1, bool)
+    bad[bad_labels] = True
+    e = np.flatnonzero(bad[label[r]])
+    e = e[np.argsort(-sim[e], kind="stable")]
+    parent: dict[int, int] = {}
+    frames: dict[int, set] = {}
+
+    def find(x):
+        root = x
+        while parent.get(root, root) != root:
+            root = parent[root]
+        while parent.get(x, x) != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    for i, j in zip(r[e].tolist(), c[e].tolist()):
+        a, b = find(i), find(j)
+        if a == b:
+            continue
+        fa = frames.setdefault(a, {int(node_frame[a])})
+        fb = frames.setdefault(b, {int(node_frame[b])})
+        if fa & fb:
+            continue
+        if len(fa) < len(fb):
+            a, b, fa, fb = b, a, fb, fa
+        parent[b] = a
+        fa |= frames.pop(b)
+    nodes = np.flatnonzero(bad[label])
+    roots = np.array([find(x) for x in nodes.tolist()], np.int64)
+    out = label.astype(np.int64).copy()
+    out[nodes] = label.max() + 1 + roots  # fresh labels, one per rebuilt component
+    return out
 
 
 def _counts(features) -> np.ndarray:
@@ -123,6 +211,9 @@ def track_features(
     window: int = 3,
     max_epipolar_px: float = 2.0,
     min_similarity: float = 0.7,
+    epipolar_first: bool = False,
+    split_conflicts: bool = False,
+    ratio: float = 1.0,
 ) -> Tracks:
     """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras.
 
@@ -142,29 +233,34 @@ def track_features(
             held[i] = (np.asarray(f.keypoints, np.float32), torch.from_numpy(d))
         return held[i]
 
-    rows, cols, xy_rows, xy_cols = [], [], [], []
+    rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
     for a in range(n):
         held.pop(a - 1, None)
         for b in range(a + 1, min(n, a + 1 + window)):
             if counts[a] == 0 or counts[b] == 0:
                 continue
             (ka, da), (kb, db) = frame(a), frame(b)
-            ia, ib = mutual_nn(da, db, min_similarity)
+            F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
+            if epipolar_first:
+                ia, ib, sab = epipolar_mutual_nn(da, db, ka, kb, F, max_epipolar_px, min_similarity, ratio)
+            else:
+                ia, ib, sab = mutual_nn(da, db, min_similarity, ratio)
             if len(ia) == 0:
                 continue
-            F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
             ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
             rows.append((base[a] + ia[ok]).astype(gid))
             cols.append((base[b] + ib[ok]).astype(gid))
             xy_rows.append(ka[ia[ok]])
             xy_cols.append(kb[ib[ok]])
+            sims.append(sab[ok].astype(np.float32))
     if not rows or not sum(len(r) for r in rows):
         return Tracks(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
     # the graph of matched keypoints only (global keypoint index -> node)
     ends = np.concatenate(rows + cols)
     node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
     node_xy = np.concatenate(xy_rows + xy_cols)[first]
-    del ends, rows, cols, xy_rows, xy_cols
+    sim = np.concatenate(sims)
+    del ends, rows, cols, xy_rows, xy_cols, sims
     m = len(node_id)
     r, c = inv[: len(inv) // 2], inv[len(inv) // 2 :]
     graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
@@ -175,6 +271,11 @@ def track_features(
     pairs = label.astype(np.int64) * n + node_frame
     uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
     bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
+    if split_conflicts and len(bad_labels):
+        label = _split_conflicts(label, bad_labels, r, c, sim, node_frame)
+        pairs = label.astype(np.int64) * n + node_frame
+        uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
+        bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
     return Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])

@@ -166,3 +166,81 @@ def test_points_behind_the_cameras_give_no_landmark(behind_all):
     # the same tracks of points in front are triangulated (the rig is not degenerate)
     if behind_all:
         assert len(triangulate(_observe(X, T), T, Ks, TriangulationConfig(min_track=5))) == len(X)
+
+
+def test_the_epipolar_distance_matrix_is_the_pairwise_distance():
+    from favormap.tracking import epipolar_distance, epipolar_distance_matrix, fundamental
+
+    X, T, D, rng = _rig(n_points=15)
+    F = fundamental(T[0], CAM.K, T[3], CAM.K)
+    xa = project(CAM.K, T[0], X) + rng.normal(0, 3.0, (len(X), 2))
+    xb = project(CAM.K, T[3], X[:9]) + rng.normal(0, 3.0, (9, 2))
+    M = epipolar_distance_matrix(F, xa, xb).numpy()
+    ia, ib = np.meshgrid(np.arange(len(xa)), np.arange(len(xb)), indexing="ij")
+    want = epipolar_distance(F, xa[ia.ravel()], xb[ib.ravel()]).reshape(M.shape)
+    np.testing.assert_allclose(M, want, rtol=1e-5, atol=1e-4)
+    assert np.all(np.diag(M[:9, :9]) < 20) and M.max() > 50  # true pairs near their lines, others not
+
+
+def test_the_ratio_test_drops_matches_with_a_close_second_candidate():
+    """Point 5 appears twice in frame 1 (its keypoint and a near-copy 40 px away): mutual nearest
+    neighbours keep one of the two; with Lowe's ratio both ways the ambiguous match goes."""
+    import torch
+
+    from favormap.tracking import mutual_nn
+
+    X, T, D, rng = _rig(n_points=20)
+    twin = D[5] + 0.01 * rng.normal(size=D.shape[1])
+    feats, owners = _features(X, T[:2], D, rng, extra={1: (np.array([[40.0, 40.0]]), twin[None].astype(np.float32))})
+    da, db = (torch.from_numpy(f.descriptors) for f in feats)
+    ia, ib, s = mutual_nn(da, db, 0.7)
+    assert 5 in owners[0][ia] and len(ia) == 20 and np.all(s >= 0.7)
+    ja, jb, _ = mutual_nn(da, db, 0.7, ratio=0.8)
+    assert 5 not in owners[0][ja]
+    assert set(owners[0][ja]) == set(range(20)) - {5}
+    assert np.all(owners[0][ja] == owners[1][jb])  # the others all kept, and right
+
+
+def test_epipolar_first_matching_keeps_a_point_whose_twin_lies_off_its_epipolar_line():
+    """A copy of point 20's descriptor (exact, so more similar than its own noisy keypoint) far off
+    its epipolar line in frame 4: plain mutual matching picks the copy and the pose check then
+    rejects it, so point 20 loses frame 4; choosing among the pose-allowed pairs first keeps it."""
+    X, T, D, rng = _rig(n_points=40)
+    decoy = (np.array([[50.0, 40.0]]), D[20:21])
+    feats, owners = _features(X, T, D, rng, extra={4: decoy})
+    plain = track_features(feats, T, [CAM] * len(T), min_track=3, window=1)
+    first = track_features(feats, T, [CAM] * len(T), min_track=3, window=1, epipolar_first=True)
+
+    def frames_of_20(tracks):
+        return sorted(
+            int(f)
+            for o, a, b in zip(_owners_of(tracks, owners), tracks.offsets[:-1], tracks.offsets[1:])
+            if o[0] == 20
+            for f in tracks.frame_idx[a:b]
+        )
+
+    assert 4 not in frames_of_20(plain)  # the window-1 chain breaks at frame 4
+    assert frames_of_20(first) == list(range(len(T)))
+    assert all(np.all(o >= 0) and len(np.unique(o)) == 1 for o in _owners_of(first, owners))
+
+
+def test_split_conflicts_rebuilds_an_ambiguous_component_from_its_strongest_matches():
+    """The setting of test_a_track_with_two_keypoints_in_one_frame_is_dropped: by default point 7's
+    component goes; with ``split_conflicts`` it is rebuilt strongest match first, so point 7 keeps
+    one track (frames 2-7, descriptor B: frames 0-1 alone are too short) with one keypoint per frame."""
+    X, T, D, rng = _rig(n_points=30)
+    a, b = (D[7] + 0.05 * rng.normal(size=D.shape[1]) for _ in range(2))
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    xy7 = project(CAM.K, T[2], X[7:8]) + np.array([[0.0, 0.3]])
+    feats, owners = _features(X, T, D, rng, noise_px=0.0, extra={2: (xy7, b[None].astype(np.float32))})
+    for i in range(len(T)):
+        feats[i].descriptors[np.flatnonzero(owners[i] == 7)] = a if i <= 2 else b
+    owners[2][-1] = 7  # the second keypoint is point 7 too
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, split_conflicts=True)
+    per_track = _owners_of(tracks, owners)
+    assert all(len(np.unique(o)) == 1 for o in per_track)
+    assert {int(o[0]) for o in per_track} == set(range(30))
+    for a_, b_ in zip(tracks.offsets[:-1], tracks.offsets[1:]):
+        assert len(np.unique(tracks.frame_idx[a_:b_])) == b_ - a_  # one keypoint per frame
+    t7 = [i for i, o in enumerate(per_track) if o[0] == 7]
+    assert len(t7) == 1 and tracks.lengths[t7[0]] >= 5
