@@ -9,7 +9,8 @@ For every split a favormap map is built from the mapping frames and localized ag
 and the pycolmap structure baseline (SIFT, triangulation from the known poses, one mean descriptor
 per point, LO-RANSAC PnP; favormap.localize.baseline) is built from the same frames and localized
 without a prior. Prior modes: noise (ground truth moved by 0.3 units / 10 deg), nearest mapping
-frame, constant (first mapping frame), none.
+frame, constant (first mapping frame), none, sequential (the queries as a stream: the first without
+a prior, each next one from the poses estimated before it, constant velocity).
 
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
@@ -369,6 +370,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     from favormap.localize.evaluate import (
         EvalConfig,
         QueryOutcome,
+        SequencePriors,
         localizer_noise_floor,
         make_priors,
         match_diagnostics,
@@ -406,11 +408,14 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
             loc = Localizer(m, cfg, descriptor_source=make_source(source_name, m, cfg.device, obs_desc))
             loc.extractor = ReuseLastExtraction(loc.extractor)
             outs = []
-            for fr, prior in zip(split.queries.frames, priors):
+            seq_priors = SequencePriors(priors, prior_mode)
+            for i, fr in enumerate(split.queries.frames):
                 cam = split.queries.cameras[fr.camera_id]
+                prior = seq_priors.prior(i)
                 loc.extractor.forget()
                 t = time.perf_counter()
                 res = loc.localize(fr.image_path, prior, cam)
+                seq_priors.update(res)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
                 o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
@@ -859,7 +864,7 @@ def main():
     ap.add_argument("--splits", default="fox-holdout,fox-extrap,orbit")
     ap.add_argument("--map", help="custom split: mapping sequence")
     ap.add_argument("--queries", help="custom split: query sequence")
-    ap.add_argument("--priors", default="noise,nearest,constant,none")
+    ap.add_argument("--priors", default="noise,nearest,constant,none,sequential")
     ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS).replace("%", "%%"))
     ap.add_argument(
         "--extractor",

@@ -114,6 +114,19 @@ def register(sub):
         help="for a folder: text file with lines 'IMAGE_NAME tx ty tz qx qy qz qw' or "
         "'IMAGE_NAME' + 16 numbers (world_from_cam, row-major); without it, no priors",
     )
+    p.add_argument(
+        "--sequential",
+        action="store_true",
+        help="for a folder: the images (in name order) are a stream from one camera; each image's prior comes "
+        "from the poses estimated before it (--motion), so only the first needs one (--prior) or none",
+    )
+    p.add_argument(
+        "--motion",
+        choices=["constant-velocity", "previous"],
+        default="constant-velocity",
+        help="with --sequential: the next prior is the last localized pose moved on by the motion between the "
+        "last two frames (constant-velocity, default) or that pose as it is (previous)",
+    )
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
     p.add_argument(
         "--descriptors",
@@ -230,6 +243,15 @@ def run(args) -> int:
         out = check_output_path(args.output, [args.map, query, args.prior, args.priors, args.camera])
         if query.is_dir() and out.suffix.lower() in IMAGE_EXT and out.resolve().parent == query.resolve():
             raise InputError(f"output {out} would be taken for a query image of {query}; write it elsewhere")
+    sequential = getattr(args, "sequential", False)
+    if sequential and not query.is_dir():
+        raise InputError("--sequential localizes a folder of images; for one image give --prior")
+    if sequential and args.priors:
+        raise InputError(
+            "--sequential takes its priors from the poses it estimates: give --prior for the first image, not --priors"
+        )
+    if query.is_dir() and args.prior and not sequential:
+        raise InputError("--prior is for one image (or the first of a --sequential folder); for a folder give --priors")
     if query.is_dir():
         priors = read_priors(Path(args.priors)) if args.priors else None
         images = sorted(p for p in query.iterdir() if p.suffix.lower() in IMAGE_EXT)
@@ -247,6 +269,11 @@ def run(args) -> int:
     else:
         jobs = [(query, read_pose(args.prior) if args.prior else None)]
     config = config_from_args(args)
+    motion = None
+    if sequential:
+        from ..localize import MotionPrior
+
+        motion = MotionPrior(args.motion, read_pose(args.prior) if args.prior else None)
     m = Map.open(args.map)
     camera = read_camera(args.camera) if args.camera else None
     loc = Localizer(m, config)
@@ -255,7 +282,11 @@ def run(args) -> int:
     lines = []
     try:
         for i, (img, prior) in enumerate(jobs):
+            if motion is not None:
+                prior = motion.prior()
             res = loc.localize(img, prior, camera)
+            if motion is not None:
+                motion.update(res)
             if rec is not None:
                 rec.log_localization(i, str(img), res, prior, camera=camera)
             failures += not res.success

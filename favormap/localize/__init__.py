@@ -10,6 +10,7 @@ from .localizer import (
     localize,
     match_descriptors,
 )
+from .motion import MOTION_MODELS, MotionPrior
 
 __all__ = [
     "DescriptorSource",
@@ -17,7 +18,9 @@ __all__ = [
     "LocalizationResult",
     "LocalizeConfig",
     "Localizer",
+    "MOTION_MODELS",
     "MeanDescriptors",
+    "MotionPrior",
     "NearestViewDescriptors",
     "RenderedDescriptors",
     "SuccessChecks",

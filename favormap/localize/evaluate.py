@@ -22,7 +22,7 @@ from .descriptors import describe
 from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
-PRIOR_MODES = ("noise", "nearest", "constant", "none")
+PRIOR_MODES = ("noise", "nearest", "constant", "none", "sequential")
 
 
 class Result(Protocol):
@@ -35,7 +35,7 @@ class Result(Protocol):
 
 @dataclass
 class EvalConfig:
-    prior_mode: str = "noise"  # noise | nearest | constant | none
+    prior_mode: str = "noise"  # noise | nearest | constant | none | sequential
     noise: tuple[float, float] = (0.3, 10.0)  # translation (map units), rotation (deg)
     seed: int = 0
     thresholds: tuple = DEFAULT_THRESHOLDS
@@ -64,12 +64,14 @@ class EvalReport:
 
 def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConfig) -> list[np.ndarray | None]:
     """One prior per query frame: the ground truth moved by ``cfg.noise`` ('noise'), the nearest
-    mapping frame ('nearest'), the first mapping frame ('constant') or no prior ('none')."""
+    mapping frame ('nearest'), the first mapping frame ('constant') or no prior ('none'). With
+    'sequential' the queries are a stream: the first has no prior and each next one takes its prior
+    from the poses estimated before it (:class:`SequencePriors`), so these are all None."""
     rng = np.random.default_rng(cfg.seed)
     gts = [f.cam_from_world for f in queries.frames]
     if cfg.prior_mode == "noise":
         return [perturb_pose(T, cfg.noise[0], cfg.noise[1], rng) for T in gts]
-    if cfg.prior_mode == "none":
+    if cfg.prior_mode in ("none", "sequential"):
         return [None for _ in gts]
     if len(map_cam_from_world) == 0:
         raise InputError("the map has no frames to take priors from")
@@ -79,6 +81,26 @@ def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConf
     if cfg.prior_mode == "constant":
         return [map_cam_from_world[0] for _ in gts]
     raise InputError(f"unknown prior mode {cfg.prior_mode!r} ({', '.join(PRIOR_MODES)})")
+
+
+class SequencePriors:
+    """The prior of each query in turn: the fixed ones of :func:`make_priors`, or, in the
+    'sequential' mode, the constant-velocity prior from the poses estimated so far
+    (:class:`favormap.localize.motion.MotionPrior`). ``prior(i)`` before query i, ``update(result)``
+    after it."""
+
+    def __init__(self, priors: list, prior_mode: str):
+        from .motion import MotionPrior
+
+        self.priors = priors
+        self.motion = MotionPrior("constant-velocity") if prior_mode == "sequential" else None
+
+    def prior(self, i: int) -> np.ndarray | None:
+        return self.priors[i] if self.motion is None else self.motion.prior()
+
+    def update(self, result) -> None:
+        if self.motion is not None:
+            self.motion.update(result)
 
 
 def scene_extent(points: np.ndarray) -> float:
@@ -305,10 +327,13 @@ def evaluate(
     reports = []
     for method, loc in localizers.items():
         outs = []
-        for i, (fr, prior) in enumerate(zip(queries.frames, priors)):
+        seq_priors = SequencePriors(priors, cfg.prior_mode)
+        for i, fr in enumerate(queries.frames):
             cam = queries.cameras[fr.camera_id]
+            prior = seq_priors.prior(i)
             s = time.perf_counter()
             res = loc.localize(fr.image_path, prior, cam)
+            seq_priors.update(res)
             o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - s)
             if diagnostics:
                 o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)

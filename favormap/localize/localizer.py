@@ -562,6 +562,24 @@ class Localizer:
         return prior
 
     # -- main loop -----------------------------------------------------------------------------------
+    def localize_sequence(
+        self,
+        images,
+        first_prior: np.ndarray | None = None,
+        camera: Camera | None = None,
+        motion: str = "constant-velocity",
+    ):
+        """Localize a stream of query images in order (a robot's camera), yielding one result per
+        image: each image's prior comes from the poses already estimated
+        (:class:`favormap.localize.motion.MotionPrior`), so only the first needs one, or none."""
+        from .motion import MotionPrior
+
+        mp = MotionPrior(motion, first_prior)
+        for image in images:
+            res = self.localize(image, mp.prior(), camera)
+            mp.update(res)
+            yield res
+
     def localize(
         self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None
     ) -> LocalizationResult:
