@@ -33,6 +33,7 @@ class Landmarks:
     tracks: Tracks  # observations, track j <-> landmark j
     reproj_errors: np.ndarray  # (O,) pixels, per observation
     angles_deg: np.ndarray  # (L,) maximal triangulation angle
+    source: np.ndarray | None = None  # (L,) index of each landmark's track in triangulate()'s input
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -47,7 +48,8 @@ class Landmarks:
         keep_obs = np.isin(self.tracks.track_of_obs, idx)
         tr = self.tracks.select(keep_obs)
         idx = np.sort(idx)  # Tracks.select keeps the track order
-        return Landmarks(self.positions[idx], tr, self.reproj_errors[keep_obs], self.angles_deg[idx])
+        src = None if self.source is None else self.source[idx]
+        return Landmarks(self.positions[idx], tr, self.reproj_errors[keep_obs], self.angles_deg[idx], src)
 
 
 def _sum_by_track(values: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
@@ -87,7 +89,7 @@ def triangulate(
     so the working memory does not grow with the sequence."""
     config = TriangulationConfig() if config is None else config
     if len(tracks) == 0:
-        return Landmarks(np.zeros((0, 3)), tracks, np.zeros(0), np.zeros(0))
+        return Landmarks(np.zeros((0, 3)), tracks, np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
     cuts = np.searchsorted(tracks.offsets, np.arange(0, tracks.offsets[-1], BLOCK_OBSERVATIONS), side="right") - 1
     bounds = np.unique(np.concatenate([cuts, [len(tracks)]]))
     if len(bounds) <= 2:
@@ -100,6 +102,7 @@ def triangulate(
         Tracks.concat([p.tracks for p in parts]),
         np.concatenate([p.reproj_errors for p in parts]),
         np.concatenate([p.angles_deg for p in parts]),
+        np.concatenate([p.source + lo for p, lo in zip(parts, bounds[:-1])]),
     )
 
 
@@ -186,7 +189,7 @@ def _triangulate_block(
     keep &= counts[tid] >= config.min_track
     kept_tracks = np.flatnonzero(np.bincount(tid[keep], minlength=len(tracks)) > 0)
     new_tracks = tracks.select(keep)
-    return Landmarks(X[kept_tracks], new_tracks, err[keep], angles[kept_tracks])
+    return Landmarks(X[kept_tracks], new_tracks, err[keep], angles[kept_tracks], kept_tracks)
 
 
 def _max_angle(rays: np.ndarray, tracks: Tracks, valid: np.ndarray) -> np.ndarray:

@@ -99,11 +99,12 @@ def test_cli_localizes_a_folder_as_a_sequence(small_map, small_sequence, tmp_pat
     frames = small_sequence.frames[2:8]
     for k, fr in enumerate(frames):
         shutil.copy(fr.image_path, folder / f"{k:03d}{fr.image_path.suffix}")
-    assert main(["localize", str(path), str(folder), "--sequential", "--json"]) == 0
-    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-    assert len(rows) == len(frames) and all(r["success"] for r in rows)
-    kinds = [[it["kind"] for it in r["iterations"]] for r in rows]
-    assert "global" in kinds[0] and not any("global" in k for k in kinds[1:]), kinds
+    for extra in ([], ["--fixed-landmarks", "--motion", "previous"]):
+        assert main(["localize", str(path), str(folder), "--sequential", "--json", *extra]) == 0
+        rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        assert len(rows) == len(frames) and all(r["success"] for r in rows)
+        kinds = [[it["kind"] for it in r["iterations"]] for r in rows]
+        assert "global" in kinds[0] and not any("global" in k for k in kinds[1:]), kinds
 
 
 @pytest.mark.parametrize(
@@ -111,6 +112,8 @@ def test_cli_localizes_a_folder_as_a_sequence(small_map, small_sequence, tmp_pat
     [
         (["--sequential", "--priors", "p.txt"], "--sequential takes its priors"),
         (["--prior", "p.txt"], "--prior is for one image"),
+        (["--fixed-landmarks"], "go with --sequential"),
+        (["--motion", "previous"], "go with --sequential"),
     ],
 )
 def test_cli_sequential_option_errors(small_map, small_sequence, tmp_path, capsys, extra, message):

@@ -10,7 +10,8 @@ and the pycolmap structure baseline (SIFT, triangulation from the known poses, o
 per point, LO-RANSAC PnP; favormap.localize.baseline) is built from the same frames and localized
 without a prior. Prior modes: noise (ground truth moved by 0.3 units / 10 deg), nearest mapping
 frame, constant (first mapping frame), none, sequential (the queries as a stream: the first without
-a prior, each next one from the poses estimated before it, constant velocity).
+a prior, each next one from the poses estimated before it, constant velocity), stream (sequential,
+and the landmarks refined from the queries localized so far: favormap.localize.stream).
 
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
@@ -408,7 +409,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
             loc = Localizer(m, cfg, descriptor_source=make_source(source_name, m, cfg.device, obs_desc))
             loc.extractor = ReuseLastExtraction(loc.extractor)
             outs = []
-            seq_priors = SequencePriors(priors, prior_mode)
+            seq_priors = SequencePriors(priors, prior_mode, loc)
             for i, fr in enumerate(split.queries.frames):
                 cam = split.queries.cameras[fr.camera_id]
                 prior = seq_priors.prior(i)
@@ -421,6 +422,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
                 o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
                 outs.append(o)
+            seq_priors.close()
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
             rows[-1].update(
                 per_query=[per_query(o, a) for o, a in zip(outs, _angles(split))],
@@ -864,7 +866,7 @@ def main():
     ap.add_argument("--splits", default="fox-holdout,fox-extrap,orbit")
     ap.add_argument("--map", help="custom split: mapping sequence")
     ap.add_argument("--queries", help="custom split: query sequence")
-    ap.add_argument("--priors", default="noise,nearest,constant,none,sequential")
+    ap.add_argument("--priors", default="noise,nearest,constant,none,sequential,stream")
     ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=", ".join(VARIANTS).replace("%", "%%"))
     ap.add_argument(
         "--extractor",

@@ -1,4 +1,4 @@
-"""favormap eval map.h5 QUERY_SEQ [--prior-mode noise|nearest|constant|none|sequential] [--noise 0.3,10] [--json]"""
+"""favormap eval map.h5 QUERY_SEQ [--prior-mode MODE] [--noise 0.3,10] [--json]"""
 
 from __future__ import annotations
 
@@ -21,11 +21,12 @@ def register(sub):
     p.add_argument("--format", help="force the query sequence format")
     p.add_argument(
         "--prior-mode",
-        choices=["noise", "nearest", "constant", "none", "sequential"],
+        choices=["noise", "nearest", "constant", "none", "sequential", "stream"],
         default="noise",
         help="noise: ground truth moved by --noise; nearest: nearest mapping frame; constant: first mapping "
         "frame; none: no prior; sequential: the queries as a stream, the first without a prior, each next one "
-        "from the poses estimated before it (constant velocity) (default noise)",
+        "from the poses estimated before it (constant velocity); stream: sequential, and the landmarks refined from "
+        "the queries localized so far, as localize --sequential (default noise)",
     )
     p.add_argument("--noise", default="0.3,10", help="prior perturbation 'T_UNITS,DEG' (default 0.3,10)")
     p.add_argument("--seed", type=int, default=0)

@@ -123,9 +123,15 @@ def register(sub):
     p.add_argument(
         "--motion",
         choices=["constant-velocity", "previous"],
-        default="constant-velocity",
+        default=None,
         help="with --sequential: the next prior is the last localized pose moved on by the motion between the "
         "last two frames (constant-velocity, default) or that pose as it is (previous)",
+    )
+    p.add_argument(
+        "--fixed-landmarks",
+        action="store_true",
+        help="with --sequential: keep the map's landmark positions (by default the landmarks each localized image "
+        "saw are triangulated again with its observations, for the images after it; the map file is not changed)",
     )
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
     p.add_argument(
@@ -250,6 +256,8 @@ def run(args) -> int:
         raise InputError(
             "--sequential takes its priors from the poses it estimates: give --prior for the first image, not --priors"
         )
+    if not sequential and (getattr(args, "fixed_landmarks", False) or getattr(args, "motion", None)):
+        raise InputError("--motion and --fixed-landmarks go with --sequential")
     if query.is_dir() and args.prior and not sequential:
         raise InputError("--prior is for one image (or the first of a --sequential folder); for a folder give --priors")
     if query.is_dir():
@@ -273,10 +281,15 @@ def run(args) -> int:
     if sequential:
         from ..localize import MotionPrior
 
-        motion = MotionPrior(args.motion, read_pose(args.prior) if args.prior else None)
+        motion = MotionPrior(args.motion or "constant-velocity", read_pose(args.prior) if args.prior else None)
     m = Map.open(args.map)
     camera = read_camera(args.camera) if args.camera else None
     loc = Localizer(m, config)
+    refinement = None
+    if sequential and not args.fixed_landmarks:
+        from ..localize.stream import LandmarkRefinement
+
+        refinement = LandmarkRefinement(loc)
     rec = recording_from_args(args, "favormap localize", m)
     failures = 0
     lines = []
@@ -287,6 +300,8 @@ def run(args) -> int:
             res = loc.localize(img, prior, camera)
             if motion is not None:
                 motion.update(res)
+            if refinement is not None:
+                refinement.update(res)
             if rec is not None:
                 rec.log_localization(i, str(img), res, prior, camera=camera)
             failures += not res.success

@@ -22,7 +22,7 @@ from .descriptors import describe
 from .localizer import Localizer, match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
-PRIOR_MODES = ("noise", "nearest", "constant", "none", "sequential")
+PRIOR_MODES = ("noise", "nearest", "constant", "none", "sequential", "stream")
 
 
 class Result(Protocol):
@@ -35,7 +35,7 @@ class Result(Protocol):
 
 @dataclass
 class EvalConfig:
-    prior_mode: str = "noise"  # noise | nearest | constant | none | sequential
+    prior_mode: str = "noise"  # noise | nearest | constant | none | sequential | stream
     noise: tuple[float, float] = (0.3, 10.0)  # translation (map units), rotation (deg)
     seed: int = 0
     thresholds: tuple = DEFAULT_THRESHOLDS
@@ -66,12 +66,13 @@ def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConf
     """One prior per query frame: the ground truth moved by ``cfg.noise`` ('noise'), the nearest
     mapping frame ('nearest'), the first mapping frame ('constant') or no prior ('none'). With
     'sequential' the queries are a stream: the first has no prior and each next one takes its prior
-    from the poses estimated before it (:class:`SequencePriors`), so these are all None."""
+    from the poses estimated before it (:class:`SequencePriors`), so these are all None; 'stream'
+    also refines the landmarks from the frames localized so far (favormap.localize.stream)."""
     rng = np.random.default_rng(cfg.seed)
     gts = [f.cam_from_world for f in queries.frames]
     if cfg.prior_mode == "noise":
         return [perturb_pose(T, cfg.noise[0], cfg.noise[1], rng) for T in gts]
-    if cfg.prior_mode in ("none", "sequential"):
+    if cfg.prior_mode in ("none", "sequential", "stream"):
         return [None for _ in gts]
     if len(map_cam_from_world) == 0:
         raise InputError("the map has no frames to take priors from")
@@ -85,15 +86,23 @@ def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConf
 
 class SequencePriors:
     """The prior of each query in turn: the fixed ones of :func:`make_priors`, or, in the
-    'sequential' mode, the constant-velocity prior from the poses estimated so far
-    (:class:`favormap.localize.motion.MotionPrior`). ``prior(i)`` before query i, ``update(result)``
-    after it."""
+    'sequential' and 'stream' modes, the constant-velocity prior from the poses estimated so far
+    (:class:`favormap.localize.motion.MotionPrior`); in 'stream' mode ``localizer``'s landmarks are
+    also refined from the frames localized so far (:class:`favormap.localize.stream.LandmarkRefinement`).
+    ``prior(i)`` before query i, ``update(result)`` after it, ``close()`` at the end."""
 
-    def __init__(self, priors: list, prior_mode: str):
+    def __init__(self, priors: list, prior_mode: str, localizer: Localizer | None = None):
         from .motion import MotionPrior
 
         self.priors = priors
-        self.motion = MotionPrior("constant-velocity") if prior_mode == "sequential" else None
+        self.motion = MotionPrior("constant-velocity") if prior_mode in ("sequential", "stream") else None
+        self.refinement = None
+        if prior_mode == "stream":
+            if localizer is None:
+                raise InputError("the 'stream' prior mode refines a localizer's landmarks: give the localizer")
+            from .stream import LandmarkRefinement
+
+            self.refinement = LandmarkRefinement(localizer)
 
     def prior(self, i: int) -> np.ndarray | None:
         return self.priors[i] if self.motion is None else self.motion.prior()
@@ -101,6 +110,12 @@ class SequencePriors:
     def update(self, result) -> None:
         if self.motion is not None:
             self.motion.update(result)
+        if self.refinement is not None:
+            self.refinement.update(result)
+
+    def close(self) -> None:
+        if self.refinement is not None:
+            self.refinement.close()
 
 
 def scene_extent(points: np.ndarray) -> float:
@@ -327,7 +342,7 @@ def evaluate(
     reports = []
     for method, loc in localizers.items():
         outs = []
-        seq_priors = SequencePriors(priors, cfg.prior_mode)
+        seq_priors = SequencePriors(priors, cfg.prior_mode, loc)
         for i, fr in enumerate(queries.frames):
             cam = queries.cameras[fr.camera_id]
             prior = seq_priors.prior(i)
@@ -346,6 +361,7 @@ def evaluate(
                 on_query(method, i, o)
             if progress:
                 progress(f"eval {method}", i + 1, len(queries.frames))
+        seq_priors.close()
         iters = loc.config.iterations
         reports.append(
             EvalReport(

@@ -234,6 +234,7 @@ class LocalizationResult:
     # uncertainty of a successful pose (favormap.localize.refine.PoseCovariance; None when the final
     # weighted refinement is off)
     covariance: PoseCovariance | None = None
+    camera: Camera | None = None  # the working pinhole camera of ``keypoints`` (undistorted, resized)
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat
@@ -491,6 +492,9 @@ class Localizer:
             **(self._sift_options() if self.map.extractor == "sift" else {}),
         )
         self.index = SpatialIndex(self.map.positions)
+        # landmark positions of the geometry (visibility, projections, PnP): the map's, or a stream's
+        # refined copy (favormap.localize.stream.LandmarkRefinement); the voxel grids stay where they were trained
+        self.positions = self.map.positions
         self.default_camera = (
             self.map.cameras[int(self.map.frame_camera_ids[0])]
             if self.map.num_frames
@@ -568,17 +572,29 @@ class Localizer:
         first_prior: np.ndarray | None = None,
         camera: Camera | None = None,
         motion: str = "constant-velocity",
+        refine_landmarks: bool = True,
     ):
         """Localize a stream of query images in order (a robot's camera), yielding one result per
         image: each image's prior comes from the poses already estimated
-        (:class:`favormap.localize.motion.MotionPrior`), so only the first needs one, or none."""
+        (:class:`favormap.localize.motion.MotionPrior`), so only the first needs one, or none. With
+        ``refine_landmarks`` the landmarks each localized frame saw are triangulated again with its
+        observations, for the frames after it (:class:`favormap.localize.stream.LandmarkRefinement`;
+        the map itself is not changed)."""
         from .motion import MotionPrior
+        from .stream import LandmarkRefinement
 
         mp = MotionPrior(motion, first_prior)
-        for image in images:
-            res = self.localize(image, mp.prior(), camera)
-            mp.update(res)
-            yield res
+        refinement = LandmarkRefinement(self) if refine_landmarks else None
+        try:
+            for image in images:
+                res = self.localize(image, mp.prior(), camera)
+                mp.update(res)
+                if refinement is not None:
+                    refinement.update(res)
+                yield res
+        finally:
+            if refinement is not None:
+                refinement.close()
 
     def localize(
         self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None
@@ -698,7 +714,7 @@ class Localizer:
             d, q.match_desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio, groups=q.groups
         )
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.map.positions[rows[m[:, 0]]], m[:, 1], t)
+        ans = self._pnp(q, self.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         pose = from_rigid3d(ans["cam_from_world"]) if ok else np.eye(4)
@@ -740,7 +756,7 @@ class Localizer:
             rend, drows = describe(self.source, rows, pose, t)
             s = time.perf_counter()
             if cfg.search_radius_px > 0 and last is not None:
-                uv = project(q.cam.K, pose, self.map.positions[drows])
+                uv = project(q.cam.K, pose, self.positions[drows])
                 m = match_near(
                     rend, q.match_desc, uv, q.match_keypoints, cfg.search_radius_px, cfg.match_threshold, cfg.mutual
                 )
@@ -749,7 +765,7 @@ class Localizer:
             m = _distinct_pairs(m, drows, len(rows))
             sims = _pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
-            points = self.map.positions[drows[m[:, 0]]]
+            points = self.positions[drows[m[:, 0]]]
             ans = self._pnp(q, points, m[:, 1], t)
             if anchor is not None and ans is not None and self._leaves(ans, anchor):
                 ans = self._local_pnp(q, pose, points, m[:, 1], t)
@@ -869,7 +885,7 @@ class Localizer:
         cfg = self.config
         s = time.perf_counter()
         inl = last["matches"][last["inliers"]]
-        X, kp = self.map.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
+        X, kp = self.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
         ksig, scale = cfg.keypoint_sigma_px, None
         if cfg.refine_noise == "estimated" and len(inl) >= 6:
@@ -912,7 +928,7 @@ class Localizer:
         covariances (N, 2, 2) of the weighted refinement's noise model there."""
         return projection_information(
             pose,
-            self.map.positions[rows],
+            self.positions[rows],
             q.cam.K,
             landmark_covariances(self.map, rows, self._landmark_sigma(rows)),
             self.config.keypoint_sigma_px,
@@ -950,7 +966,7 @@ class Localizer:
             uv, info = self._noise_model(q, pose, drows)
             gate = (info / gate_scale, cfg.guided_gate_sigma**2)
         else:
-            uv = project(q.cam.K, pose, self.map.positions[drows])
+            uv = project(q.cam.K, pose, self.positions[drows])
         m = match_near(
             rend,
             q.guided_desc,
@@ -965,7 +981,7 @@ class Localizer:
         idx, kidx = m[:, 0], m[:, 1]
         sims = _pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.map.positions[drows[idx]], kidx, t, cfg.guided_ransac_px or cfg.guided_radius_px)
+        ans = self._pnp(q, self.positions[drows[idx]], kidx, t, cfg.guided_ransac_px or cfg.guided_radius_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         iters.append(
@@ -1020,6 +1036,7 @@ class Localizer:
             match_similarity=None if last is None else last["similarity"],
             estimate=est,
             by_projection=None if last is None or "by_descriptor" not in last else ~last["by_descriptor"],
+            camera=q.cam,
         )
 
     def _checks(self, q: _Query, last: dict, iters: list[IterationResult]) -> tuple[dict, str]:
@@ -1036,7 +1053,7 @@ class Localizer:
         rows = last["matches"][last["inliers"], 0]
         vis = (
             visible_mask(
-                self.map.positions[rows],
+                self.positions[rows],
                 q.cam,
                 pose,
                 self.map.view_dir[rows],

@@ -1,0 +1,119 @@
+"""Landmarks refined by a localized stream of query frames.
+
+A landmark triangulated from a short track is well placed across its mapping rays but poorly along
+them: seen from further along the path, its depth error shows as pixels, and it pulls the pose
+(docs/accuracy.md, "What limits fox extrapolation"). A stream of queries sees those landmarks from
+exactly there. After each localized frame, :class:`LandmarkRefinement` adds the frame's inlier
+observations (its estimated pose, its keypoints) to the landmarks' mapping observations and
+triangulates those landmarks again with the build's robust triangulation; the next frames are
+localized against the refined positions.
+
+- Only landmarks the frame sees as uncertain take its observations: those whose map covariance
+  (favormap.localize.refine.landmark_covariances), projected into the frame, has a standard
+  deviation of at least ``min_uncertainty_px`` (0.25 px). Landmarks the map already places well
+  would only take on the frame's own pose error: ungated, the synthetic orbit's exact map lost
+  30 % (0.00048 -> 0.00063 units); with the gate it holds (docs/accuracy.md, sixteenth session).
+- Only the geometry moves (visibility, projections, PnP): the voxel grids stay where they were
+  trained, and a refined position that leaves its landmark's voxel box by more than
+  ``max_move`` box sides is not taken (a wrong match cannot drag a landmark away).
+- Each landmark keeps its latest ``max_observations`` stream observations, so the work per frame
+  grows with the landmarks it sees, not with the length of the stream.
+- Nothing is written to the map; :meth:`LandmarkRefinement.close` gives the localizer back the
+  map's positions.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from ..io.images import working_camera
+from ..tracking import Tracks
+from ..triangulation import TriangulationConfig, triangulate
+
+
+class LandmarkRefinement:
+    """Refines ``localizer``'s landmark positions (a copy of the map's) from the frames given to
+    :meth:`update`, in order."""
+
+    def __init__(self, localizer, max_observations: int = 10, max_move: float = 0.5, min_uncertainty_px: float = 0.25):
+        self.localizer = localizer
+        m = localizer.map
+        self.positions = np.array(m.positions, np.float64)
+        self._origin = self.positions.copy()  # the voxel boxes' centres
+        self.max_move = float(max_move)
+        self.max_observations = int(max_observations)
+        self.min_uncertainty_px = float(min_uncertainty_px)
+        self._box = np.asarray(m.voxel_size, np.float64).reshape(-1)
+        tl, tf, txy = m.tracks()
+        order = np.argsort(tl, kind="stable")
+        self._map_obs = (tl[order], tf[order], np.asarray(txy[order], np.float64))
+        self._offsets = np.searchsorted(self._map_obs[0], np.arange(len(m) + 1))
+        self._frames = np.asarray(m.cam_from_world, np.float64)
+        self._K = np.stack([working_camera(m.cameras[int(c)], m.max_side).K for c in m.frame_camera_ids])
+        self._poses: list[np.ndarray] = []  # stream frames that were localized
+        self._Ks: list[np.ndarray] = []
+        self._obs: dict[int, deque] = {}  # landmark -> (stream frame, xy) of its latest observations
+        self.frames_used = 0
+        self.updates = 0  # landmark positions taken
+        self.refused = 0  # refined positions outside the landmark's box, not taken
+        localizer.positions = self.positions
+
+    def close(self) -> None:
+        """Give the localizer back the map's own positions."""
+        self.localizer.positions = self.localizer.map.positions
+
+    def update(self, result) -> np.ndarray:
+        """Take a frame's result; returns the rows whose positions moved (none when it failed)."""
+        if not result.success or result.matches is None or result.inlier_mask is None or result.camera is None:
+            return np.zeros(0, np.int64)
+        inl = np.asarray(result.matches, np.int64)[np.asarray(result.inlier_mask, bool)]
+        if not len(inl):
+            return np.zeros(0, np.int64)
+        s = len(self._poses)
+        self._poses.append(np.asarray(result.cam_from_world, np.float64))
+        self._Ks.append(np.asarray(result.camera.K, np.float64))
+        self.frames_used += 1
+        kp = np.asarray(result.keypoints, np.float64)
+        if self.min_uncertainty_px > 0:  # only landmarks whose position this frame sees as uncertain
+            inl = inl[self._projected_std(inl[:, 0], result) >= self.min_uncertainty_px]
+            if not len(inl):
+                return np.zeros(0, np.int64)
+        for lm, k in inl:
+            self._obs.setdefault(int(lm), deque(maxlen=self.max_observations)).append((s, kp[k]))
+        rows = np.unique(inl[:, 0])
+        return self._retriangulate(rows)
+
+    def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
+        """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
+        projected into the frame of ``result``."""
+        from .refine import _image_covariances, _projection_jacobians, landmark_covariances, mapping_pixel_sigma
+
+        m = self.localizer.map
+        T = np.asarray(result.cam_from_world, np.float64)
+        cov = landmark_covariances(m, rows, mapping_pixel_sigma(m, rows))
+        P = self.positions[rows] @ T[:3, :3].T + T[:3, 3]
+        V = _image_covariances(_projection_jacobians(P, result.camera.K), T[:3, :3], cov, np.zeros((2, 2)))
+        return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
+
+    def _retriangulate(self, rows: np.ndarray) -> np.ndarray:
+        tl, tf, txy = self._map_obs
+        nF = len(self._frames)
+        parts = [np.arange(self._offsets[r], self._offsets[r + 1]) for r in rows]
+        mi = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        st = [(r, f, xy) for r in rows for f, xy in self._obs[int(r)]]
+        frame = np.concatenate([tf[mi], nF + np.array([f for _, f, _ in st], np.int64)])
+        xy = np.concatenate([txy[mi], np.array([p for _, _, p in st], np.float64).reshape(-1, 2)])
+        tid = np.concatenate([tl[mi], np.array([r for r, _, _ in st], np.int64)])
+        tracks = Tracks.from_obs(frame, np.zeros(len(frame), np.int32), xy, tid)  # track j <-> rows[j]
+        poses = np.concatenate([self._frames, np.stack(self._poses)])
+        Ks = np.concatenate([self._K, np.stack(self._Ks)])
+        lms = triangulate(tracks, poses, Ks, TriangulationConfig(min_track=2))
+        lm_rows = rows[lms.source]
+        move = np.linalg.norm(lms.positions - self._origin[lm_rows], axis=1)
+        ok = np.isfinite(move) & (move <= self.max_move * self._box[lm_rows])
+        self.positions[lm_rows[ok]] = lms.positions[ok]
+        self.updates += int(ok.sum())
+        self.refused += int((~ok).sum())
+        return lm_rows[ok]
