@@ -24,8 +24,6 @@ localized against the refined positions.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from ..io.images import working_camera
@@ -54,7 +52,10 @@ class LandmarkRefinement:
         self._K = np.stack([working_camera(m.cameras[int(c)], m.max_side).K for c in m.frame_camera_ids])
         self._poses: list[np.ndarray] = []  # stream frames that were localized
         self._Ks: list[np.ndarray] = []
-        self._obs: dict[int, deque] = {}  # landmark -> (stream frame, xy) of its latest observations
+        # stream observations: landmark, stream frame, keypoint (px); each landmark's latest max_observations
+        self._s_lm = np.zeros(0, np.int64)
+        self._s_frame = np.zeros(0, np.int64)
+        self._s_xy = np.zeros((0, 2))
         self.frames_used = 0
         self.updates = 0  # landmark positions taken
         self.refused = 0  # refined positions outside the landmark's box, not taken
@@ -69,21 +70,24 @@ class LandmarkRefinement:
         if not result.success or result.matches is None or result.inlier_mask is None or result.camera is None:
             return np.zeros(0, np.int64)
         inl = np.asarray(result.matches, np.int64)[np.asarray(result.inlier_mask, bool)]
+        if len(inl) and self.min_uncertainty_px > 0:  # only landmarks this frame sees as uncertain
+            inl = inl[self._projected_std(inl[:, 0], result) >= self.min_uncertainty_px]
         if not len(inl):
             return np.zeros(0, np.int64)
         s = len(self._poses)
         self._poses.append(np.asarray(result.cam_from_world, np.float64))
         self._Ks.append(np.asarray(result.camera.K, np.float64))
         self.frames_used += 1
-        kp = np.asarray(result.keypoints, np.float64)
-        if self.min_uncertainty_px > 0:  # only landmarks whose position this frame sees as uncertain
-            inl = inl[self._projected_std(inl[:, 0], result) >= self.min_uncertainty_px]
-            if not len(inl):
-                return np.zeros(0, np.int64)
-        for lm, k in inl:
-            self._obs.setdefault(int(lm), deque(maxlen=self.max_observations)).append((s, kp[k]))
-        rows = np.unique(inl[:, 0])
-        return self._retriangulate(rows)
+        lm = np.concatenate([self._s_lm, inl[:, 0]])
+        fr = np.concatenate([self._s_frame, np.full(len(inl), s, np.int64)])
+        xy = np.concatenate([self._s_xy, np.asarray(result.keypoints, np.float64)[inl[:, 1]]])
+        # each landmark keeps its latest max_observations
+        order = np.lexsort((-fr, lm))
+        lm_sorted = lm[order]
+        first = np.searchsorted(lm_sorted, lm_sorted, side="left")
+        keep = np.sort(order[np.arange(len(order)) - first < self.max_observations])
+        self._s_lm, self._s_frame, self._s_xy = lm[keep], fr[keep], xy[keep]
+        return self._retriangulate(np.unique(inl[:, 0]))
 
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
@@ -100,15 +104,17 @@ class LandmarkRefinement:
     def _retriangulate(self, rows: np.ndarray) -> np.ndarray:
         tl, tf, txy = self._map_obs
         nF = len(self._frames)
-        parts = [np.arange(self._offsets[r], self._offsets[r + 1]) for r in rows]
-        mi = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-        st = [(r, f, xy) for r in rows for f, xy in self._obs[int(r)]]
-        frame = np.concatenate([tf[mi], nF + np.array([f for _, f, _ in st], np.int64)])
-        xy = np.concatenate([txy[mi], np.array([p for _, _, p in st], np.float64).reshape(-1, 2)])
-        tid = np.concatenate([tl[mi], np.array([r for r, _, _ in st], np.int64)])
+        starts, ends = self._offsets[rows], self._offsets[rows + 1]
+        counts = ends - starts
+        mi = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())  # their mapping obs
+        si = np.flatnonzero(np.isin(self._s_lm, rows))  # their stream obs
+        used, s_frame = np.unique(self._s_frame[si], return_inverse=True)
+        frame = np.concatenate([tf[mi], nF + s_frame])
+        xy = np.concatenate([txy[mi], self._s_xy[si]])
+        tid = np.concatenate([tl[mi], self._s_lm[si]])
         tracks = Tracks.from_obs(frame, np.zeros(len(frame), np.int32), xy, tid)  # track j <-> rows[j]
-        poses = np.concatenate([self._frames, np.stack(self._poses)])
-        Ks = np.concatenate([self._K, np.stack(self._Ks)])
+        poses = np.concatenate([self._frames, np.stack([self._poses[f] for f in used])])
+        Ks = np.concatenate([self._K, np.stack([self._Ks[f] for f in used])])
         lms = triangulate(tracks, poses, Ks, TriangulationConfig(min_track=2))
         lm_rows = rows[lms.source]
         move = np.linalg.norm(lms.positions - self._origin[lm_rows], axis=1)
