@@ -340,3 +340,23 @@ def test_spawned_viewer_collects_no_analytics(built, tmp_path):
     assert out.returncode == 1, out.stdout + out.stderr
     assert "rerun viewer could not start" in out.stderr
     assert not list(tmp_path.rglob("*")), [str(p) for p in tmp_path.rglob("*")]
+
+
+def test_sequential_localize_recording_shows_the_refined_landmarks(built):
+    import shutil
+
+    from favormap.io import read_sequence
+
+    root, seq_dir, mp, _ = built
+    seq = read_sequence(seq_dir)
+    folder = root / "stream"
+    folder.mkdir(exist_ok=True)
+    for k, fr in enumerate(seq.frames[2:6]):
+        shutil.copy(fr.image_path, folder / f"{k:03d}{fr.image_path.suffix}")
+    rrd = root / "stream.rrd"
+    assert main(["localize", str(mp), str(folder), "--sequential", "--rerun-save", str(rrd)]) == 0
+    _verify(rrd)
+    paths = _entities(rrd)
+    for p in ("/world/stream/refined", "/world/stream/refined/moves", "/metrics/refined_landmarks"):
+        assert p in paths, p
+    _check_documented(paths)

@@ -302,8 +302,10 @@ def run(args) -> int:
                 motion.update(res)
             if refinement is not None:
                 refinement.update(res)
+                if rec is not None:
+                    rec.log_refined_landmarks(i, refinement.positions, refinement.map_positions)
             if rec is not None:
-                rec.log_localization(i, str(img), res, prior, camera=camera)
+                rec.log_localization(i, str(img), res, prior, camera=camera, positions=loc.positions)
             failures += not res.success
             if args.json:
                 print_json({"query": str(img), **res.to_json()})

@@ -39,7 +39,7 @@ class LandmarkRefinement:
         self.localizer = localizer
         m = localizer.map
         self.positions = np.array(m.positions, np.float64)
-        self._origin = self.positions.copy()  # the voxel boxes' centres
+        self.map_positions = self.positions.copy()  # where the map put them: the voxel boxes' centres
         self.max_move = float(max_move)
         self.max_observations = int(max_observations)
         self.min_uncertainty_px = float(min_uncertainty_px)
@@ -117,7 +117,7 @@ class LandmarkRefinement:
         Ks = np.concatenate([self._K, np.stack([self._Ks[f] for f in used])])
         lms = triangulate(tracks, poses, Ks, TriangulationConfig(min_track=2))
         lm_rows = rows[lms.source]
-        move = np.linalg.norm(lms.positions - self._origin[lm_rows], axis=1)
+        move = np.linalg.norm(lms.positions - self.map_positions[lm_rows], axis=1)
         ok = np.isfinite(move) & (move <= self.max_move * self._box[lm_rows])
         self.positions[lm_rows[ok]] = lms.positions[ok]
         self.updates += int(ok.sum())

@@ -55,10 +55,13 @@ class LocalizeLog(RecordingBase):
         camera=None,
         gt: np.ndarray | None = None,
         method: str | None = None,
+        positions: np.ndarray | None = None,
     ) -> None:
         """One query (timeline ``query``): prior, the pose after each iteration, the final pose with the
         query image, its keypoints and the matches (inliers green, outliers red), the inlier
-        landmarks in 3D, per-match similarity when the result carries it, and per-query metrics."""
+        landmarks in 3D, per-match similarity when the result carries it, and per-query metrics.
+        ``positions``: the landmark positions the localizer used (a stream's refined ones), when not
+        the map's."""
         method = method or self.methods[0]
         base = f"world/query/{method}"
         depth = self._depth or 0.1
@@ -110,8 +113,9 @@ class LocalizeLog(RecordingBase):
             np.zeros(len(matches), bool) if guided is None or len(guided) != len(matches) else np.asarray(guided, bool)
         )
         strips = {True: np.zeros((0, 2, 2)), False: np.zeros((0, 2, 2)), "guided": np.zeros((0, 2, 2))}
-        if len(matches) and self._map_positions is not None:
-            uv, z = geometry.project(K, final, self._map_positions[matches[:, 0]], with_depth=True)
+        pos = self._map_positions if positions is None else np.asarray(positions)
+        if len(matches) and pos is not None:
+            uv, z = geometry.project(K, final, pos[matches[:, 0]], with_depth=True)
             front = z > 1e-9
             q = kp[matches[:, 1]]
             for flag, sel in (
@@ -122,7 +126,7 @@ class LocalizeLog(RecordingBase):
                 strips[flag] = np.stack([q[sel], uv[sel]], 1)
             self.rec.log(
                 f"{base}/inliers",
-                rr.Points3D(self._map_positions[matches[inl, 0]], colors=[INLIER], radii=rr.Radius.ui_points(4.0)),
+                rr.Points3D(pos[matches[inl, 0]], colors=[INLIER], radii=rr.Radius.ui_points(4.0)),
             )
         else:
             self.rec.log(f"{base}/inliers", rr.Points3D(np.zeros((0, 3))))
@@ -201,6 +205,22 @@ class LocalizeLog(RecordingBase):
                 f" (prior {pt:.4f} / {pr:.2f} deg)" if pt is not None else " (no prior)"
             )
         self.rec.log(f"log/{method}", rr.TextLog(f"{name}: {status}", level="INFO" if result.success else "WARN"))
+
+    @_guarded
+    def log_refined_landmarks(self, index: int, positions: np.ndarray, map_positions: np.ndarray) -> None:
+        """A stream's refined landmarks after query ``index`` (favormap.localize.stream): where they are
+        now and the line from where the map put them."""
+        self._at("query", index)
+        rows = np.flatnonzero(np.any(positions != map_positions, axis=1))
+        self.rec.log(
+            "world/stream/refined", rr.Points3D(positions[rows], colors=[GUIDED], radii=rr.Radius.ui_points(3.0))
+        )
+        self.rec.log(
+            "world/stream/refined/moves",
+            rr.LineStrips3D(np.stack([map_positions[rows], positions[rows]], 1), colors=[GUIDED]),
+        )
+        self._series("metrics/refined_landmarks", "refined landmarks", GUIDED)
+        self.rec.log("metrics/refined_landmarks", rr.Scalars(float(len(rows))))
 
     def log_eval_query(self, method: str, index: int, outcome, frame=None, camera=None) -> None:
         """One evaluated query (a ``QueryOutcome``): as :meth:`log_localization`, with the ground
