@@ -87,10 +87,10 @@ def test_tracking_drops_short_tracks_and_matches_that_break_the_epipolar_constra
     assert any(np.any(o < 0) for o in _owners_of(loose, owners)) or len(loose) < len(tracks)
 
 
-def test_a_track_with_two_keypoints_in_one_frame_is_dropped():
-    """Point 7 has two keypoints in frame 2 (0.3 px apart, on its epipolar lines): one looks like
-    point 7 in frames 0-1 (descriptor A), the other like point 7 in frames 3-7 (descriptor B).
-    Matching joins both into one component: ambiguous, so the whole track goes."""
+def _two_keypoints_of_point_7():
+    """30 points; point 7 has two keypoints in frame 2 (0.3 px apart, on its epipolar lines): one
+    looks like point 7 in frames 0-1 (descriptor A), the other like point 7 in frames 3-7
+    (descriptor B). Returns the poses, the features and each keypoint's point (-1: the second one)."""
     X, T, D, rng = _rig(n_points=30)
     a, b = (D[7] + 0.05 * rng.normal(size=D.shape[1]) for _ in range(2))
     a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
@@ -98,6 +98,14 @@ def test_a_track_with_two_keypoints_in_one_frame_is_dropped():
     feats, owners = _features(X, T, D, rng, noise_px=0.0, extra={2: (xy7, b[None].astype(np.float32))})
     for i in range(len(T)):
         feats[i].descriptors[np.flatnonzero(owners[i] == 7)] = a if i <= 2 else b
+    return T, feats, owners
+
+
+def test_a_track_with_two_keypoints_in_one_frame_is_dropped():
+    """Point 7 has two keypoints in frame 2 (0.3 px apart, on its epipolar lines): one looks like
+    point 7 in frames 0-1 (descriptor A), the other like point 7 in frames 3-7 (descriptor B).
+    Matching joins both into one component: ambiguous, so the whole track goes."""
+    T, feats, owners = _two_keypoints_of_point_7()
     tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3)
     found = {int(o[0]) for o in _owners_of(tracks, owners)}
     assert 7 not in found
@@ -228,13 +236,7 @@ def test_split_conflicts_rebuilds_an_ambiguous_component_from_its_strongest_matc
     """The setting of test_a_track_with_two_keypoints_in_one_frame_is_dropped: by default point 7's
     component goes; with ``split_conflicts`` it is rebuilt strongest match first, so point 7 keeps
     one track (frames 2-7, descriptor B: frames 0-1 alone are too short) with one keypoint per frame."""
-    X, T, D, rng = _rig(n_points=30)
-    a, b = (D[7] + 0.05 * rng.normal(size=D.shape[1]) for _ in range(2))
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    xy7 = project(CAM.K, T[2], X[7:8]) + np.array([[0.0, 0.3]])
-    feats, owners = _features(X, T, D, rng, noise_px=0.0, extra={2: (xy7, b[None].astype(np.float32))})
-    for i in range(len(T)):
-        feats[i].descriptors[np.flatnonzero(owners[i] == 7)] = a if i <= 2 else b
+    T, feats, owners = _two_keypoints_of_point_7()
     owners[2][-1] = 7  # the second keypoint is point 7 too
     tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, split_conflicts=True)
     per_track = _owners_of(tracks, owners)
