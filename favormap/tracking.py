@@ -15,15 +15,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .features import Features
 from .geometry import inverse
 from .io import Camera
+
+if TYPE_CHECKING:  # torch and scipy load with the matching functions: Tracks alone (a localizer's stream) needs neither
+    import torch
 
 
 @dataclass
@@ -115,6 +116,8 @@ def mutual_nn(
 
 
 def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
+    import torch
+
     ab = sim.argmax(1)
     ba = sim.argmax(0)
     ia = torch.arange(sim.shape[0])
@@ -131,6 +134,8 @@ def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
 def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> torch.Tensor:
     """(Na, Nb) symmetric epipolar distances (px) of every keypoint pair: :func:`epipolar_distance`
     for all pairs at once."""
+    import torch
+
     Ft = torch.as_tensor(F, dtype=torch.float64)
     ha = torch.cat([torch.as_tensor(xa, dtype=torch.float64), torch.ones(len(xa), 1, dtype=torch.float64)], 1)
     hb = torch.cat([torch.as_tensor(xb, dtype=torch.float64), torch.ones(len(xb), 1, dtype=torch.float64)], 1)
@@ -220,6 +225,10 @@ def track_features(
     ``features`` is read frame by frame (at most ``window + 1`` frames at a time), so it may be a
     :class:`favormap.features.cache.CachedFrames` of a sequence that does not fit in memory; only the
     matched keypoints are kept."""
+    import torch
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     n = len(features)
     counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])

@@ -66,6 +66,21 @@ def test_localize_of_a_sift_map_imports_neither_torch_nor_scipy_spatial(small_ma
     assert not mods & {"torch", "scipy.spatial", "open3d", "rerun", "trimesh"}, mods
 
 
+def test_a_sequential_localize_of_a_sift_map_stays_as_light(small_map, small_sequence, tmp_path):
+    """The stream's priors and its landmark refinement (triangulation on the tracks) add no heavy
+    module: no torch, no scipy."""
+    import shutil
+
+    _, path = small_map
+    folder = tmp_path / "stream"
+    folder.mkdir()
+    for k, fr in enumerate(small_sequence.frames[3:6]):
+        shutil.copy(fr.image_path, folder / f"{k:03d}{fr.image_path.suffix}")
+    mods, out = loaded(["localize", str(path), str(folder), "--sequential", "--device", "cpu"], spatial=True)
+    assert out.count(": localized") == 3, out[-500:]
+    assert not mods & {"torch", "scipy", "scipy.spatial", "open3d", "rerun", "trimesh"}, mods
+
+
 def test_auto_device_does_not_import_torch_without_a_gpu_driver():
     """``--device auto`` (the default) resolves to the CPU without importing torch where no GPU
     driver is installed; with a driver it asks torch."""
