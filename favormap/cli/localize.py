@@ -313,6 +313,8 @@ def run(args) -> int:
                 print_result(str(img), res)
             lines.append((img, res))
     finally:
+        if refinement is not None:
+            refinement.close()
         loc.close()
         if rec is not None:
             rec.close()

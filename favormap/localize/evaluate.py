@@ -343,25 +343,27 @@ def evaluate(
     for method, loc in localizers.items():
         outs = []
         seq_priors = SequencePriors(priors, cfg.prior_mode, loc)
-        for i, fr in enumerate(queries.frames):
-            cam = queries.cameras[fr.camera_id]
-            prior = seq_priors.prior(i)
-            s = time.perf_counter()
-            res = loc.localize(fr.image_path, prior, cam)
-            seq_priors.update(res)
-            o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - s)
-            if diagnostics:
-                o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
-                o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
-            o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)
-            cov = getattr(res, "covariance", None)
-            o.diagnostics["position_std"] = float(np.linalg.norm(cov.center_std)) if cov is not None else None
-            outs.append(o)
-            if on_query:
-                on_query(method, i, o)
-            if progress:
-                progress(f"eval {method}", i + 1, len(queries.frames))
-        seq_priors.close()
+        try:
+            for i, fr in enumerate(queries.frames):
+                cam = queries.cameras[fr.camera_id]
+                prior = seq_priors.prior(i)
+                s = time.perf_counter()
+                res = loc.localize(fr.image_path, prior, cam)
+                seq_priors.update(res)
+                o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - s)
+                if diagnostics:
+                    o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                    o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
+                o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)
+                cov = getattr(res, "covariance", None)
+                o.diagnostics["position_std"] = float(np.linalg.norm(cov.center_std)) if cov is not None else None
+                outs.append(o)
+                if on_query:
+                    on_query(method, i, o)
+                if progress:
+                    progress(f"eval {method}", i + 1, len(queries.frames))
+        finally:
+            seq_priors.close()  # the localizer gets the map's landmarks back
         iters = loc.config.iterations
         reports.append(
             EvalReport(
