@@ -256,7 +256,10 @@ def track_features(
                 ia, ib, sab = mutual_nn(da, db, min_similarity, ratio)
             if len(ia) == 0:
                 continue
-            ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
+            if epipolar_first:  # chosen among the pairs within max_epipolar_px already
+                ok = np.ones(len(ia), bool)
+            else:
+                ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
             rows.append((base[a] + ia[ok]).astype(gid))
             cols.append((base[b] + ib[ok]).astype(gid))
             xy_rows.append(ka[ia[ok]])

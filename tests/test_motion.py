@@ -85,6 +85,7 @@ def test_localize_sequence_needs_the_global_search_only_for_the_first_frame(smal
     for r, f in zip(results, frames):
         assert pose_error(r.cam_from_world, f.cam_from_world)[0] < 0.01
     assert results[0].iterations[0].kind == "global"  # no prior for the first frame
+    assert results[0].prior is None and all(r.prior is not None for r in results[1:])  # the priors used
     assert all(it.kind != "global" for r in results[1:] for it in r.iterations)
 
 

@@ -277,35 +277,26 @@ def run(args) -> int:
     else:
         jobs = [(query, read_pose(args.prior) if args.prior else None)]
     config = config_from_args(args)
-    motion = None
-    if sequential:
-        from ..localize import MotionPrior
-
-        motion = MotionPrior(args.motion or "constant-velocity", read_pose(args.prior) if args.prior else None)
+    first_prior = read_pose(args.prior) if sequential and args.prior else None
     m = Map.open(args.map)
     camera = read_camera(args.camera) if args.camera else None
     loc = Localizer(m, config)
-    refinement = None
-    if sequential and not args.fixed_landmarks:
-        from ..localize.stream import LandmarkRefinement
-
-        refinement = LandmarkRefinement(loc)
     rec = recording_from_args(args, "favormap localize", m)
     failures = 0
     lines = []
+    if sequential:  # each prior from the estimates before it; the landmarks refined as it goes
+        refine = not args.fixed_landmarks
+        results = loc.localize_sequence(
+            [img for img, _ in jobs], first_prior, camera, args.motion or "constant-velocity", refine
+        )
+    else:
+        refine, results = False, (loc.localize(img, prior, camera) for img, prior in jobs)
     try:
-        for i, (img, prior) in enumerate(jobs):
-            if motion is not None:
-                prior = motion.prior()
-            res = loc.localize(img, prior, camera)
-            if motion is not None:
-                motion.update(res)
-            if refinement is not None:
-                refinement.update(res)
-                if rec is not None:
-                    rec.log_refined_landmarks(i, refinement.positions, refinement.map_positions)
+        for i, ((img, _), res) in enumerate(zip(jobs, results)):
             if rec is not None:
-                rec.log_localization(i, str(img), res, prior, camera=camera, positions=loc.positions)
+                if refine:
+                    rec.log_refined_landmarks(i, loc.positions, loc.map.positions)
+                rec.log_localization(i, str(img), res, res.prior, camera=camera, positions=loc.positions)
             failures += not res.success
             if args.json:
                 print_json({"query": str(img), **res.to_json()})
@@ -313,8 +304,8 @@ def run(args) -> int:
                 print_result(str(img), res)
             lines.append((img, res))
     finally:
-        if refinement is not None:
-            refinement.close()
+        if sequential:
+            results.close()  # the stream hands the localizer the map's landmarks back
         loc.close()
         if rec is not None:
             rec.close()

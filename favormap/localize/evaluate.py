@@ -86,36 +86,31 @@ def make_priors(queries: Sequence, map_cam_from_world: np.ndarray, cfg: EvalConf
 
 class SequencePriors:
     """The prior of each query in turn: the fixed ones of :func:`make_priors`, or, in the
-    'sequential' and 'stream' modes, the constant-velocity prior from the poses estimated so far
-    (:class:`favormap.localize.motion.MotionPrior`); in 'stream' mode ``localizer``'s landmarks are
-    also refined from the frames localized so far (:class:`favormap.localize.stream.LandmarkRefinement`).
-    ``prior(i)`` before query i, ``update(result)`` after it, ``close()`` at the end."""
+    'sequential' and 'stream' modes, those of a :class:`favormap.localize.stream.Stream` of the
+    queries (constant velocity; in 'stream' mode ``localizer``'s landmarks are also refined from the
+    queries localized so far). ``prior(i)`` before query i, ``update(result)`` after it, ``close()``
+    at the end."""
 
     def __init__(self, priors: list, prior_mode: str, localizer: Localizer | None = None):
-        from .motion import MotionPrior
-
         self.priors = priors
-        self.motion = MotionPrior("constant-velocity") if prior_mode in ("sequential", "stream") else None
-        self.refinement = None
-        if prior_mode == "stream":
+        self.stream = None
+        if prior_mode in ("sequential", "stream"):
             if localizer is None:
-                raise InputError("the 'stream' prior mode refines a localizer's landmarks: give the localizer")
-            from .stream import LandmarkRefinement
+                raise InputError(f"the {prior_mode!r} prior mode follows a localizer's estimates: give the localizer")
+            from .stream import Stream
 
-            self.refinement = LandmarkRefinement(localizer)
+            self.stream = Stream(localizer, refine_landmarks=prior_mode == "stream")
 
     def prior(self, i: int) -> np.ndarray | None:
-        return self.priors[i] if self.motion is None else self.motion.prior()
+        return self.priors[i] if self.stream is None else self.stream.prior()
 
     def update(self, result) -> None:
-        if self.motion is not None:
-            self.motion.update(result)
-        if self.refinement is not None:
-            self.refinement.update(result)
+        if self.stream is not None:
+            self.stream.update(result)
 
     def close(self) -> None:
-        if self.refinement is not None:
-            self.refinement.close()
+        if self.stream is not None:
+            self.stream.close()
 
 
 def scene_extent(points: np.ndarray) -> float:

@@ -235,6 +235,7 @@ class LocalizationResult:
     # weighted refinement is off)
     covariance: PoseCovariance | None = None
     camera: Camera | None = None  # the working pinhole camera of ``keypoints`` (undistorted, resized)
+    prior: np.ndarray | None = None  # the cam_from_world prior localization started from (None: without one)
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat
@@ -580,30 +581,27 @@ class Localizer:
         ``refine_landmarks`` the landmarks each localized frame saw are triangulated again with its
         observations, for the frames after it (:class:`favormap.localize.stream.LandmarkRefinement`;
         the map itself is not changed)."""
-        from .motion import MotionPrior
-        from .stream import LandmarkRefinement
+        from .stream import Stream
 
-        mp = MotionPrior(motion, first_prior)
-        refinement = LandmarkRefinement(self) if refine_landmarks else None
-        try:
+        with Stream(self, first_prior, motion, refine_landmarks) as stream:
             for image in images:
-                res = self.localize(image, mp.prior(), camera)
-                mp.update(res)
-                if refinement is not None:
-                    refinement.update(res)
+                res = self.localize(image, stream.prior(), camera)
+                stream.update(res)
                 yield res
-        finally:
-            if refinement is not None:
-                refinement.close()
 
     def localize(
         self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None
     ) -> LocalizationResult:
         """Localize one query image. Without a prior, a coarse pose is found first by matching
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
-        cfg = self.config
         rebalance()  # thread pools follow the machine's load (favormap.threads; at most every few seconds)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
+        res = self._localize(image, prior, camera)
+        res.prior = prior
+        return res
+
+    def _localize(self, image, prior: np.ndarray | None, camera: Camera | None) -> LocalizationResult:
+        cfg = self.config
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)

@@ -30,8 +30,8 @@ class MotionPrior:
 
     model: str = "constant-velocity"
     first: np.ndarray | None = None  # cam_from_world prior of the first frame (None: prior-free)
-    _frame: int = 0  # frames seen so far
-    _last: list = field(default_factory=list)  # up to two (frame, cam_from_world) of localized frames
+    _frame: int = field(default=0, init=False)  # frames seen so far
+    _last: list = field(default_factory=list, init=False)  # up to two (frame, cam_from_world) of localized frames
 
     def __post_init__(self):
         if self.model not in MOTION_MODELS:

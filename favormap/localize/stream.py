@@ -29,6 +29,36 @@ import numpy as np
 from ..io.images import working_camera
 from ..tracking import Tracks
 from ..triangulation import TriangulationConfig, triangulate
+from .motion import MotionPrior
+
+
+class Stream:
+    """The state of a stream of frames localized one after the other: the next frame's prior
+    (:class:`~favormap.localize.motion.MotionPrior`) and, with ``refine_landmarks``, the landmarks
+    refined from the frames localized so far (:class:`LandmarkRefinement`). :meth:`prior` before a
+    frame, :meth:`update` with its result after, :meth:`close` at the end (also as a context manager)."""
+
+    def __init__(self, localizer, first_prior=None, motion: str = "constant-velocity", refine_landmarks: bool = True):
+        self.motion = MotionPrior(motion, first_prior)
+        self.refinement = LandmarkRefinement(localizer) if refine_landmarks else None
+
+    def prior(self):
+        return self.motion.prior()
+
+    def update(self, result) -> np.ndarray:
+        """Take a frame's result; returns the landmark rows it refined."""
+        self.motion.update(result)
+        return np.zeros(0, np.int64) if self.refinement is None else self.refinement.update(result)
+
+    def close(self) -> None:
+        if self.refinement is not None:
+            self.refinement.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 class LandmarkRefinement:
@@ -92,11 +122,10 @@ class LandmarkRefinement:
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
         projected into the frame of ``result``."""
-        from .refine import _image_covariances, _projection_jacobians, landmark_covariances, mapping_pixel_sigma
+        from .refine import _image_covariances, _projection_jacobians, landmark_covariances
 
-        m = self.localizer.map
         T = np.asarray(result.cam_from_world, np.float64)
-        cov = landmark_covariances(m, rows, mapping_pixel_sigma(m, rows))
+        cov = landmark_covariances(self.localizer.map, rows, self.localizer._landmark_sigma(rows))
         P = self.positions[rows] @ T[:3, :3].T + T[:3, 3]
         V = _image_covariances(_projection_jacobians(P, result.camera.K), T[:3, :3], cov, np.zeros((2, 2)))
         return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
