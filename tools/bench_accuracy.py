@@ -488,6 +488,12 @@ def _errors(row: dict, names: list[str]) -> np.ndarray:
     return np.array([by.get(n, np.inf) for n in names], np.float64)
 
 
+def _baseline_ref_prior(prior: str) -> str:
+    """The prior mode of the favormap rows a baseline row is paired with: the noise priors for the
+    baseline's own prior-free localization, the same mode for its stream."""
+    return "noise" if prior == "none" else prior
+
+
 def paired_rows(rows: list[dict], reference: str = "rendered") -> list[dict]:
     """Every method against ``reference`` on the same map, split and prior mode (and the baseline
     against the first map's reference under the noise priors), overall and per angle bin."""
@@ -505,9 +511,9 @@ def paired_rows(rows: list[dict], reference: str = "rendered") -> list[dict]:
                 for r in rs
                 if r["prior"] == prior and re.sub(rf"^{re.escape(variant or '')} ?", "", r["method"]) == reference
             ]
-            if variant is None:  # the baseline: against the first map's reference
+            if variant is None:  # the baseline: against the first map's reference (noise priors; a stream: a stream)
                 ref = [r for r in rows if r["split"] == split and r.get("map_variant") is not None]
-                ref = [r for r in ref if r["prior"] == "noise" and r["method"] == reference][:1]
+                ref = [r for r in ref if r["prior"] == _baseline_ref_prior(prior) and r["method"] == reference][:1]
             if not ref:
                 continue
             names = [q["name"] for q in ref[0]["per_query"]]
@@ -567,7 +573,7 @@ def seed_paired_rows(rows: list[dict], build_cfgs, reference: str = "rendered") 
         logs, names, angle, seeds = [], None, None, set()
         for seed, r in members:
             if base is None:  # the baseline has no seed: against the default map of every seed
-                against = [(k[2], v) for k, v in refs.items() if k[0] == split and k[1] == "noise"]
+                against = [(k[2], v) for k, v in refs.items() if k[0] == split and k[1] == _baseline_ref_prior(prior)]
             else:
                 against = [(seed, refs[split, prior, seed])] if (split, prior, seed) in refs else []
             for ref_seed, ref in against:
@@ -697,35 +703,40 @@ def _ratio_table(intro: str, lead: list[str], entries: list[tuple[list[str], dic
 
 
 def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
+    """The baseline's rows: per query without a prior, and, with the 'stream' prior mode, the queries
+    as a stream with the points refined from it (favormap.localize.baseline.PointRefinement)."""
     from favormap.io import load_image
-    from favormap.localize.baseline import StructureBaseline
+    from favormap.localize.baseline import PointRefinement, StructureBaseline
     from favormap.localize.evaluate import QueryOutcome, diagnostics_from_matches, pose_noise_floor
 
     rows = []
     t = time.perf_counter()
     base = StructureBaseline.build(split.mapping, workdir=Path(args.workdir) / f"{split.files}_baseline")
     print(f"[{split.name}] baseline: {len(base.points3d)} points ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
-    budgets = [("pycolmap-SIFT", base)]
+    runs = [("pycolmap-SIFT", "none", base)]
     if args.baseline_budget:
-        budgets.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", base.subset(args.baseline_budget)))
-    for name, b in budgets:
+        runs.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", "none", base.subset(args.baseline_budget)))
+    if "stream" in args.priors:
+        runs.append(("pycolmap-SIFT", "stream", PointRefinement(base)))
+    for name, prior_mode, b in runs:
         outs = []
         for fr in split.queries.frames:
             cam = split.queries.cameras[fr.camera_id]
+            pts = np.array(b.points3d, copy=True)  # a stream's: as refined up to this query
             res = b.localize(fr.image_path, cam)
             o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
             _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
             mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
             o.diagnostics = diagnostics_from_matches(
-                wcam, fr.cam_from_world, b.points3d, res.keypoints, b.points3d[mm[:, 0]], res.keypoints[mm[:, 1]]
+                wcam, fr.cam_from_world, pts, res.keypoints, pts[mm[:, 0]], res.keypoints[mm[:, 1]]
             )
             if res.success:
                 inl = mm[np.asarray(res.inlier_mask, bool)]
                 o.diagnostics.update(
-                    pose_noise_floor(wcam, res.cam_from_world, b.points3d[inl[:, 0]], res.keypoints[inl[:, 1]])
+                    pose_noise_floor(wcam, res.cam_from_world, pts[inl[:, 0]], res.keypoints[inl[:, 1]])
                 )
             outs.append(o)
-        rows.append(record(split, name, "none", outs, 1, extent, len(b.points3d)))
+        rows.append(record(split, name, prior_mode, outs, 1, extent, len(b.points3d)))
         rows[-1]["per_query"] = [per_query(o, a) for o, a in zip(outs, _angles(split))]
     return rows
 

@@ -15,6 +15,7 @@ and pinhole cameras favormap uses (``favormap.io.load_image``):
 from __future__ import annotations
 
 import contextlib
+import copy
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -57,6 +58,7 @@ class BaselineResult:
     matches: np.ndarray  # (K, 2) [point index, keypoint index]
     inlier_mask: np.ndarray  # (K,) bool
     message: str = ""
+    camera: Camera | None = None  # the working pinhole camera of the query
 
 
 @contextlib.contextmanager
@@ -109,6 +111,17 @@ def ratio_match(points_desc: torch.Tensor, query_desc: torch.Tensor, ratio: floa
     return torch.cat(out).cpu().numpy().astype(np.int64)
 
 
+@dataclass
+class PointTracks:
+    """The mapping observations of the baseline's points (what :class:`PointRefinement` needs)."""
+
+    point: np.ndarray  # (O,) point row of each observation
+    frame: np.ndarray  # (O,) mapping frame
+    xy: np.ndarray  # (O, 2) keypoint (px, COLMAP convention)
+    cam_from_world: np.ndarray  # (F, 4, 4) the mapping frames' poses
+    K: np.ndarray  # (F, 3, 3) their working pinhole intrinsics
+
+
 class StructureBaseline:
     """SIFT 3D points with mean descriptors, triangulated by pycolmap from known poses."""
 
@@ -119,6 +132,7 @@ class StructureBaseline:
         track_lengths: np.ndarray,
         config: StructureBaselineConfig,
         reconstruction=None,
+        tracks: PointTracks | None = None,
     ):
         import pycolmap
 
@@ -127,6 +141,7 @@ class StructureBaseline:
         self.track_lengths = np.asarray(track_lengths, np.int64).reshape(-1)
         self.config = config
         self.reconstruction = reconstruction  # pycolmap.Reconstruction (None for subsets)
+        self.tracks = tracks  # the points' mapping observations (None for subsets)
         default = pycolmap.AbsolutePoseEstimationOptions().ransac.max_error
         self.ransac_max_error_px = float(default if config.ransac_max_error_px is None else config.ransac_max_error_px)
         self._desc = torch.from_numpy(self.descriptors)
@@ -215,16 +230,29 @@ class StructureBaseline:
         for image_id in sorted(descs):
             offsets[image_id], start = start, start + len(descs[image_id])
         all_desc = torch.from_numpy(_normalize(np.concatenate([descs[k] for k in sorted(descs)])))
-        xyz, rows, lengths = [], [], []
+        xyz, rows, lengths, obs_frame, obs_xy = [], [], [], [], []
+        frame_of = {image_id: f for f, image_id in enumerate(sorted(descs))}
         for p in rec.points3D.values():
             els = p.track.elements
             xyz.append(p.xyz)
             lengths.append(len(els))
             rows.extend(offsets[e.image_id] + e.point2D_idx for e in els)
+            obs_frame.extend(frame_of[e.image_id] for e in els)
+            obs_xy.extend(rec.images[e.image_id].points2D[e.point2D_idx].xy for e in els)
         lengths_np = np.asarray(lengths, np.int64)
         owner = torch.from_numpy(np.repeat(np.arange(len(lengths_np)), lengths_np))
         mean = torch.zeros(len(lengths_np), 128).index_add_(0, owner, all_desc[torch.as_tensor(rows)])
-        return cls(np.asarray(xyz), mean.numpy(), lengths_np, cfg, rec)
+        poses, Ks = [], []
+        for image_id in sorted(descs):
+            image = rec.images[image_id]
+            cfw = image.cam_from_world
+            poses.append(from_rigid3d(cfw() if callable(cfw) else cfw))
+            Ks.append(rec.cameras[image.camera_id].calibration_matrix())
+        tracks = PointTracks(
+            owner.numpy(), np.asarray(obs_frame, np.int64), np.asarray(obs_xy, np.float64).reshape(-1, 2),
+            np.stack(poses), np.stack(Ks),
+        )  # fmt: skip
+        return cls(np.asarray(xyz), mean.numpy(), lengths_np, cfg, rec, tracks)
 
     def subset(self, max_points: int) -> StructureBaseline:
         """The same baseline restricted to its ``max_points`` longest-track points."""
@@ -266,4 +294,51 @@ class StructureBaseline:
         success = n_in >= cfg.min_inliers
         if not success:
             msg = f"too few inliers ({len(m)} matches, {n_in} inliers; need {cfg.min_inliers})"
-        return BaselineResult(success, pose, len(m), n_in, time.perf_counter() - t0, kp[:, :2].copy(), m, mask, msg)
+        return BaselineResult(
+            success, pose, len(m), n_in, time.perf_counter() - t0, kp[:, :2].copy(), m, mask, msg, cam
+        )
+
+
+class PointRefinement:
+    """The baseline localizing a stream of queries with its points refined from it, as
+    :class:`favormap.localize.stream.LandmarkRefinement` refines a favormap map's landmarks (the
+    like-for-like of favormap's ``stream`` prior mode): after each localized query, its inlier
+    observations are added to those points' mapping observations and the points are triangulated
+    again (favormap's robust triangulation), for the queries after it.
+
+    Every inlier point takes the query's observation: the baseline has no covariance model to gate
+    with (favormap's ungated stream is the comparison). A refined point may move at most
+    ``max_move`` times favormap's voxel box (``box_factor`` * its nearest observation's depth /
+    focal length) from where pycolmap put it. The baseline passed in is not modified: the
+    refinement localizes with a copy of its points."""
+
+    def __init__(
+        self, baseline: StructureBaseline, max_observations: int = 10, max_move: float = 0.5, box_factor: float = 7.0
+    ):
+        from .stream import Retriangulation
+
+        t = baseline.tracks
+        if t is None:
+            raise FavormapError("this baseline has no mapping observations to refine its points with (a subset?)")
+        self.baseline = copy.copy(baseline)
+        self.baseline.points3d = np.array(baseline.points3d, np.float64, copy=True)
+        T = t.cam_from_world[t.frame]
+        depth = np.einsum("oj,oj->o", T[:, 2, :3], self.baseline.points3d[t.point]) + T[:, 2, 3]
+        scale = np.full(len(baseline), np.inf)
+        np.minimum.at(scale, t.point, np.abs(depth) / t.K[t.frame, 0, 0])
+        self.core = Retriangulation(
+            self.baseline.points3d, t.point, t.frame, t.xy, t.cam_from_world, t.K,
+            max_move * box_factor * scale, max_observations,
+        )  # fmt: skip
+
+    @property
+    def points3d(self) -> np.ndarray:
+        return self.baseline.points3d
+
+    def localize(self, image, camera: Camera) -> BaselineResult:
+        """Localize the next query of the stream against the points refined so far, then refine."""
+        res = self.baseline.localize(image, camera)
+        if res.success:
+            inl = np.asarray(res.matches, np.int64).reshape(-1, 2)[np.asarray(res.inlier_mask, bool)]
+            self.core.add(res.cam_from_world, res.camera.K, inl[:, 0], res.keypoints[inl[:, 1]])
+        return res

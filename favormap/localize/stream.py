@@ -61,6 +61,87 @@ class Stream:
         self.close()
 
 
+class Retriangulation:
+    """Points re-triangulated from their mapping observations plus those of a stream of localized
+    frames (the core of :class:`LandmarkRefinement` and of the structure baseline's
+    :class:`favormap.localize.baseline.PointRefinement`).
+
+    ``positions`` (P, 3) is updated in place; ``obs_point`` / ``obs_frame`` / ``obs_xy``: the mapping
+    observations (point, frame, pixel) in the frames ``cam_from_world`` (F, 4, 4) with intrinsics
+    ``Ks`` (F, 3, 3); ``max_move`` (P,): how far (world units) a refined point may be from its
+    starting position, or it is not taken."""
+
+    def __init__(
+        self, positions, obs_point, obs_frame, obs_xy, cam_from_world, Ks, max_move, max_observations: int = 10
+    ):
+        self.positions = positions
+        self.start = np.array(positions, np.float64, copy=True)  # where the map put the points
+        self.max_move = np.asarray(max_move, np.float64).reshape(-1)
+        self.max_observations = int(max_observations)
+        order = np.argsort(obs_point, kind="stable")
+        self._map_obs = (
+            np.asarray(obs_point)[order],
+            np.asarray(obs_frame)[order],
+            np.asarray(obs_xy, np.float64)[order],
+        )
+        self._offsets = np.searchsorted(self._map_obs[0], np.arange(len(positions) + 1))
+        self._frames = np.asarray(cam_from_world, np.float64)
+        self._K = np.asarray(Ks, np.float64)
+        self._poses: list[np.ndarray] = []  # stream frames that gave observations
+        self._Ks: list[np.ndarray] = []
+        # stream observations: point, stream frame, keypoint (px); each point's latest max_observations
+        self._s_pt = np.zeros(0, np.int64)
+        self._s_frame = np.zeros(0, np.int64)
+        self._s_xy = np.zeros((0, 2))
+        self.frames_used = 0
+        self.updates = 0  # point positions taken
+        self.refused = 0  # refined positions beyond max_move, not taken
+
+    def add(self, cam_from_world, K, points, xy) -> np.ndarray:
+        """Take one localized frame's observations (``points`` (N,) seen at pixels ``xy`` (N, 2)),
+        triangulate those points again; returns the rows whose positions moved."""
+        points = np.asarray(points, np.int64).reshape(-1)
+        if not len(points):
+            return np.zeros(0, np.int64)
+        s = len(self._poses)
+        self._poses.append(np.asarray(cam_from_world, np.float64))
+        self._Ks.append(np.asarray(K, np.float64))
+        self.frames_used += 1
+        pt = np.concatenate([self._s_pt, points])
+        fr = np.concatenate([self._s_frame, np.full(len(points), s, np.int64)])
+        xy = np.concatenate([self._s_xy, np.asarray(xy, np.float64).reshape(-1, 2)])
+        # each point keeps its latest max_observations
+        order = np.lexsort((-fr, pt))
+        pt_sorted = pt[order]
+        first = np.searchsorted(pt_sorted, pt_sorted, side="left")
+        keep = np.sort(order[np.arange(len(order)) - first < self.max_observations])
+        self._s_pt, self._s_frame, self._s_xy = pt[keep], fr[keep], xy[keep]
+        return self._retriangulate(np.unique(points))
+
+    def _retriangulate(self, rows: np.ndarray) -> np.ndarray:
+        tl, tf, txy = self._map_obs
+        nF = len(self._frames)
+        starts, ends = self._offsets[rows], self._offsets[rows + 1]
+        counts = ends - starts
+        mi = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())  # their mapping obs
+        si = np.flatnonzero(np.isin(self._s_pt, rows))  # their stream obs
+        used, s_frame = np.unique(self._s_frame[si], return_inverse=True)
+        frame = np.concatenate([tf[mi], nF + s_frame])
+        xy = np.concatenate([txy[mi], self._s_xy[si]])
+        tid = np.concatenate([tl[mi], self._s_pt[si]])
+        tracks = Tracks.from_obs(frame, np.zeros(len(frame), np.int32), xy, tid)  # track j <-> rows[j]
+        poses = np.concatenate([self._frames, np.stack([self._poses[f] for f in used])])
+        Ks = np.concatenate([self._K, np.stack([self._Ks[f] for f in used])])
+        lms = triangulate(tracks, poses, Ks, TriangulationConfig(min_track=2))
+        pt_rows = rows[lms.source]
+        move = np.linalg.norm(lms.positions - self.start[pt_rows], axis=1)
+        ok = np.isfinite(move) & (move <= self.max_move[pt_rows])
+        self.positions[pt_rows[ok]] = lms.positions[ok]
+        self.updates += int(ok.sum())
+        self.refused += int((~ok).sum())
+        return pt_rows[ok]
+
+
 class LandmarkRefinement:
     """Refines ``localizer``'s landmark positions (a copy of the map's) from the frames given to
     :meth:`update`, in order."""
@@ -70,26 +151,18 @@ class LandmarkRefinement:
         m = localizer.map
         self.positions = np.array(m.positions, np.float64)
         self.map_positions = self.positions.copy()  # where the map put them: the voxel boxes' centres
-        self.max_move = float(max_move)
-        self.max_observations = int(max_observations)
         self.min_uncertainty_px = float(min_uncertainty_px)
-        self._box = np.asarray(m.voxel_size, np.float64).reshape(-1)
         tl, tf, txy = m.tracks()
-        order = np.argsort(tl, kind="stable")
-        self._map_obs = (tl[order], tf[order], np.asarray(txy[order], np.float64))
-        self._offsets = np.searchsorted(self._map_obs[0], np.arange(len(m) + 1))
-        self._frames = np.asarray(m.cam_from_world, np.float64)
-        self._K = np.stack([working_camera(m.cameras[int(c)], m.max_side).K for c in m.frame_camera_ids])
-        self._poses: list[np.ndarray] = []  # stream frames that were localized
-        self._Ks: list[np.ndarray] = []
-        # stream observations: landmark, stream frame, keypoint (px); each landmark's latest max_observations
-        self._s_lm = np.zeros(0, np.int64)
-        self._s_frame = np.zeros(0, np.int64)
-        self._s_xy = np.zeros((0, 2))
-        self.frames_used = 0
-        self.updates = 0  # landmark positions taken
-        self.refused = 0  # refined positions outside the landmark's box, not taken
+        Ks = np.stack([working_camera(m.cameras[int(c)], m.max_side).K for c in m.frame_camera_ids])
+        box = np.asarray(m.voxel_size, np.float64).reshape(-1)
+        self.core = Retriangulation(
+            self.positions, tl, tf, txy, m.cam_from_world, Ks, float(max_move) * box, max_observations
+        )
         localizer.positions = self.positions
+
+    frames_used = property(lambda self: self.core.frames_used)
+    updates = property(lambda self: self.core.updates)  # landmark positions taken
+    refused = property(lambda self: self.core.refused)  # refined positions outside the landmark's box
 
     def close(self) -> None:
         """Give the localizer back the map's own positions."""
@@ -102,22 +175,8 @@ class LandmarkRefinement:
         inl = np.asarray(result.matches, np.int64)[np.asarray(result.inlier_mask, bool)]
         if len(inl) and self.min_uncertainty_px > 0:  # only landmarks this frame sees as uncertain
             inl = inl[self._projected_std(inl[:, 0], result) >= self.min_uncertainty_px]
-        if not len(inl):
-            return np.zeros(0, np.int64)
-        s = len(self._poses)
-        self._poses.append(np.asarray(result.cam_from_world, np.float64))
-        self._Ks.append(np.asarray(result.camera.K, np.float64))
-        self.frames_used += 1
-        lm = np.concatenate([self._s_lm, inl[:, 0]])
-        fr = np.concatenate([self._s_frame, np.full(len(inl), s, np.int64)])
-        xy = np.concatenate([self._s_xy, np.asarray(result.keypoints, np.float64)[inl[:, 1]]])
-        # each landmark keeps its latest max_observations
-        order = np.lexsort((-fr, lm))
-        lm_sorted = lm[order]
-        first = np.searchsorted(lm_sorted, lm_sorted, side="left")
-        keep = np.sort(order[np.arange(len(order)) - first < self.max_observations])
-        self._s_lm, self._s_frame, self._s_xy = lm[keep], fr[keep], xy[keep]
-        return self._retriangulate(np.unique(inl[:, 0]))
+        kp = np.asarray(result.keypoints, np.float64)
+        return self.core.add(result.cam_from_world, result.camera.K, inl[:, 0], kp[inl[:, 1]])
 
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
@@ -129,26 +188,3 @@ class LandmarkRefinement:
         P = self.positions[rows] @ T[:3, :3].T + T[:3, 3]
         V = _image_covariances(_projection_jacobians(P, result.camera.K), T[:3, :3], cov, np.zeros((2, 2)))
         return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
-
-    def _retriangulate(self, rows: np.ndarray) -> np.ndarray:
-        tl, tf, txy = self._map_obs
-        nF = len(self._frames)
-        starts, ends = self._offsets[rows], self._offsets[rows + 1]
-        counts = ends - starts
-        mi = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())  # their mapping obs
-        si = np.flatnonzero(np.isin(self._s_lm, rows))  # their stream obs
-        used, s_frame = np.unique(self._s_frame[si], return_inverse=True)
-        frame = np.concatenate([tf[mi], nF + s_frame])
-        xy = np.concatenate([txy[mi], self._s_xy[si]])
-        tid = np.concatenate([tl[mi], self._s_lm[si]])
-        tracks = Tracks.from_obs(frame, np.zeros(len(frame), np.int32), xy, tid)  # track j <-> rows[j]
-        poses = np.concatenate([self._frames, np.stack([self._poses[f] for f in used])])
-        Ks = np.concatenate([self._K, np.stack([self._Ks[f] for f in used])])
-        lms = triangulate(tracks, poses, Ks, TriangulationConfig(min_track=2))
-        lm_rows = rows[lms.source]
-        move = np.linalg.norm(lms.positions - self.map_positions[lm_rows], axis=1)
-        ok = np.isfinite(move) & (move <= self.max_move * self._box[lm_rows])
-        self.positions[lm_rows[ok]] = lms.positions[ok]
-        self.updates += int(ok.sum())
-        self.refused += int((~ok).sum())
-        return lm_rows[ok]
