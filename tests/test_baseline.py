@@ -142,7 +142,7 @@ def test_point_refinement_pulls_displaced_points_back_and_leaves_the_baseline_al
 
     rng = np.random.default_rng(0)
     before = baseline.points3d.copy()
-    ref = PointRefinement(baseline)
+    ref = PointRefinement(baseline, min_uncertainty_px=0.0)  # every inlier point
     bound = ref.core.max_move
     assert np.all(np.isfinite(bound) & (bound > 0))
     d = rng.normal(size=before.shape)
@@ -166,6 +166,18 @@ def test_point_refinement_pulls_displaced_points_back_and_leaves_the_baseline_al
         for k, P in [("ref", ref.points3d), ("push", pushed), ("col", before)]
     }
     assert dist["ref"] < 0.8 * dist["push"] and dist["ref"] < 1.05 * dist["col"], dist
+
+
+def test_point_refinement_gate(baseline, queries, sequence):
+    """Only points whose covariance, projected into the query, reaches the gate take its
+    observations: none at an unreachable gate, fewer at the default than ungated."""
+    taken = {}
+    for gate in (0.0, 0.25, 1e9):
+        ref = PointRefinement(baseline, min_uncertainty_px=gate)
+        for img, _ in queries:
+            assert ref.localize(img, sequence.cameras[0]).success
+        taken[gate] = ref.core.updates + ref.core.refused
+    assert taken[1e9] == 0 and 0 < taken[0.25] < taken[0.0], taken
 
 
 def test_point_refinement_needs_tracks(baseline):

@@ -306,15 +306,24 @@ class PointRefinement:
     observations are added to those points' mapping observations and the points are triangulated
     again (favormap's robust triangulation), for the queries after it.
 
-    Every inlier point takes the query's observation: the baseline has no covariance model to gate
-    with (favormap's ungated stream is the comparison). A refined point may move at most
+    The same rules as favormap's: only points whose position covariance, projected into the query,
+    has a standard deviation of at least ``min_uncertainty_px`` take its observations (the
+    covariance model of :func:`favormap.localize.refine.position_covariances`, from the point's
+    track, its views' spread and its own reprojection error); a refined point may move at most
     ``max_move`` times favormap's voxel box (``box_factor`` * its nearest observation's depth /
     focal length) from where pycolmap put it. The baseline passed in is not modified: the
     refinement localizes with a copy of its points."""
 
     def __init__(
-        self, baseline: StructureBaseline, max_observations: int = 10, max_move: float = 0.5, box_factor: float = 7.0
+        self,
+        baseline: StructureBaseline,
+        max_observations: int = 10,
+        max_move: float = 0.5,
+        box_factor: float = 7.0,
+        min_uncertainty_px: float = 0.25,
     ):
+        from ..geometry import camera_centers, direction_cones
+        from .refine import position_covariances, reprojection_pixel_sigma
         from .stream import Retriangulation
 
         t = baseline.tracks
@@ -322,14 +331,28 @@ class PointRefinement:
             raise FavormapError("this baseline has no mapping observations to refine its points with (a subset?)")
         self.baseline = copy.copy(baseline)
         self.baseline.points3d = np.array(baseline.points3d, np.float64, copy=True)
+        self.min_uncertainty_px = float(min_uncertainty_px)
+        n, X = len(baseline), self.baseline.points3d
         T = t.cam_from_world[t.frame]
-        depth = np.einsum("oj,oj->o", T[:, 2, :3], self.baseline.points3d[t.point]) + T[:, 2, 3]
-        scale = np.full(len(baseline), np.inf)
-        np.minimum.at(scale, t.point, np.abs(depth) / t.K[t.frame, 0, 0])
+        cam = np.einsum("oij,oj->oi", T[:, :3, :3], X[t.point]) + T[:, :3, 3]
+        f = t.K[t.frame, 0, 0]
+        scale = np.full(n, np.inf)
+        np.minimum.at(scale, t.point, np.abs(cam[:, 2]) / f)
+        # the covariance model favormap's landmarks get, from the points' tracks
+        uv = np.einsum("oij,oj->oi", t.K[t.frame], cam)
+        err = np.linalg.norm(uv[:, :2] / uv[:, 2:] - t.xy, axis=1)
+        length = np.bincount(t.point, minlength=n)
+        v = camera_centers(t.cam_from_world)[t.frame] - X[t.point]
+        dist = np.linalg.norm(v, axis=1)
+        view_dir, view_angle = direction_cones(v / np.maximum(dist[:, None], 1e-12), t.point, n)
+        sigma = reprojection_pixel_sigma(np.bincount(t.point, err, n) / np.maximum(length, 1), length)
+        dmin, dmax = np.full(n, np.inf), np.zeros(n)
+        np.minimum.at(dmin, t.point, dist)
+        np.maximum.at(dmax, t.point, dist)
+        self._cov = position_covariances((dmin + dmax) / 2, length, view_angle, view_dir, sigma, float(np.median(f)))
         self.core = Retriangulation(
-            self.baseline.points3d, t.point, t.frame, t.xy, t.cam_from_world, t.K,
-            max_move * box_factor * scale, max_observations,
-        )  # fmt: skip
+            X, t.point, t.frame, t.xy, t.cam_from_world, t.K, max_move * box_factor * scale, max_observations
+        )
 
     @property
     def points3d(self) -> np.ndarray:
@@ -337,8 +360,13 @@ class PointRefinement:
 
     def localize(self, image, camera: Camera) -> BaselineResult:
         """Localize the next query of the stream against the points refined so far, then refine."""
+        from .refine import projected_std
+
         res = self.baseline.localize(image, camera)
         if res.success:
             inl = np.asarray(res.matches, np.int64).reshape(-1, 2)[np.asarray(res.inlier_mask, bool)]
+            if len(inl) and self.min_uncertainty_px > 0:
+                std = projected_std(self.points3d[inl[:, 0]], self._cov[inl[:, 0]], res.cam_from_world, res.camera.K)
+                inl = inl[std >= self.min_uncertainty_px]
             self.core.add(res.cam_from_world, res.camera.K, inl[:, 0], res.keypoints[inl[:, 1]])
         return res

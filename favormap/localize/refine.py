@@ -40,27 +40,59 @@ def mapping_pixel_sigma(map_: Map, rows: np.ndarray | None = None) -> np.ndarray
     residual is sigma * sqrt(pi / 2), and a point fitted to n observations absorbs 3 of their 2n
     degrees of freedom."""
     rows = np.arange(len(map_.reproj_error)) if rows is None else np.asarray(rows, np.int64)
-    e = np.asarray(map_.reproj_error[rows], np.float64)
-    n = np.maximum(np.asarray(map_.track_length[rows], np.float64), 2.0)
-    return e * np.sqrt(2 / np.pi) * np.sqrt(2 * n / (2 * n - 3))
+    return reprojection_pixel_sigma(map_.reproj_error[rows], map_.track_length[rows])
 
 
 def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray:
     """(len(rows), 3, 3) position covariances of landmarks ``rows`` (map units squared), for a
     keypoint noise of ``pixel_sigma`` pixels in the mapping images (one value, or one per row)."""
     rows = np.asarray(rows, np.int64)
-    pixel_sigma = np.broadcast_to(np.asarray(pixel_sigma, np.float64), rows.shape)
     f = float(np.median([np.mean(c.focal) for c in map_.cameras.values()])) if map_.cameras else 1.0
-    depth = np.asarray(map_.depth_range[rows], np.float64).mean(axis=1)
-    n = np.maximum(np.asarray(map_.track_length[rows], np.float64), 1.0)
-    spread = np.radians(np.clip(np.asarray(map_.view_angle[rows], np.float64), 0.5, 90.0))
-    across = depth * pixel_sigma / (f * np.sqrt(n))
+    return position_covariances(
+        np.asarray(map_.depth_range[rows], np.float64).mean(axis=1),
+        map_.track_length[rows],
+        map_.view_angle[rows],
+        map_.view_dir[rows],
+        pixel_sigma,
+        f,
+    )
+
+
+def position_covariances(depth, track_length, view_angle_deg, view_dir, pixel_sigma, focal: float) -> np.ndarray:
+    """(n, 3, 3) position covariances of points triangulated from ``track_length`` views at a mean
+    distance ``depth``, within ``view_angle_deg`` of their mean viewing direction ``view_dir`` (n, 3),
+    for a keypoint noise of ``pixel_sigma`` pixels (one value, or one per point) at focal length
+    ``focal``: ``depth * sigma / (focal * sqrt(n))`` across the viewing direction, that over the
+    sine of the views' spread along it."""
+    depth = np.asarray(depth, np.float64)
+    pixel_sigma = np.broadcast_to(np.asarray(pixel_sigma, np.float64), depth.shape)
+    n = np.maximum(np.asarray(track_length, np.float64), 1.0)
+    spread = np.radians(np.clip(np.asarray(view_angle_deg, np.float64), 0.5, 90.0))
+    across = depth * pixel_sigma / (focal * np.sqrt(n))
     along = across / np.sin(spread)
-    v = np.asarray(map_.view_dir[rows], np.float64)
+    v = np.asarray(view_dir, np.float64)
     v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
     return (across**2)[:, None, None] * np.eye(3) + (along**2 - across**2)[:, None, None] * np.einsum(
         "ni,nj->nij", v, v
     )
+
+
+def projected_std(points: np.ndarray, point_cov: np.ndarray, cam_from_world: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n,) largest standard deviation (px) of world position covariances ``point_cov`` (n, 3, 3) of
+    ``points`` (n, 3) projected into the camera ``cam_from_world`` with pinhole ``K``."""
+    T = np.asarray(cam_from_world, np.float64)
+    P = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    V = _image_covariances(_projection_jacobians(P, np.asarray(K, np.float64)), T[:3, :3], point_cov, np.zeros((2, 2)))
+    return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
+
+
+def reprojection_pixel_sigma(mean_error, track_length) -> np.ndarray:
+    """Keypoint noise (px, per axis) behind points from their mean reprojection error over tracks of
+    ``track_length``: the mean norm of a 2-D Gaussian residual is sigma * sqrt(pi / 2), and a point
+    fitted to n observations absorbs 3 of their 2n degrees of freedom."""
+    e = np.asarray(mean_error, np.float64)
+    n = np.maximum(np.asarray(track_length, np.float64), 2.0)
+    return e * np.sqrt(2 / np.pi) * np.sqrt(2 * n / (2 * n - 3))
 
 
 def _projection_jacobians(P: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -181,10 +181,7 @@ class LandmarkRefinement:
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
         projected into the frame of ``result``."""
-        from .refine import _image_covariances, _projection_jacobians, landmark_covariances
+        from .refine import landmark_covariances, projected_std
 
-        T = np.asarray(result.cam_from_world, np.float64)
         cov = landmark_covariances(self.localizer.map, rows, self.localizer._landmark_sigma(rows))
-        P = self.positions[rows] @ T[:3, :3].T + T[:3, 3]
-        V = _image_covariances(_projection_jacobians(P, result.camera.K), T[:3, :3], cov, np.zeros((2, 2)))
-        return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
+        return projected_std(self.positions[rows], cov, result.cam_from_world, result.camera.K)
