@@ -248,10 +248,8 @@ class StructureBaseline:
             cfw = image.cam_from_world
             poses.append(from_rigid3d(cfw() if callable(cfw) else cfw))
             Ks.append(rec.cameras[image.camera_id].calibration_matrix())
-        tracks = PointTracks(
-            owner.numpy(), np.asarray(obs_frame, np.int64), np.asarray(obs_xy, np.float64).reshape(-1, 2),
-            np.stack(poses), np.stack(Ks),
-        )  # fmt: skip
+        xy = np.asarray(obs_xy, np.float64).reshape(-1, 2)
+        tracks = PointTracks(owner.numpy(), np.asarray(obs_frame, np.int64), xy, np.stack(poses), np.stack(Ks))
         return cls(np.asarray(xyz), mean.numpy(), lengths_np, cfg, rec, tracks)
 
     def subset(self, max_points: int) -> StructureBaseline:

@@ -150,7 +150,6 @@ class LandmarkRefinement:
         self.localizer = localizer
         m = localizer.map
         self.positions = np.array(m.positions, np.float64)
-        self.map_positions = self.positions.copy()  # where the map put them: the voxel boxes' centres
         self.min_uncertainty_px = float(min_uncertainty_px)
         tl, tf, txy = m.tracks()
         Ks = np.stack([working_camera(m.cameras[int(c)], m.max_side).K for c in m.frame_camera_ids])
@@ -160,6 +159,7 @@ class LandmarkRefinement:
         )
         localizer.positions = self.positions
 
+    map_positions = property(lambda self: self.core.start)  # where the map put them: the voxel boxes' centres
     frames_used = property(lambda self: self.core.frames_used)
     updates = property(lambda self: self.core.updates)  # landmark positions taken
     refused = property(lambda self: self.core.refused)  # refined positions outside the landmark's box
