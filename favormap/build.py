@@ -25,7 +25,7 @@ from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
 from .features.base import check_patch
 from .features.cache import FeatureCache, source_stamp
-from .geometry import camera_centers, direction_cones, project, unproject
+from .geometry import camera_centers, project, unproject, view_geometry
 from .heap import release_free_memory
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
@@ -481,16 +481,7 @@ def train_batches(
 def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
     """Viewing direction (unit, landmark -> cameras), angular radius (deg) and depth range of the
     training views of each landmark."""
-    tid = lms.tracks.track_of_obs
-    c = camera_centers(cam_from_world)[lms.tracks.frame_idx]
-    v = c - lms.positions[tid]
-    dist = np.linalg.norm(v, axis=1)
-    mean, amax = direction_cones(v / np.maximum(dist[:, None], 1e-12), tid, len(lms))
-    dmin = np.full(len(lms), np.inf)
-    dmax = np.zeros(len(lms))
-    np.minimum.at(dmin, tid, dist)
-    np.maximum.at(dmax, tid, dist)
-    return mean, amax, np.stack([dmin, dmax], 1)
+    return view_geometry(lms.positions, lms.tracks.track_of_obs, camera_centers(cam_from_world)[lms.tracks.frame_idx])
 
 
 def check_build_input(seq: Sequence, config: BuildConfig) -> None:

@@ -243,6 +243,21 @@ def direction_cones(
     return mean, out
 
 
+def view_geometry(points: np.ndarray, point_of_obs: np.ndarray, centers_of_obs: np.ndarray):
+    """Per point of ``points`` (P, 3), from the camera centres (O, 3) of its observations
+    (``point_of_obs`` (O,)): the mean viewing direction (unit, point -> cameras, (P, 3)), the largest
+    angle in degrees of one of its views from it (P,), and the (min, max) distance of its views (P, 2)."""
+    n = len(points)
+    v = np.asarray(centers_of_obs, np.float64) - np.asarray(points, np.float64)[point_of_obs]
+    dist = np.linalg.norm(v, axis=1)
+    mean, amax = direction_cones(v / np.maximum(dist[:, None], 1e-12), point_of_obs, n)
+    dmin = np.full(n, np.inf)
+    dmax = np.zeros(n)
+    np.minimum.at(dmin, point_of_obs, dist)
+    np.maximum.at(dmax, point_of_obs, dist)
+    return mean, amax, np.stack([dmin, dmax], 1)
+
+
 def pose_error(cam_from_world_est: np.ndarray, cam_from_world_gt: np.ndarray) -> tuple[float, float]:
     """(translation error in map units between camera centres, rotation error in degrees)."""
     dt = float(np.linalg.norm(camera_centers(cam_from_world_est) - camera_centers(cam_from_world_gt)))

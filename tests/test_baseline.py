@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from favormap.errors import FavormapError, InputError
-from favormap.geometry import pose_error
+from favormap.geometry import pose_error, project
 
 pytest.importorskip("pycolmap")
 
@@ -126,12 +126,8 @@ def test_tracks_are_the_points_mapping_observations(baseline, sequence):
     assert len(t.cam_from_world) == len(t.K) == len(sequence)
     np.testing.assert_allclose(t.cam_from_world, [f.cam_from_world for f in sequence.frames], atol=1e-9)
     # every observation is where its point projects in its frame (sub-pixel: pycolmap's triangulation)
-    P = (
-        np.einsum("oij,oj->oi", t.cam_from_world[t.frame, :3, :3], baseline.points3d[t.point])
-        + t.cam_from_world[t.frame, :3, 3]
-    )
-    uv = np.einsum("oij,oj->oi", t.K[t.frame], P)
-    assert np.median(np.linalg.norm(uv[:, :2] / uv[:, 2:] - t.xy, axis=1)) < 0.5
+    uv = project(t.K[t.frame], t.cam_from_world[t.frame], baseline.points3d[t.point])
+    assert np.median(np.linalg.norm(uv - t.xy, axis=1)) < 0.5
 
 
 def test_point_refinement_pulls_displaced_points_back_and_leaves_the_baseline_alone(baseline, queries, sequence, scene):

@@ -320,7 +320,7 @@ class PointRefinement:
         box_factor: float = 7.0,
         min_uncertainty_px: float = 0.25,
     ):
-        from ..geometry import camera_centers, direction_cones
+        from ..geometry import camera_centers, project, view_geometry
         from .refine import position_covariances, reprojection_pixel_sigma
         from .stream import Retriangulation
 
@@ -331,23 +331,18 @@ class PointRefinement:
         self.baseline.points3d = np.array(baseline.points3d, np.float64, copy=True)
         self.min_uncertainty_px = float(min_uncertainty_px)
         n, X = len(baseline), self.baseline.points3d
-        T = t.cam_from_world[t.frame]
-        cam = np.einsum("oij,oj->oi", T[:, :3, :3], X[t.point]) + T[:, :3, 3]
+        uv, depth = project(t.K[t.frame], t.cam_from_world[t.frame], X[t.point], with_depth=True)
         f = t.K[t.frame, 0, 0]
         scale = np.full(n, np.inf)
-        np.minimum.at(scale, t.point, np.abs(cam[:, 2]) / f)
+        np.minimum.at(scale, t.point, np.abs(depth) / f)
         # the covariance model favormap's landmarks get, from the points' tracks
-        uv = np.einsum("oij,oj->oi", t.K[t.frame], cam)
-        err = np.linalg.norm(uv[:, :2] / uv[:, 2:] - t.xy, axis=1)
         length = np.bincount(t.point, minlength=n)
-        v = camera_centers(t.cam_from_world)[t.frame] - X[t.point]
-        dist = np.linalg.norm(v, axis=1)
-        view_dir, view_angle = direction_cones(v / np.maximum(dist[:, None], 1e-12), t.point, n)
-        sigma = reprojection_pixel_sigma(np.bincount(t.point, err, n) / np.maximum(length, 1), length)
-        dmin, dmax = np.full(n, np.inf), np.zeros(n)
-        np.minimum.at(dmin, t.point, dist)
-        np.maximum.at(dmax, t.point, dist)
-        self._cov = position_covariances((dmin + dmax) / 2, length, view_angle, view_dir, sigma, float(np.median(f)))
+        err = np.bincount(t.point, np.linalg.norm(uv - t.xy, axis=1), n) / np.maximum(length, 1)
+        view_dir, view_angle, depth_range = view_geometry(X, t.point, camera_centers(t.cam_from_world)[t.frame])
+        sigma = reprojection_pixel_sigma(err, length)
+        self._cov = position_covariances(
+            depth_range.mean(axis=1), length, view_angle, view_dir, sigma, float(np.median(f))
+        )
         self.core = Retriangulation(
             X, t.point, t.frame, t.xy, t.cam_from_world, t.K, max_move * box_factor * scale, max_observations
         )

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import project, rotvec_to_rotmat
+from ..geometry import project, rotvec_to_rotmat, transform_points
 from ..mapfile import Map
 
 
@@ -81,7 +81,7 @@ def projected_std(points: np.ndarray, point_cov: np.ndarray, cam_from_world: np.
     """(n,) largest standard deviation (px) of world position covariances ``point_cov`` (n, 3, 3) of
     ``points`` (n, 3) projected into the camera ``cam_from_world`` with pinhole ``K``."""
     T = np.asarray(cam_from_world, np.float64)
-    P = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    P = transform_points(T, np.asarray(points, np.float64))
     V = _image_covariances(_projection_jacobians(P, np.asarray(K, np.float64)), T[:3, :3], point_cov, np.zeros((2, 2)))
     return np.sqrt(np.linalg.eigvalsh(V)[:, -1])
 
