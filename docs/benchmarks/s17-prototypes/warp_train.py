@@ -1,8 +1,11 @@
-"""Prototype: voxel grids trained with warped-mean targets on the virtual prior rays."""
+"""Prototype: voxel grids trained with warped-mean targets on the virtual prior rays.
+
+    python warp_train.py V NOBS [VARIANTS]   # V virtual directions per landmark, NOBS views each
+"""
 import sys, time, dataclasses
 from pathlib import Path
 import numpy as np, cv2, torch
-exec(open(Path(__file__).with_name("warp_proto2.py")).read().split("res = {k")[0])  # scene, landmarks, rays, n_est, homography
+from warp_setup import *  # noqa: F403 (scene, landmarks, rays, normals, homography)
 from favormap.voxels import VoxelConfig, train_voxels, render_from_camera
 import favormap.voxels.train as vt
 from favormap.geometry import look_at
@@ -11,8 +14,10 @@ V, NOBS = int(sys.argv[1]), int(sys.argv[2])
 orig_bank = vt._prior_bank
 grays = [ff.features[f].dense.gray for f in range(len(ff.features))]
 
+_CACHE = {}
 def warped_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, gen):
     o, d, t = orig_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, gen)
+    if 'x' in _CACHE: return o, d, _CACHE['x']
     t0 = time.time()
     cen = (o - 0.5) * sizes[:, None, None] + centers[:, None, :]  # (L, V, 3) virtual camera centres
     newt = t.clone(); done = 0
@@ -37,6 +42,7 @@ def warped_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, ge
             newt[j, vi] = torch.as_tensor(acc / max(np.linalg.norm(acc), 1e-9), dtype=newt.dtype)
             done += 1
     print(f"warped targets {done} in {time.time()-t0:.0f}s; cos to old {float((newt*t).sum(-1).mean()):.3f}", flush=True)
+    _CACHE['x'] = newt
     return o, d, newt
 
 def evaluate_grids(grids, cfg, sizes):
@@ -69,8 +75,13 @@ for kind, T in queries:
 A = np.concatenate([q["angle"] for q in QS])
 print("nearest ", " ".join(f"{x:.4f}" for x in bnv.binned(np.concatenate([np.sum(ct[q['near_o']]*q['truth'],1) for q in QS]), A)))
 print("mean    ", " ".join(f"{x:.4f}" for x in bnv.binned(np.concatenate([np.sum(mean_desc[q['vis']]*q['truth'],1) for q in QS]), A)))
-for name, warped in [("control", False), ("warped", True)]:
-    cfg = VoxelConfig(prior_bank=V, prior_mean_deg=10.0)
+# variants: NAME[-pwW], NAME "warped" (warped-track targets) or anything else (the default targets,
+# e.g. "control" / "default64"), W the prior rays' weight (default 1)
+VARIANTS = (sys.argv[3] if len(sys.argv) > 3 else "control,warped").split(",")
+for name in VARIANTS:
+    warped = name.startswith("warped")
+    pw = float(name.split("-pw")[1]) if "-pw" in name else 1.0
+    cfg = VoxelConfig(prior_bank=V, prior_mean_deg=10.0, prior_weight=pw)
     vt._prior_bank = warped_bank if warped else orig_bank
     r2 = dataclasses.replace(rays, sizes=rays.sizes * cfg.box_factor)
     t0 = time.time(); g = train_voxels(r2, cfg); tt = time.time() - t0
