@@ -135,6 +135,12 @@ class ExtractorSpec:
         """Whether the extractor runs on a torch device (a GPU helps)."""
         return self.name in ("xfeat", "disk")
 
+    @property
+    def samples_on_device(self) -> bool:
+        """Whether sampling descriptors (the training patches) can run on a GPU: SIFT's, through
+        favormap.features.sift_torch (OpenCV's descriptors in torch)."""
+        return self.name == "sift"
+
 
 @lru_cache(maxsize=64)
 def _cached_extractor(name: str, max_keypoints: int, device: str | None, thread: int = 0) -> Extractor:
@@ -147,7 +153,8 @@ def _extractor(ex: Extractor | ExtractorSpec, device: str | None = None) -> Extr
     if ex.uses_device:  # a torch model: one per device, shared by threads (inference does not change it)
         return ex.create(device)
     # OpenCV's extractor objects: one per thread (LocalExecutor's pool), they are cheap to create
-    return _cached_extractor(ex.name, ex.max_keypoints, None, threading.get_ident())
+    on = None if device in (None, "cpu") else device  # SIFT on a GPU: its patch descriptors computed there
+    return _cached_extractor(ex.name, ex.max_keypoints, on, threading.get_ident())
 
 
 def _on_cpu(x):
@@ -315,9 +322,7 @@ class PatchTask:
 
 
 def sample_patches(task: PatchTask, device: str | None = None, report=None) -> np.ndarray:
-    return _extractor(task.extractor, "cpu" if isinstance(task.extractor, ExtractorSpec) else None).sample(
-        task.features, task.points
-    )
+    return _extractor(task.extractor, device or "cpu").sample(task.features, task.points)
 
 
 def training_rays(
@@ -351,6 +356,7 @@ def training_rays(
     frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
     tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames)
     n = len(frames)
+    executor = executor or LocalExecutor()
     held: list[np.ndarray] = []  # the (O, P, C) targets, made when the first frame's samples arrive
 
     def sink(k, samples):
@@ -361,11 +367,13 @@ def training_rays(
         held[0][sel] = samples.reshape(len(sel), P, -1)
 
     map_into(
-        executor or LocalExecutor(),
+        executor,
         sample_patches,
         tasks,
         n,
         sink,
+        # on a GPU where the extractor samples there (SIFT), else CPU tasks on the executor's threads
+        gpu=isinstance(extractor, ExtractorSpec) and extractor.samples_on_device and executor.has_gpu,
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
     )
     targets = held[0] if held else np.zeros((len(tid), P, 0), np.float32)

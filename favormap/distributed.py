@@ -168,6 +168,10 @@ class RayExecutor(Executor):
             "gpu_tasks": self.use_gpus,
         }
 
+    @property
+    def has_gpu(self) -> bool:
+        return self.use_gpus
+
     def map(self, fn, tasks, total, gpu=False, progress=None):
         ray = self.ray
         use_gpu = gpu and self.use_gpus

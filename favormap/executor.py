@@ -43,6 +43,11 @@ class Executor:
         """What ran the build (recorded in the map's provenance)."""
         return {"name": self.name}
 
+    @property
+    def has_gpu(self) -> bool:
+        """Whether tasks that can use a GPU (``map(..., gpu=True)``) get one."""
+        return False
+
     def train_group(self) -> int:
         """How many consecutive training batches one task may train together (the same grids
         either way): 1, except on a local GPU, where fewer, larger steps are faster."""
@@ -84,11 +89,15 @@ class LocalExecutor(Executor):
     def describe(self) -> dict:
         return {"name": self.name, "device": self.device, "workers": self._workers()}
 
+    @property
+    def has_gpu(self) -> bool:
+        return str(self.device) != "cpu"
+
     def train_group(self) -> int:
         # a GPU's training steps are bound by kernel launches, not arithmetic: 3,000 fox landmarks
         # train in 2.6 s as one task, 5.1 s as three (H200, tools/bench_train.py); 16 batches of
         # 1,024 landmarks keep a task's training data at a few GB
-        return 1 if str(self.device) == "cpu" else 16
+        return 16 if self.has_gpu else 1
 
     def _workers(self) -> int:
         if self.workers is not None:

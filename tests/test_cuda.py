@@ -77,3 +77,20 @@ def test_localize_on_cuda_equals_cpu(maps, small_sequence, tmp_path):
     t, r = pose_error(res["cuda"].cam_from_world, res["cpu"].cam_from_world)
     assert t < 1e-3 and r < 0.05, (t, r)
     assert abs(res["cuda"].num_inliers - res["cpu"].num_inliers) <= max(2, 0.02 * res["cpu"].num_inliers)
+
+
+def test_sift_patch_descriptors_on_cuda_are_opencvs(small_sequence):
+    """A SIFT build on a GPU computes its patch descriptors there (favormap.features.sift_torch): OpenCV's."""
+    import cv2
+
+    from favormap import features
+    from favormap.features.base import patch_offsets
+
+    img = cv2.cvtColor(cv2.imread(str(small_sequence.frames[2].image_path)), cv2.COLOR_BGR2RGB)
+    f = features.create("sift", max_keypoints=500).extract(img)
+    pts = (f.keypoints[:80, None] + patch_offsets(7)[None]).reshape(-1, 2)
+    pts = np.concatenate([pts, np.random.default_rng(0).uniform(0, 200, (300, 2))]).astype(np.float32)
+    gpu = features.create("sift", device="cuda")
+    assert gpu.torch_descriptors
+    cos = np.sum(gpu.sample(f, pts) * features.create("sift").sample(f, pts), axis=1)
+    assert cos.min() > 0.9995 and np.median(cos) > 0.99999, (cos.min(), np.median(cos))

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Per-stage build times on a sequence (default: ../shared/data/fox, else a synthetic room).
 
-python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--workers N] [--device cuda]
+python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--workers N] [--device cuda [--patches-on cpu]]
 """
 
 from __future__ import annotations
@@ -30,6 +30,13 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument(
         "--workers", type=int, default=None, help="threads for the CPU stages (default: the thread rule; 1: serial)"
+    )
+    ap.add_argument(
+        "--patches-on",
+        choices=("auto", "cpu"),
+        default="auto",
+        help="auto: SIFT's patch descriptors on the GPU when --device is one (favormap.features.sift_torch); "
+        "cpu: OpenCV on the CPU threads whatever the device (the build before sift_torch, for comparison)",
     )
     args = ap.parse_args()
 
@@ -64,6 +71,10 @@ def main():
         cfg.voxel = VoxelConfig.preset(args.quality)
     if args.iterations:
         cfg.voxel.iterations = args.iterations
+    if args.patches_on == "cpu":
+        import favormap.build as fb
+
+        fb.ExtractorSpec.samples_on_device = property(lambda self: False)
     t = time.perf_counter()
     with LocalExecutor(args.device, workers=args.workers) as ex:
         m = build_map(seq, cfg, executor=ex)
@@ -77,6 +88,7 @@ def main():
     print(
         f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
         f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, "
+        f"patches on {'cpu' if args.patches_on == 'cpu' or args.device == 'cpu' else args.device}, "
         f"CPU-stage workers {m.provenance['executor']['workers']}, torch threads {torch.get_num_threads()}, "
         f"cores {os.cpu_count()}"
     )

@@ -49,10 +49,14 @@ run)
             export FAVORMAP_FOX="$PWD/.gpu/fox"
             echo "== fox build, 640 px, fast quality (the defaults), GPU; CPU stages on a thread per core"
             timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(build failed or timed out)"
-            echo "== the same, CPU stages serial (--workers 1)"
-            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --workers 1 || echo "(build failed or timed out)"
+            echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
+            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --patches-on cpu \
+                || echo "(build failed or timed out)"
             echo "== fox build, full resolution, fast quality, GPU"
             timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 || echo "(build failed or timed out)"
+            echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
+            timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --patches-on cpu \
+                || echo "(build failed or timed out)"
             echo "== fox build, full resolution, quick quality, GPU"
             timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --quality quick \
                 || echo "(build failed or timed out)"

@@ -5,7 +5,9 @@ level (octave and layer), as in any SIFT pipeline (the structure baseline, COLMA
 descriptors at arbitrary positions (the S x S training patches around a landmark's observation), a
 point takes the scale, orientation and pyramid level of the nearest detected keypoint within
 ``support_px`` pixels (so a patch around a keypoint is described in that keypoint's frame and
-matches it), and a fixed upright ``size`` at the pyramid level of that size elsewhere.
+matches it), and a fixed upright ``size`` at the pyramid level of that size elsewhere. On a
+``device`` other than the CPU, :meth:`SIFTExtractor.sample` computes OpenCV's descriptors in torch
+there (:mod:`favormap.features.sift_torch`, ``torch_descriptors``); detection is always OpenCV's.
 
 Describing a keypoint at its own pyramid level instead of the first one (what OpenCV's ``compute``
 does with keypoints that carry no octave) keeps the descriptor scale-invariant; measured on fox
@@ -108,8 +110,12 @@ class SIFTExtractor(Extractor):
         support_px: float = 4.0,
         orientations: str = "strongest",
         contrast_threshold: float = CONTRAST_THRESHOLD,
+        torch_descriptors: bool | None = None,
     ):
         super().__init__(max_keypoints, device)
+        # sample() through favormap.features.sift_torch (OpenCV's descriptors computed by torch on
+        # ``device``) instead of OpenCV: None, on any device but the CPU (where OpenCV is faster)
+        self.torch_descriptors = str(self.device) != "cpu" if torch_descriptors is None else bool(torch_descriptors)
         self.size = float(size)
         self.support_px = float(support_px)
         # OpenCV gives a location one keypoint per dominant orientation (peaks within 80 % of the
@@ -182,6 +188,10 @@ class SIFTExtractor(Extractor):
         p = np.asarray(pts, np.float32) - 0.5
         p[:, 0] = np.clip(p[:, 0], 0, w - 1)
         p[:, 1] = np.clip(p[:, 1], 0, h - 1)
+        if self.torch_descriptors:  # the same descriptors, computed by torch on the device (a build's patches)
+            from . import sift_torch
+
+            return _root_sift(sift_torch.describe(st.gray, p, size, angle, octave, self.device))
         kps = [
             cv2.KeyPoint(float(x), float(y), float(s), float(a), 0, int(o))
             for (x, y), s, a, o in zip(p, size, angle, octave)

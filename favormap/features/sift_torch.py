@@ -1,0 +1,235 @@
+"""OpenCV's SIFT descriptor, computed in torch: the descriptor patches of a build on a GPU.
+
+A SIFT build describes ~50 points around every observation of every landmark (the S x S training
+patches, :meth:`favormap.features.sift.SIFTExtractor.sample`): ~470,000 descriptors for the fox.
+OpenCV computes them on the CPU, one image pyramid per frame and one descriptor after another, which
+was half of a GPU build (H200, fox at full resolution: 8.6 of 18.2 s). This module computes the same
+descriptors as OpenCV's ``SIFT.compute`` on a torch device, all points of a frame at once:
+
+- the Gaussian pyramid of ``SIFT::detectAndCompute`` (OpenCV 4.x / 5.x, default parameters) from the
+  2x upsampled first octave: bilinear upsampling rounded to 8 bits (``INTER_LINEAR_EXACT``),
+  separable Gaussian blurs with OpenCV's kernel size and reflect-101 borders, nearest-neighbour
+  halving between octaves;
+- ``calcSIFTDescriptor`` for each point in its octave and layer: the rotated 4 x 4 grid of 8-bin
+  orientation histograms over a (2r+1)^2 window, OpenCV's ``fastAtan2`` polynomial, trilinear
+  interpolation (as hat-function weights: a batched matrix product instead of scatters), the 0.2
+  clamp and the rounding to 0..255.
+
+Rounding aside (float sums in another order), the result is OpenCV's descriptor:
+``tests/test_sift_torch.py`` compares them point by point. Only the levels the points use are
+built (layers 1-3 of the octaves they span). On a CPU, OpenCV is faster; favormap uses this module
+only where the build runs on a GPU (:class:`favormap.features.sift.SIFTExtractor` with a device).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+_LAYERS, _SIGMA, _INIT_SIGMA = 3, 1.6, 0.5  # cv2.SIFT_create's nOctaveLayers and sigma; the camera's blur
+_D, _N = 4, 8  # SIFT_DESCR_WIDTH, SIFT_DESCR_HIST_BINS
+_SCL_FCTR, _MAG_THR, _INT_FCTR = 3.0, 0.2, 512.0  # SIFT_DESCR_SCL_FCTR, SIFT_DESCR_MAG_THR, SIFT_INT_DESCR_FCTR
+_FLT_EPSILON = float(np.finfo(np.float32).eps)
+# cv::fastAtan2's polynomial (degrees)
+_ATAN2_POLY = (0.9997878412794807, -0.3258083974640975, 0.1555786518463281, -0.04432655554792128)
+_P1, _P3, _P5, _P7 = (c * (180 / math.pi) for c in _ATAN2_POLY)
+
+
+def _reflect101(n: int, pad: int, device) -> torch.Tensor:
+    """Indices of OpenCV's BORDER_REFLECT_101 for positions -pad .. n - 1 + pad."""
+    i = torch.arange(-pad, n + pad, device=device)
+    if n == 1:
+        return torch.zeros_like(i)
+    period = 2 * (n - 1)
+    i = torch.remainder(i, period)
+    return torch.where(i >= n, period - i, i)
+
+
+def _gaussian_kernel(sigma: float, device) -> torch.Tensor:
+    """cv::getGaussianKernel at GaussianBlur's size for float images (2 * round(4 sigma) + 1)."""
+    ksize = int(np.rint(sigma * 8 + 1)) | 1
+    x = np.arange(ksize, dtype=np.float64) - (ksize - 1) / 2
+    k = np.exp(-0.5 / (sigma * sigma) * x * x)
+    return torch.tensor(k / k.sum(), dtype=torch.float32, device=device)
+
+
+def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image."""
+    k = _gaussian_kernel(sigma, img.device)
+    pad = (len(k) - 1) // 2
+    h, w = img.shape
+    x = img[:, _reflect101(w, pad, img.device)]  # (H, W + 2 pad)
+    x = torch.nn.functional.conv1d(x[:, None], k.view(1, 1, -1))[:, 0]  # rows
+    x = x[_reflect101(h, pad, img.device)].T.contiguous()  # (W, H + 2 pad)
+    return torch.nn.functional.conv1d(x[:, None], k.view(1, 1, -1))[:, 0].T.contiguous()
+
+
+def _upsample2(gray: torch.Tensor) -> torch.Tensor:
+    """cv::resize(gray, 2x, INTER_LINEAR_EXACT) of an 8-bit image, as float: every output pixel is
+    an exact bilinear mix of quarters, rounded half up to 8 bits."""
+
+    def axis(x: torch.Tensor, dim: int) -> torch.Tensor:
+        n = x.shape[dim]
+        k = torch.arange(n, device=x.device)
+        prev = x.index_select(dim, (k - 1).clamp(min=0))
+        nxt = x.index_select(dim, (k + 1).clamp(max=n - 1))
+        even, odd = 0.25 * prev + 0.75 * x, 0.75 * x + 0.25 * nxt  # outputs 2k and 2k + 1
+        return torch.stack((even, odd), dim + 1).flatten(dim, dim + 1)
+
+    return torch.floor(axis(axis(gray.float(), 1), 0) + 0.5)
+
+
+def _halve(img: torch.Tensor) -> torch.Tensor:
+    """cv::resize(img, Size(w / 2, h / 2), INTER_NEAREST)."""
+    h, w = img.shape
+    hh, ww = max(h // 2, 1), max(w // 2, 1)
+    rows = torch.as_tensor(np.minimum(np.floor(np.arange(hh) * (h / hh)), h - 1).astype(np.int64), device=img.device)
+    cols = torch.as_tensor(np.minimum(np.floor(np.arange(ww) * (w / ww)), w - 1).astype(np.int64), device=img.device)
+    return img[rows][:, cols]
+
+
+def _layer_sigmas() -> list[float]:
+    """buildGaussianPyramid's incremental blur of layers 1 .. nOctaveLayers."""
+    k = 2.0 ** (1.0 / _LAYERS)
+    out = [_SIGMA]
+    for i in range(1, _LAYERS + 1):
+        prev = k ** (i - 1) * _SIGMA
+        out.append(math.sqrt((prev * k) ** 2 - prev**2))
+    return out
+
+
+def gaussian_pyramid(gray: torch.Tensor, last_octave: int) -> dict[tuple[int, int], torch.Tensor]:
+    """OpenCV SIFT's Gaussian pyramid of an 8-bit grey image (H, W) from the upsampled first octave
+    (-1) to ``last_octave``, layers 0 .. nOctaveLayers (those a keypoint can sit on, and the one the
+    next octave halves): ``{(octave, layer): float image}``."""
+    sig = _layer_sigmas()
+    pyr: dict[tuple[int, int], torch.Tensor] = {}
+    img = _blur(_upsample2(gray), math.sqrt(max(_SIGMA**2 - 4 * _INIT_SIGMA**2, 0.01)))
+    for o in range(-1, last_octave + 1):
+        if o > -1:
+            img = _halve(pyr[(o - 1, _LAYERS)])
+        pyr[(o, 0)] = img
+        for i in range(1, _LAYERS + 1):
+            img = pyr[(o, i)] = _blur(img, sig[i])
+    return pyr
+
+
+def _unpack_octave(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    octave = packed.astype(np.int64) & 255
+    return np.where(octave < 128, octave, octave - 256), (packed.astype(np.int64) >> 8) & 255
+
+
+def _fast_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """cv::fastAtan2 (degrees, [0, 360))."""
+    ax, ay = x.abs(), y.abs()
+    small = ax >= ay
+    c = torch.where(small, ay / (ax + 2.220446049250313e-16), ax / (ay + 2.220446049250313e-16))
+    c2 = c * c
+    a = (((_P7 * c2 + _P5) * c2 + _P3) * c2 + _P1) * c
+    a = torch.where(small, a, 90.0 - a)
+    a = torch.where(x < 0, 180.0 - a, a)
+    return torch.where(y < 0, 360.0 - a, a)
+
+
+def _describe_level(
+    img: torch.Tensor, pt: torch.Tensor, ori: torch.Tensor, scl: torch.Tensor, budget: int
+) -> torch.Tensor:
+    """calcSIFTDescriptor of points ``pt`` (M, 2) float32 on one pyramid image (octave pixels) with
+    orientation ``ori`` (deg) and scale ``scl``: (M, 128) float32, rounded to 0..255."""
+    dev = img.device
+    rows, cols = img.shape
+    hist_width = _SCL_FCTR * scl
+    radius = torch.round(hist_width * 1.4142135623730951 * (_D + 1) * 0.5).to(torch.int64)
+    radius = radius.clamp(max=int(math.sqrt(float(rows) ** 2 + float(cols) ** 2)))
+    rad = math.radians(1.0)
+    cos_t = torch.cos(ori * rad) / hist_width
+    sin_t = torch.sin(ori * rad) / hist_width
+    centre = torch.round(pt).to(torch.int64)  # cvRound (half to even)
+    flat = img.reshape(-1)
+    out = torch.empty((len(pt), _D * _D * _N), dtype=torch.float32, device=dev)
+    order = torch.argsort(radius)  # similar windows together: less padding per chunk
+    m = len(order)
+    start = 0
+    while start < m:
+        r_max = int(radius[order[min(m - 1, start)]].item())
+        win = (2 * r_max + 1) ** 2
+        stop = min(m, start + max(1, budget // win))
+        r_max = int(radius[order[stop - 1]].item())
+        idx = order[start:stop]
+        out[idx] = _describe_chunk(flat, rows, cols, centre[idx], cos_t[idx], sin_t[idx], ori[idx], radius[idx], r_max)
+        start = stop
+    return out
+
+
+def _describe_chunk(flat, rows, cols, centre, cos_t, sin_t, ori, radius, r_max):
+    dev = flat.device
+    off = torch.arange(-r_max, r_max + 1, device=dev)
+    ii, jj = torch.meshgrid(off, off, indexing="ij")  # window rows (i) and columns (j)
+    ii, jj = ii.reshape(1, -1), jj.reshape(1, -1)
+    r = centre[:, 1:2] + ii
+    c = centre[:, 0:1] + jj
+    rad = radius[:, None]
+    ok = (ii.abs() <= rad) & (jj.abs() <= rad) & (r > 0) & (r < rows - 1) & (c > 0) & (c < cols - 1)
+    ifl, jfl = ii.float(), jj.float()
+    c_rot = jfl * cos_t[:, None] - ifl * sin_t[:, None]
+    r_rot = jfl * sin_t[:, None] + ifl * cos_t[:, None]
+    rbin = r_rot + (_D // 2 - 0.5)
+    cbin = c_rot + (_D // 2 - 0.5)
+    rc = (r.clamp(1, rows - 2) * cols + c.clamp(1, cols - 2)).reshape(-1)
+    dx = (flat[rc + 1] - flat[rc - 1]).view_as(rbin)
+    dy = (flat[rc - cols] - flat[rc + cols]).view_as(rbin)
+    weight = torch.exp((c_rot * c_rot + r_rot * r_rot) * (-1.0 / (_D * _D * 0.5)))
+    mag = torch.sqrt(dx * dx + dy * dy) * weight * ok
+    obin = (_fast_atan2(dy, dx) - ori[:, None]) * (_N / 360.0)
+    o0 = torch.floor(obin)
+    frac = obin - o0
+    o0 = torch.remainder(o0.to(torch.int64), _N)
+    wo = torch.zeros(rbin.shape + (_N,), dtype=torch.float32, device=dev)
+    wo.scatter_(-1, o0[..., None], (mag * (1 - frac))[..., None])
+    wo.scatter_add_(-1, torch.remainder(o0 + 1, _N)[..., None], (mag * frac)[..., None])
+    k = torch.arange(_D, device=dev, dtype=torch.float32)
+    wr = torch.relu(1 - (rbin[..., None] - k).abs())  # (M, P, 4): trilinear weights as hat functions
+    wc = torch.relu(1 - (cbin[..., None] - k).abs())
+    spatial = (wr[..., :, None] * wc[..., None, :]).flatten(-2)  # (M, P, 16), bin = row * 4 + column
+    hist = torch.bmm(spatial.transpose(1, 2), wo).reshape(len(centre), -1)  # (M, 128)
+    thr = torch.linalg.vector_norm(hist, dim=1, keepdim=True) * _MAG_THR
+    hist = torch.minimum(hist, thr)
+    hist = hist * (_INT_FCTR / torch.linalg.vector_norm(hist, dim=1, keepdim=True).clamp(min=_FLT_EPSILON))
+    return torch.round(hist).clamp(0, 255)
+
+
+def describe(
+    gray: np.ndarray | torch.Tensor,
+    xy: np.ndarray,
+    size: np.ndarray,
+    angle: np.ndarray,
+    octave: np.ndarray,
+    device: str | torch.device = "cpu",
+    budget: int = 1 << 24,
+) -> np.ndarray:
+    """OpenCV SIFT descriptors (N, 128) float32 (0..255, not normalised) of keypoints at ``xy``
+    (N, 2, OpenCV pixel convention) with OpenCV ``size``, ``angle`` (deg) and packed ``octave``
+    (octave & 255 | layer << 8) on the 8-bit grey image ``gray``, computed on ``device``:
+    what ``cv2.SIFT_create().compute(gray, keypoints)`` returns when the pyramid starts at the
+    upsampled octave -1. ``budget``: window pixels per chunk (memory: ~300 bytes each)."""
+    n = len(xy)
+    if n == 0:
+        return np.zeros((0, 128), np.float32)
+    oct_, layer = _unpack_octave(np.asarray(octave))
+    g = torch.as_tensor(np.ascontiguousarray(gray), device=device)
+    pyr = gaussian_pyramid(g, int(oct_.max()))
+    scale = np.where(oct_ >= 0, 1.0 / (1 << np.maximum(oct_, 0)), 2.0 ** np.maximum(-oct_, 0)).astype(np.float32)
+    pt = np.asarray(xy, np.float32) * scale[:, None]
+    scl = np.asarray(size, np.float32) * scale * np.float32(0.5)
+    ori = np.float32(360.0) - np.asarray(angle, np.float32)
+    ori[np.abs(ori - 360.0) < _FLT_EPSILON] = 0.0
+    out = torch.empty((n, 128), dtype=torch.float32, device=device)
+    level = oct_ * 256 + layer
+    for key in np.unique(level):
+        sel = np.flatnonzero(level == key)
+        img = pyr[(int(oct_[sel[0]]), int(layer[sel[0]]))]
+        pt_l, ori_l, scl_l = (torch.as_tensor(a[sel], device=device) for a in (pt, ori, scl))
+        out[torch.as_tensor(sel, device=device)] = _describe_level(img, pt_l, ori_l, scl_l, budget)
+    return out.cpu().numpy()
