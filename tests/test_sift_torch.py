@@ -35,14 +35,15 @@ def test_torch_descriptors_are_opencvs(scene):
     assert mine.shape == opencv.shape == (len(pts), 128)
     cos = np.sum(mine * opencv, axis=1)
     # the same descriptors up to the rounding of a float sum taken in another order (a 0..255 bin off by one)
-    assert cos.min() > 0.9995 and np.median(cos) > 0.99999, (cos.min(), np.median(cos))
+    assert cos.min() > 0.9999 and np.median(cos) > 0.999999, (cos.min(), np.median(cos))
     st = f.dense
     used = np.unique(st.octave)
     assert len(used) >= 6  # the comparison spans several octaves and layers
 
 
 def test_raw_descriptors_are_opencvs_bins(scene):
-    """Before RootSIFT: OpenCV's 0..255 bins, each within one of OpenCV's (most equal), at any angle."""
+    """Before RootSIFT: OpenCV's 0..255 bins, each within one of OpenCV's (> 99 % of the descriptors
+    equal in every bin), at any angle."""
     import cv2
 
     from favormap.features import sift_torch
@@ -60,10 +61,11 @@ def test_raw_descriptors_are_opencvs_bins(scene):
     assert len(out) == len(kps) + 1
     mine = sift_torch.describe(st.gray, xy, st.size, angle, st.octave)
     diff = np.abs(mine - ref[:-1])
-    assert diff.max() <= 2 and np.mean(diff == 0) > 0.95, (diff.max(), np.mean(diff == 0))
+    exact = np.mean(diff.max(axis=1) == 0)
+    assert diff.max() <= 1 and exact > 0.99, (diff.max(), exact)
 
 
-def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequence):
+def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequence, monkeypatch):
     """The build routes SIFT's patch sampling to the GPU task path exactly when the executor has a GPU."""
     from favormap.build import ExtractorSpec, PatchTask, sample_patches, training_rays
     from favormap.executor import LocalExecutor
@@ -96,6 +98,12 @@ def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequ
     np.testing.assert_array_equal(got[True], got[False])  # a GPU task on a CPU device: OpenCV, the same
     # a task given a GPU device samples through torch (here: "cpu:0", torch on the CPU), with OpenCV's result
     task = PatchTask(spec, ff.features[0], ff.features[0].keypoints[:20] + 1.0)
-    on_device, opencv = sample_patches(task, device="cpu:0"), sample_patches(task, device="cpu")
-    assert not np.array_equal(on_device, opencv)  # computed another way ...
-    assert np.sum(on_device * opencv, axis=1).min() > 0.9995  # ... to the same descriptors
+    from favormap.features import sift_torch
+
+    calls = []
+    real = sift_torch.describe
+    monkeypatch.setattr(sift_torch, "describe", lambda *a, **k: calls.append(k) or real(*a, **k))
+    opencv = sample_patches(task, device="cpu")
+    assert not calls
+    on_device = sample_patches(task, device="cpu:0")
+    assert len(calls) == 1 and np.sum(on_device * opencv, axis=1).min() > 0.9999

@@ -6,10 +6,9 @@ OpenCV computes them on the CPU, one image pyramid per frame and one descriptor 
 was half of a GPU build (H200, fox at full resolution: 8.6 of 18.2 s). This module computes the same
 descriptors as OpenCV's ``SIFT.compute`` on a torch device, all points of a frame at once:
 
-- the Gaussian pyramid of ``SIFT::detectAndCompute`` (OpenCV 4.x / 5.x, default parameters) from the
-  2x upsampled first octave: bilinear upsampling rounded to 8 bits (``INTER_LINEAR_EXACT``),
-  separable Gaussian blurs with OpenCV's kernel size and reflect-101 borders, nearest-neighbour
-  halving between octaves;
+- the Gaussian pyramid of ``SIFT::detectAndCompute`` (OpenCV 5.0, default parameters) from the
+  2x upsampled first octave: bilinear upsampling of the float image, separable Gaussian blurs
+  with OpenCV's kernel size and reflect-101 borders, nearest-neighbour halving between octaves;
 - ``calcSIFTDescriptor`` for each point in its octave and layer: the rotated 4 x 4 grid of 8-bin
   orientation histograms over a (2r+1)^2 window, OpenCV's ``fastAtan2`` polynomial, trilinear
   interpolation (as hat-function weights: a batched matrix product instead of scatters), the 0.2
@@ -56,19 +55,27 @@ def _gaussian_kernel(sigma: float, device) -> torch.Tensor:
 
 
 def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image."""
+    """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image: the separable kernel as a
+    sum of shifted copies (exact float32; cuDNN's convolutions may run in TF32 on a GPU)."""
     k = _gaussian_kernel(sigma, img.device)
-    pad = (len(k) - 1) // 2
+    taps = len(k)
+    pad = (taps - 1) // 2
     h, w = img.shape
     x = img[:, _reflect101(w, pad, img.device)]  # (H, W + 2 pad)
-    x = torch.nn.functional.conv1d(x[:, None], k.view(1, 1, -1))[:, 0]  # rows
-    x = x[_reflect101(h, pad, img.device)].T.contiguous()  # (W, H + 2 pad)
-    return torch.nn.functional.conv1d(x[:, None], k.view(1, 1, -1))[:, 0].T.contiguous()
+    rows = k[0] * x[:, :w]
+    for t in range(1, taps):
+        rows = rows + k[t] * x[:, t : t + w]
+    y = rows[_reflect101(h, pad, img.device)]  # (H + 2 pad, W)
+    out = k[0] * y[:h]
+    for t in range(1, taps):
+        out = out + k[t] * y[t : t + h]
+    return out
 
 
 def _upsample2(gray: torch.Tensor) -> torch.Tensor:
-    """cv::resize(gray, 2x, INTER_LINEAR_EXACT) of an 8-bit image, as float: every output pixel is
-    an exact bilinear mix of quarters, rounded half up to 8 bits."""
+    """cv::resize(gray, 2x, INTER_LINEAR) of the grey image as float (OpenCV 5.0 upsamples the float
+    image; rounding to 8 bits first, as an 8-bit resize would, left 92 % of the descriptors off by one
+    in some bin instead of 0.2 %): every output pixel a mix of quarters of its two nearest inputs."""
 
     def axis(x: torch.Tensor, dim: int) -> torch.Tensor:
         n = x.shape[dim]
@@ -78,7 +85,7 @@ def _upsample2(gray: torch.Tensor) -> torch.Tensor:
         even, odd = 0.25 * prev + 0.75 * x, 0.75 * x + 0.25 * nxt  # outputs 2k and 2k + 1
         return torch.stack((even, odd), dim + 1).flatten(dim, dim + 1)
 
-    return torch.floor(axis(axis(gray.float(), 1), 0) + 0.5)
+    return axis(axis(gray.float(), 1), 0)
 
 
 def _halve(img: torch.Tensor) -> torch.Tensor:
@@ -193,7 +200,12 @@ def _describe_chunk(flat, rows, cols, centre, cos_t, sin_t, ori, radius, r_max):
     wr = torch.relu(1 - (rbin[..., None] - k).abs())  # (M, P, 4): trilinear weights as hat functions
     wc = torch.relu(1 - (cbin[..., None] - k).abs())
     spatial = (wr[..., :, None] * wc[..., None, :]).flatten(-2)  # (M, P, 16), bin = row * 4 + column
-    hist = torch.bmm(spatial.transpose(1, 2), wo).reshape(len(centre), -1)  # (M, 128)
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    try:  # full float32 products (a GPU may be set to multiply in TF32)
+        torch.backends.cuda.matmul.allow_tf32 = False
+        hist = torch.bmm(spatial.transpose(1, 2), wo).reshape(len(centre), -1)  # (M, 128)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
     thr = torch.linalg.vector_norm(hist, dim=1, keepdim=True) * _MAG_THR
     hist = torch.minimum(hist, thr)
     hist = hist * (_INT_FCTR / torch.linalg.vector_norm(hist, dim=1, keepdim=True).clamp(min=_FLT_EPSILON))
