@@ -22,6 +22,7 @@ only where the build runs on a GPU (:class:`favormap.features.sift.SIFTExtractor
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -55,21 +56,26 @@ def _gaussian_kernel(sigma: float, device) -> torch.Tensor:
 
 
 def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image: the separable kernel as a
-    sum of shifted copies (exact float32; cuDNN's convolutions may run in TF32 on a GPU)."""
+    """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image: the separable kernel as
+    two convolutions (run under :func:`_float32`: a GPU may otherwise convolve in TF32)."""
     k = _gaussian_kernel(sigma, img.device)
-    taps = len(k)
-    pad = (taps - 1) // 2
+    pad = (len(k) - 1) // 2
     h, w = img.shape
-    x = img[:, _reflect101(w, pad, img.device)]  # (H, W + 2 pad)
-    rows = k[0] * x[:, :w]
-    for t in range(1, taps):
-        rows = rows + k[t] * x[:, t : t + w]
-    y = rows[_reflect101(h, pad, img.device)]  # (H + 2 pad, W)
-    out = k[0] * y[:h]
-    for t in range(1, taps):
-        out = out + k[t] * y[t : t + h]
-    return out
+    x = img[:, _reflect101(w, pad, img.device)][None, None]  # (1, 1, H, W + 2 pad)
+    x = torch.nn.functional.conv2d(x, k.view(1, 1, 1, -1))[0, 0]
+    x = x[_reflect101(h, pad, img.device)][None, None]  # (1, 1, H + 2 pad, W)
+    return torch.nn.functional.conv2d(x, k.view(1, 1, -1, 1))[0, 0]
+
+
+@contextlib.contextmanager
+def _float32():
+    """Full float32 products in matrix multiplications and convolutions (not TF32) meanwhile."""
+    flags = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
 
 
 def _upsample2(gray: torch.Tensor) -> torch.Tensor:
@@ -140,53 +146,24 @@ def _fast_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return torch.where(y < 0, 360.0 - a, a)
 
 
-def _describe_level(
-    img: torch.Tensor, pt: torch.Tensor, ori: torch.Tensor, scl: torch.Tensor, budget: int
-) -> torch.Tensor:
-    """calcSIFTDescriptor of points ``pt`` (M, 2) float32 on one pyramid image (octave pixels) with
-    orientation ``ori`` (deg) and scale ``scl``: (M, 128) float32, rounded to 0..255."""
-    dev = img.device
-    rows, cols = img.shape
-    hist_width = _SCL_FCTR * scl
-    radius = torch.round(hist_width * 1.4142135623730951 * (_D + 1) * 0.5).to(torch.int64)
-    radius = radius.clamp(max=int(math.sqrt(float(rows) ** 2 + float(cols) ** 2)))
-    rad = math.radians(1.0)
-    cos_t = torch.cos(ori * rad) / hist_width
-    sin_t = torch.sin(ori * rad) / hist_width
-    centre = torch.round(pt).to(torch.int64)  # cvRound (half to even)
-    flat = img.reshape(-1)
-    out = torch.empty((len(pt), _D * _D * _N), dtype=torch.float32, device=dev)
-    order = torch.argsort(radius)  # similar windows together: less padding per chunk
-    m = len(order)
-    start = 0
-    while start < m:
-        r_max = int(radius[order[min(m - 1, start)]].item())
-        win = (2 * r_max + 1) ** 2
-        stop = min(m, start + max(1, budget // win))
-        r_max = int(radius[order[stop - 1]].item())
-        idx = order[start:stop]
-        out[idx] = _describe_chunk(flat, rows, cols, centre[idx], cos_t[idx], sin_t[idx], ori[idx], radius[idx], r_max)
-        start = stop
-    return out
-
-
-def _describe_chunk(flat, rows, cols, centre, cos_t, sin_t, ori, radius, r_max):
+def _describe_chunk(flat, base, rows, cols, centre, cos_t, sin_t, ori, radius, r_max):
+    """calcSIFTDescriptor of M points, each on its own pyramid image (``base``: where it starts in
+    ``flat``, ``rows`` x ``cols``; all (M, 1)): (M, 128) float32, rounded to 0..255."""
     dev = flat.device
     off = torch.arange(-r_max, r_max + 1, device=dev)
     ii, jj = torch.meshgrid(off, off, indexing="ij")  # window rows (i) and columns (j)
     ii, jj = ii.reshape(1, -1), jj.reshape(1, -1)
     r = centre[:, 1:2] + ii
     c = centre[:, 0:1] + jj
-    rad = radius[:, None]
-    ok = (ii.abs() <= rad) & (jj.abs() <= rad) & (r > 0) & (r < rows - 1) & (c > 0) & (c < cols - 1)
+    ok = (ii.abs() <= radius) & (jj.abs() <= radius) & (r > 0) & (r < rows - 1) & (c > 0) & (c < cols - 1)
     ifl, jfl = ii.float(), jj.float()
     c_rot = jfl * cos_t[:, None] - ifl * sin_t[:, None]
     r_rot = jfl * sin_t[:, None] + ifl * cos_t[:, None]
     rbin = r_rot + (_D // 2 - 0.5)
     cbin = c_rot + (_D // 2 - 0.5)
-    rc = (r.clamp(1, rows - 2) * cols + c.clamp(1, cols - 2)).reshape(-1)
-    dx = (flat[rc + 1] - flat[rc - 1]).view_as(rbin)
-    dy = (flat[rc - cols] - flat[rc + cols]).view_as(rbin)
+    rc = base + torch.minimum(r.clamp(min=1), rows - 2) * cols + torch.minimum(c.clamp(min=1), cols - 2)
+    dx = flat[rc + 1] - flat[rc - 1]
+    dy = flat[rc - cols] - flat[rc + cols]
     weight = torch.exp((c_rot * c_rot + r_rot * r_rot) * (-1.0 / (_D * _D * 0.5)))
     mag = torch.sqrt(dx * dx + dy * dy) * weight * ok
     obin = (_fast_atan2(dy, dx) - ori[:, None]) * (_N / 360.0)
@@ -200,12 +177,7 @@ def _describe_chunk(flat, rows, cols, centre, cos_t, sin_t, ori, radius, r_max):
     wr = torch.relu(1 - (rbin[..., None] - k).abs())  # (M, P, 4): trilinear weights as hat functions
     wc = torch.relu(1 - (cbin[..., None] - k).abs())
     spatial = (wr[..., :, None] * wc[..., None, :]).flatten(-2)  # (M, P, 16), bin = row * 4 + column
-    tf32 = torch.backends.cuda.matmul.allow_tf32
-    try:  # full float32 products (a GPU may be set to multiply in TF32)
-        torch.backends.cuda.matmul.allow_tf32 = False
-        hist = torch.bmm(spatial.transpose(1, 2), wo).reshape(len(centre), -1)  # (M, 128)
-    finally:
-        torch.backends.cuda.matmul.allow_tf32 = tf32
+    hist = torch.bmm(spatial.transpose(1, 2), wo).reshape(len(centre), -1)  # (M, 128)
     thr = torch.linalg.vector_norm(hist, dim=1, keepdim=True) * _MAG_THR
     hist = torch.minimum(hist, thr)
     hist = hist * (_INT_FCTR / torch.linalg.vector_norm(hist, dim=1, keepdim=True).clamp(min=_FLT_EPSILON))
@@ -219,29 +191,62 @@ def describe(
     angle: np.ndarray,
     octave: np.ndarray,
     device: str | torch.device = "cpu",
-    budget: int = 1 << 24,
+    budget: int | None = None,
 ) -> np.ndarray:
     """OpenCV SIFT descriptors (N, 128) float32 (0..255, not normalised) of keypoints at ``xy``
     (N, 2, OpenCV pixel convention) with OpenCV ``size``, ``angle`` (deg) and packed ``octave``
     (octave & 255 | layer << 8) on the 8-bit grey image ``gray``, computed on ``device``:
     what ``cv2.SIFT_create().compute(gray, keypoints)`` returns when the pyramid starts at the
-    upsampled octave -1. ``budget``: window pixels per chunk (memory: ~300 bytes each)."""
+    upsampled octave -1. ``budget``: window pixels per chunk (memory: ~300 bytes each; None: 2^18
+    on a CPU, where chunks that fit its caches are fastest, 2^24 on a GPU, where fewer, larger steps
+    are: its kernel launches, not its arithmetic, bound the time)."""
     n = len(xy)
     if n == 0:
         return np.zeros((0, 128), np.float32)
+    if budget is None:
+        budget = 1 << 18 if torch.device(device).type == "cpu" else 1 << 24
     oct_, layer = _unpack_octave(np.asarray(octave))
-    g = torch.as_tensor(np.ascontiguousarray(gray), device=device)
-    pyr = gaussian_pyramid(g, int(oct_.max()))
-    scale = np.where(oct_ >= 0, 1.0 / (1 << np.maximum(oct_, 0)), 2.0 ** np.maximum(-oct_, 0)).astype(np.float32)
-    pt = np.asarray(xy, np.float32) * scale[:, None]
-    scl = np.asarray(size, np.float32) * scale * np.float32(0.5)
-    ori = np.float32(360.0) - np.asarray(angle, np.float32)
-    ori[np.abs(ori - 360.0) < _FLT_EPSILON] = 0.0
-    out = torch.empty((n, 128), dtype=torch.float32, device=device)
-    level = oct_ * 256 + layer
-    for key in np.unique(level):
-        sel = np.flatnonzero(level == key)
-        img = pyr[(int(oct_[sel[0]]), int(layer[sel[0]]))]
-        pt_l, ori_l, scl_l = (torch.as_tensor(a[sel], device=device) for a in (pt, ori, scl))
-        out[torch.as_tensor(sel, device=device)] = _describe_level(img, pt_l, ori_l, scl_l, budget)
+    with _float32():
+        pyr = gaussian_pyramid(torch.as_tensor(np.ascontiguousarray(gray), device=device), int(oct_.max()))
+        # the levels the points use, one after the other in one flat buffer
+        level = (oct_ + 1) * (_LAYERS + 1) + layer
+        used = np.unique(level)
+        images = [pyr[(int(v) // (_LAYERS + 1) - 1, int(v) % (_LAYERS + 1))] for v in used]
+        flat = torch.cat([im.reshape(-1) for im in images])
+        start = np.concatenate([[0], np.cumsum([im.numel() for im in images])[:-1]])
+        shape = np.array([im.shape for im in images], np.int64)
+        at = np.searchsorted(used, level)
+        rows, cols = shape[at, 0], shape[at, 1]
+        # calcDescriptors: the keypoint in its octave's pixels, OpenCV's float32 arithmetic
+        scale = np.where(oct_ >= 0, 1.0 / (1 << np.maximum(oct_, 0)), 2.0 ** np.maximum(-oct_, 0)).astype(np.float32)
+        pt = np.asarray(xy, np.float32) * scale[:, None]
+        hist_width = np.float32(_SCL_FCTR) * (np.asarray(size, np.float32) * scale * np.float32(0.5))
+        radius = np.rint(hist_width * np.float32(1.4142135623730951) * np.float32(_D + 1) * np.float32(0.5))
+        radius = np.minimum(radius.astype(np.int64), np.sqrt(rows.astype(np.float64) ** 2 + cols**2).astype(np.int64))
+        ori = np.float32(360.0) - np.asarray(angle, np.float32)
+        ori[np.abs(ori - 360.0) < _FLT_EPSILON] = 0.0
+        t = lambda a, dt=None: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+        ori_t, hw_t = t(ori), t(hist_width)
+        cos_t, sin_t = torch.cos(ori_t * math.radians(1.0)) / hw_t, torch.sin(ori_t * math.radians(1.0)) / hw_t
+        centre = torch.round(t(pt)).to(torch.int64)  # cvRound (half to even)
+        per_point = t(np.stack([start[at], rows, cols, radius], 1))  # (N, 4) int64
+        out = torch.empty((n, _D * _D * _N), dtype=torch.float32, device=device)
+        order = np.argsort(radius, kind="stable")  # similar windows together: less padding per chunk
+        window = (2 * radius[order] + 1) ** 2  # nondecreasing
+        i = 0
+        while i < n:  # chunks of at most ``budget`` window pixels (at least one point)
+            j = i + max(1, int(np.searchsorted(np.arange(1, n - i + 1) * window[i:], budget, side="right")))
+            idx = t(order[i:j])
+            pp = per_point[idx]
+            out[idx] = _describe_chunk(
+                flat,
+                *(pp[:, k : k + 1] for k in range(3)),
+                centre[idx],
+                cos_t[idx],
+                sin_t[idx],
+                ori_t[idx],
+                pp[:, 3:4],
+                int(radius[order[j - 1]]),
+            )
+            i = j
     return out.cpu().numpy()
