@@ -23,6 +23,7 @@ only where the build runs on a GPU (:class:`favormap.features.sift.SIFTExtractor
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 
 import numpy as np
@@ -47,8 +48,10 @@ def _reflect101(n: int, pad: int, device) -> torch.Tensor:
     return torch.where(i >= n, period - i, i)
 
 
-def _gaussian_kernel(sigma: float, device) -> torch.Tensor:
-    """cv::getGaussianKernel at GaussianBlur's size for float images (2 * round(4 sigma) + 1)."""
+@functools.lru_cache(maxsize=64)
+def _gaussian_kernel(sigma: float, device: str) -> torch.Tensor:
+    """cv::getGaussianKernel at GaussianBlur's size for float images (2 * round(4 sigma) + 1), kept
+    on ``device`` (a copy to a GPU waits for the work queued there)."""
     ksize = int(np.rint(sigma * 8 + 1)) | 1
     x = np.arange(ksize, dtype=np.float64) - (ksize - 1) / 2
     k = np.exp(-0.5 / (sigma * sigma) * x * x)
@@ -58,7 +61,7 @@ def _gaussian_kernel(sigma: float, device) -> torch.Tensor:
 def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     """cv::GaussianBlur(img, Size(), sigma, sigma) of a float (H, W) image: the separable kernel as
     two convolutions (run under :func:`_float32`: a GPU may otherwise convolve in TF32)."""
-    k = _gaussian_kernel(sigma, img.device)
+    k = _gaussian_kernel(sigma, str(img.device))
     pad = (len(k) - 1) // 2
     h, w = img.shape
     x = img[:, _reflect101(w, pad, img.device)][None, None]  # (1, 1, H, W + 2 pad)
@@ -98,8 +101,9 @@ def _halve(img: torch.Tensor) -> torch.Tensor:
     """cv::resize(img, Size(w / 2, h / 2), INTER_NEAREST)."""
     h, w = img.shape
     hh, ww = max(h // 2, 1), max(w // 2, 1)
-    rows = torch.as_tensor(np.minimum(np.floor(np.arange(hh) * (h / hh)), h - 1).astype(np.int64), device=img.device)
-    cols = torch.as_tensor(np.minimum(np.floor(np.arange(ww) * (w / ww)), w - 1).astype(np.int64), device=img.device)
+    dev = img.device
+    rows = torch.floor(torch.arange(hh, dtype=torch.float64, device=dev) * (h / hh)).long().clamp(max=h - 1)
+    cols = torch.floor(torch.arange(ww, dtype=torch.float64, device=dev) * (w / ww)).long().clamp(max=w - 1)
     return img[rows][:, cols]
 
 
@@ -225,28 +229,30 @@ def describe(
         radius = np.minimum(radius.astype(np.int64), np.sqrt(rows.astype(np.float64) ** 2 + cols**2).astype(np.int64))
         ori = np.float32(360.0) - np.asarray(angle, np.float32)
         ori[np.abs(ori - 360.0) < _FLT_EPSILON] = 0.0
-        t = lambda a, dt=None: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
-        ori_t, hw_t = t(ori), t(hist_width)
+        # points sorted by window (similar windows together: less padding per chunk), sent to the device
+        # in two copies (each copy to a GPU waits for the work queued there) and cut into chunks there
+        order = np.argsort(radius, kind="stable")
+        ints = torch.as_tensor(np.stack([start[at], rows, cols, radius], 1)[order], device=device)  # (N, 4)
+        floats = torch.as_tensor(np.concatenate([pt, ori[:, None], hist_width[:, None]], 1)[order], device=device)
+        centre = torch.round(floats[:, :2]).to(torch.int64)  # cvRound (half to even)
+        ori_t, hw_t = floats[:, 2], floats[:, 3]
         cos_t, sin_t = torch.cos(ori_t * math.radians(1.0)) / hw_t, torch.sin(ori_t * math.radians(1.0)) / hw_t
-        centre = torch.round(t(pt)).to(torch.int64)  # cvRound (half to even)
-        per_point = t(np.stack([start[at], rows, cols, radius], 1))  # (N, 4) int64
         out = torch.empty((n, _D * _D * _N), dtype=torch.float32, device=device)
-        order = np.argsort(radius, kind="stable")  # similar windows together: less padding per chunk
         window = (2 * radius[order] + 1) ** 2  # nondecreasing
         i = 0
         while i < n:  # chunks of at most ``budget`` window pixels (at least one point)
             j = i + max(1, int(np.searchsorted(np.arange(1, n - i + 1) * window[i:], budget, side="right")))
-            idx = t(order[i:j])
-            pp = per_point[idx]
-            out[idx] = _describe_chunk(
+            out[i:j] = _describe_chunk(
                 flat,
-                *(pp[:, k : k + 1] for k in range(3)),
-                centre[idx],
-                cos_t[idx],
-                sin_t[idx],
-                ori_t[idx],
-                pp[:, 3:4],
+                *(ints[i:j, k : k + 1] for k in range(3)),
+                centre[i:j],
+                cos_t[i:j],
+                sin_t[i:j],
+                ori_t[i:j],
+                ints[i:j, 3:4],
                 int(radius[order[j - 1]]),
             )
             i = j
-    return out.cpu().numpy()
+    desc = np.empty((n, _D * _D * _N), np.float32)
+    desc[order] = out.cpu().numpy()
+    return desc
