@@ -31,7 +31,7 @@ from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .threads import configure_threads, rebalance
-from .tracking import Tracks, track_features
+from .tracking import Tracks, refine_keypoints, track_features
 from .triangulation import Landmarks, TriangulationConfig, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
 from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
@@ -56,6 +56,9 @@ class BuildConfig:
     epipolar_first: bool = False
     split_conflicts: bool = False
     match_ratio: float = 1.0
+    # align each track's keypoints to its middle observation by their image content before triangulating
+    # (tracking.refine_keypoints: Lucas-Kanade in a window of this many pixels; 0: off)
+    refine_window: int = 0
     max_reproj_px: float = 5.0
     min_angle_deg: float = 1.0
     max_landmarks: int = 3000
@@ -296,6 +299,20 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
         config.split_conflicts,
         config.match_ratio,
     )
+
+
+def refine_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Tracks:
+    """The build's keypoint refinement (``config.refine_window``): tracking.refine_keypoints on the
+    frames' grey images (SIFT's sampling state holds them)."""
+    grays = []
+    for f in range(len(ff.features)):
+        gray = getattr(ff.features[f].dense, "gray", None)
+        if gray is None:
+            raise FavormapError(
+                f"refine_window needs the frames' grey images, which {config.extractor!r} features do not hold"
+            )
+        grays.append(gray)
+    return refine_keypoints(tracks, grays, config.refine_window)[0]
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
@@ -595,6 +612,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
         tracks = track_frames(ff, config)
+        if config.refine_window:
+            tracks = refine_tracks(tracks, ff, config)
         release_free_memory()
         pr.callback("track", 1, 1)
     obs.on_tracks(tracks, ff)

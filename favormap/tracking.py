@@ -291,3 +291,53 @@ def track_features(
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
     return Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])
+
+
+def refine_keypoints(
+    tracks: Tracks,
+    grays: SequenceABC[np.ndarray],
+    window: int = 15,
+    levels: int = 1,
+    max_move_px: float = 1.5,
+    max_fb_px: float = 0.25,
+) -> tuple[Tracks, np.ndarray]:
+    """Each track's observations aligned to one reference observation by their image content: the
+    keypoints of a track are each detected on their own, with their own noise; this moves each to where
+    its ``window`` x ``window`` neighbourhood best matches the reference's (Lucas-Kanade, translation
+    only: OpenCV's pyramidal ``calcOpticalFlowPyrLK`` over ``levels`` extra levels, from the detected
+    position). The reference is a track's middle observation in frame order. An observation moves
+    only if the flow converges, stays within ``max_move_px`` of the detection, and the backward flow
+    returns within ``max_fb_px`` of the reference. ``grays``: the frames' 8-bit grey images at the
+    keypoints' resolution. Returns the tracks and which observations moved."""
+    import cv2
+
+    xy = tracks.xy.copy()
+    moved = np.zeros(len(xy), bool)
+    lens = tracks.lengths
+    if len(xy) == 0:
+        return tracks, moved
+    ref = np.repeat(tracks.offsets[:-1] + lens // 2, lens)  # observations are sorted by frame within a track
+    todo = np.flatnonzero(np.arange(len(xy)) != ref)
+    fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
+    pair = fa * (int(tracks.frame_idx.max()) + 1) + fb
+    order = np.argsort(pair, kind="stable")
+    cuts = np.flatnonzero(np.diff(pair[order])) + 1
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    lk = dict(winSize=(window, window), maxLevel=levels, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    for group in np.split(order, cuts):
+        obs = todo[group]
+        a, b = int(tracks.frame_idx[ref[obs[0]]]), int(tracks.frame_idx[obs[0]])
+        p_ref = (tracks.xy[ref[obs]] - 0.5).astype(np.float32).reshape(-1, 1, 2)  # OpenCV's pixel centres
+        p_obs = (tracks.xy[obs] - 0.5).astype(np.float32).reshape(-1, 1, 2)
+        fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(grays[a], grays[b], p_ref, p_obs.copy(), **lk)
+        back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grays[b], grays[a], fwd, p_ref.copy(), **lk)
+        fwd, back = fwd.reshape(-1, 2), back.reshape(-1, 2)
+        ok = (
+            (ok_f.ravel() == 1)
+            & (ok_b.ravel() == 1)
+            & (np.linalg.norm(fwd - p_obs.reshape(-1, 2), axis=1) <= max_move_px)
+            & (np.linalg.norm(back - p_ref.reshape(-1, 2), axis=1) <= max_fb_px)
+        )
+        xy[obs[ok]] = fwd[ok] + 0.5
+        moved[obs[ok]] = True
+    return Tracks(tracks.frame_idx, tracks.keypoint_idx, xy, tracks.offsets), moved
