@@ -31,8 +31,8 @@ from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .threads import configure_threads, rebalance
-from .tracking import Tracks, refine_keypoints, track_features
-from .triangulation import Landmarks, TriangulationConfig, triangulate
+from .tracking import Tracks, track_features
+from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
 from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
 
@@ -56,8 +56,8 @@ class BuildConfig:
     epipolar_first: bool = False
     split_conflicts: bool = False
     match_ratio: float = 1.0
-    # align each track's keypoints to its middle observation by their image content before triangulating
-    # (tracking.refine_keypoints: Lucas-Kanade in a window of this many pixels; 0: off)
+    # align each landmark's observations to its middle one through its local plane, then triangulate again
+    # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off)
     refine_window: int = 0
     max_reproj_px: float = 5.0
     min_angle_deg: float = 1.0
@@ -301,9 +301,10 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
     )
 
 
-def refine_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Tracks:
-    """The build's keypoint refinement (``config.refine_window``): tracking.refine_keypoints on the
-    frames' grey images (SIFT's sampling state holds them)."""
+def refine_landmarks(lms: Landmarks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
+    """The build's keypoint refinement (``config.refine_window``): each landmark's observations
+    aligned through its local plane (triangulation.refine_observations, on the frames' grey images,
+    which SIFT's sampling state holds), then triangulated again."""
     grays = []
     for f in range(len(ff.features)):
         gray = getattr(ff.features[f].dense, "gray", None)
@@ -312,7 +313,10 @@ def refine_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Tra
                 f"refine_window needs the frames' grey images, which {config.extractor!r} features do not hold"
             )
         grays.append(gray)
-    return refine_keypoints(tracks, grays, config.refine_window)[0]
+    Ks = np.stack([c.K for c in ff.cameras])
+    tracks = refine_observations(lms, grays, Ks, ff.cam_from_world, config.refine_window)[0]
+    tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
+    return triangulate(tracks, ff.cam_from_world, Ks, tri_cfg)
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
@@ -612,8 +616,6 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     obs.on_frames(seq, ff, images)
     with pr.stage("track"):
         tracks = track_frames(ff, config)
-        if config.refine_window:
-            tracks = refine_tracks(tracks, ff, config)
         release_free_memory()
         pr.callback("track", 1, 1)
     obs.on_tracks(tracks, ff)
@@ -624,6 +626,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         )
     with pr.stage("triangulate"):
         all_lms = triangulate_tracks(tracks, ff, config)
+        if config.refine_window:
+            all_lms = refine_landmarks(all_lms, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks)
         n_tracks, n_triangulated = len(tracks), len(all_lms)
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, direction_cones, inverse
+from .geometry import camera_centers, direction_cones, inverse, project
 from .tracking import Tracks
 
 
@@ -196,3 +196,122 @@ def _max_angle(rays: np.ndarray, tracks: Tracks, valid: np.ndarray) -> np.ndarra
     """Largest angle (degrees) between the valid viewing rays of each track (vs. their mean ray)."""
     _, out = direction_cones(rays, tracks.track_of_obs, len(tracks), valid)
     return 2.0 * out  # spread of the rays ~ twice the largest deviation from the mean
+
+
+def landmark_normals(positions: np.ndarray, toward: np.ndarray, k: int = 12) -> np.ndarray:
+    """Unit normals (L, 3) of the surface the landmarks lie on: the direction of least spread of each
+    landmark's ``k`` nearest landmarks (PCA), turned toward ``toward`` (L, 3), e.g. a camera centre."""
+    from scipy.spatial import cKDTree
+
+    n = len(positions)
+    if n == 0:
+        return np.zeros((0, 3))
+    _, nn = cKDTree(positions).query(positions, k=min(k, n))
+    nn = nn.reshape(n, -1)
+    Y = positions[nn] - positions[nn].mean(1, keepdims=True)
+    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", Y, Y))[1][:, :, 0]  # eigenvalues ascending
+    return normal * np.where(np.einsum("ni,ni->n", normal, toward - positions) < 0, -1.0, 1.0)[:, None]
+
+
+def _plane_points(K, T, pix, X, n):
+    """Where the rays of pixels ``pix`` (N, G, 2) of camera (K, T) meet the planes through X (N, 3)
+    with normals n (N, 3)."""
+    R, C = T[:3, :3], camera_centers(T)
+    h = np.concatenate([pix, np.ones(pix.shape[:-1] + (1,))], -1)
+    rays = np.einsum("ij,ngj->ngi", R.T @ np.linalg.inv(K), h)
+    lam = np.einsum("ni,ni->n", n, X - C)[:, None] / np.einsum("ni,ngi->ng", n, rays)
+    return C + lam[..., None] * rays
+
+
+def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a float32 image at points ``xy`` (..., 2), COLMAP pixel convention."""
+    import cv2
+
+    m = (xy.reshape(-1, 2) - 0.5).astype(np.float32)
+    n, width = len(m), 4096  # cv2.remap's maps: fewer than 32,767 rows and columns
+    m = np.concatenate([m, np.zeros((-n % width, 2), np.float32)]).reshape(-1, width, 2)
+    out = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:n].reshape(xy.shape[:-1])
+
+
+def refine_observations(
+    lms: Landmarks,
+    grays,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    window: int = 9,
+    normal_k: int = 12,
+    iterations: int = 10,
+    max_move_px: float = 1.5,
+) -> tuple[Tracks, np.ndarray]:
+    """Each landmark's observations aligned to its middle observation (in frame order) by their image
+    content, through the homography of the landmark's local plane: the keypoints of a track are each
+    detected on their own, with their own noise; this moves observation b to where the reference's
+    ``window`` x ``window`` neighbourhood, carried into frame b by the plane through the landmark with
+    the normal of its ``normal_k`` nearest landmarks (:func:`landmark_normals`), matches frame b best
+    (Lucas-Kanade over a 2D shift in the reference frame, gain and offset removed, ``iterations``
+    Gauss-Newton steps). An observation moves at most ``max_move_px``; otherwise it stays where it
+    was detected, as does the reference. ``grays``: the frames' grey images at the keypoints'
+    resolution. Returns the tracks (triangulate them again) and which observations moved.
+
+    Measured on the synthetic room with exact poses (docs/benchmarks/s18-prototypes/plane_lk.py):
+    landmarks' median distance to the true surface 0.0055 -> 0.0022 units (true normals: 0.0014);
+    a translation-only alignment without the plane moved them off it (0.0088)."""
+    import cv2
+
+    tracks = lms.tracks
+    xy = tracks.xy.copy()
+    moved = np.zeros(len(xy), bool)
+    if len(lms) == 0:
+        return tracks, moved
+    half = window // 2
+    g = (
+        np.stack(np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1)), -1)
+        .reshape(-1, 2)
+        .astype(np.float64)
+    )
+    lens = tracks.lengths
+    ref = np.repeat(tracks.offsets[:-1] + lens // 2, lens)  # observations are sorted by frame within a track
+    tid = tracks.track_of_obs
+    centers = camera_centers(cam_from_world)
+    normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
+    imgs = {}
+
+    def image(f):  # float image and its gradients (central differences), once per frame
+        if f not in imgs:
+            im = np.asarray(grays[f], np.float32)
+            imgs[f] = (
+                im,
+                cv2.Sobel(im, cv2.CV_32F, 1, 0, ksize=1) * 0.5,
+                cv2.Sobel(im, cv2.CV_32F, 0, 1, ksize=1) * 0.5,
+            )
+        return imgs[f]
+
+    todo = np.flatnonzero(np.arange(len(xy)) != ref)
+    fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
+    pair = fa * (int(tracks.frame_idx.max()) + 1) + fb
+    order = np.argsort(pair, kind="stable")
+    for group in np.split(order, np.flatnonzero(np.diff(pair[order])) + 1):
+        o = todo[group]
+        a, b = int(fa[group[0]]), int(fb[group[0]])
+        X, n = lms.positions[tid[o]], normals[tid[o]]
+        pa = tracks.xy[ref[o]]
+        grid = pa[:, None] + g[None]
+        ia, gx, gy = image(a)
+        A = _sample(ia, grid)
+        A -= A.mean(1, keepdims=True)
+        J = np.stack([_sample(gx, grid), _sample(gy, grid)], -1)
+        J -= J.mean(1, keepdims=True)
+        hess = np.einsum("ngi,ngj->nij", J, J) + 1e-6 * np.eye(2)
+        ib = image(b)[0]
+        s = np.zeros((len(o), 2))
+        for _ in range(iterations):
+            P = _plane_points(K[a], cam_from_world[a], grid + s[:, None], X, n)
+            W = _sample(ib, project(K[b], cam_from_world[b], P.reshape(-1, 3)).reshape(P.shape[:-1] + (2,)))
+            e = W - W.mean(1, keepdims=True) - A
+            s -= np.linalg.solve(hess, np.einsum("ngi,ng->ni", J, e)[..., None])[..., 0]
+        pb = project(K[b], cam_from_world[b], _plane_points(K[a], cam_from_world[a], (pa + s)[:, None], X, n)[:, 0])
+        ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[o], axis=1) <= max_move_px)
+        xy[o[ok]] = pb[ok]
+        moved[o[ok]] = True
+    return Tracks(tracks.frame_idx, tracks.keypoint_idx, xy, tracks.offsets), moved

@@ -246,3 +246,43 @@ def test_split_conflicts_rebuilds_an_ambiguous_component_from_its_strongest_matc
         assert len(np.unique(tracks.frame_idx[a_:b_])) == b_ - a_  # one keypoint per frame
     t7 = [i for i, o in enumerate(per_track) if o[0] == 7]
     assert len(t7) == 1 and tracks.lengths[t7[0]] >= 5
+
+
+def test_refine_keypoints_moves_noisy_observations_onto_the_reference_and_leaves_the_rest():
+    """Lucas-Kanade alignment to a track's middle observation: on images that differ by a known
+    sub-pixel shift, noisy keypoints land on the shifted reference; a keypoint too far to move
+    stays where it was detected, as does the reference."""
+    import cv2
+
+    from favormap.synthetic import make_texture
+    from favormap.tracking import refine_keypoints
+
+    rng = np.random.default_rng(0)
+    img = cv2.cvtColor(make_texture(240, 180, rng), cv2.COLOR_RGB2GRAY)
+    shifts = {0: (0.0, 0.0), 1: (1.3, -0.7), 2: (-0.6, 0.9)}  # frame 1 holds the reference (middle)
+    grays = [
+        cv2.warpAffine(img, np.float32([[1, 0, dx], [0, 1, dy]]), (240, 180), flags=cv2.INTER_CUBIC)
+        for dx, dy in shifts.values()
+    ]
+    pts = rng.uniform(40, 140, (30, 2))
+    n = len(pts)
+    truth = np.concatenate([pts + shifts[f] for f in (0, 1, 2)])  # (frame-major) true positions
+    noise = rng.normal(0, 0.4, (3 * n, 2))
+    noise[n : 2 * n] = 0  # the reference observations are exact
+    noise[0] = (3.0, 0.0)  # one keypoint 3 px off: farther than max_move_px
+    frame = np.repeat([0, 1, 2], n)
+    tracks = Tracks.from_obs(frame, np.tile(np.arange(n), 3), truth + noise, np.tile(np.arange(n), 3))
+    ref_truth = Tracks.from_obs(frame, np.tile(np.arange(n), 3), truth, np.tile(np.arange(n), 3))
+    out, moved = refine_keypoints(tracks, grays, window=15)
+    err_before = np.linalg.norm(tracks.xy - ref_truth.xy, axis=1)
+    err_after = np.linalg.norm(out.xy - ref_truth.xy, axis=1)
+    is_ref = tracks.frame_idx == 1
+    assert not moved[is_ref].any() and np.array_equal(out.xy[is_ref], tracks.xy[is_ref])
+    far = np.argmax(err_before)  # the 3 px keypoint
+    assert not moved[far] and np.array_equal(out.xy[far], tracks.xy[far])
+    ok = moved & ~is_ref
+    assert ok.sum() >= 0.8 * (2 * n - 1)
+    assert np.median(err_after[ok]) < 0.1 < 0.3 < np.median(err_before[ok]), (
+        np.median(err_after[ok]),
+        np.median(err_before[ok]),
+    )
