@@ -182,3 +182,40 @@ def test_a_strided_patch_describes_the_same_pixels_as_the_full_patch(small_seque
     np.testing.assert_array_equal(strided.sizes, full.sizes)  # the voxel box does not depend on the stride
     with pytest.raises(ValueError, match="multiple of the stride"):
         patch_offsets(7, 2)
+
+
+def test_plane_aligned_observations_move_landmarks_onto_the_true_surface(small_sequence):
+    """triangulation.refine_observations (BuildConfig.refine_window): on the synthetic room with exact
+    poses, each track's keypoints aligned to its middle observation through the landmark's local plane
+    put the re-triangulated landmarks closer to the true surface (the prototype measured median
+    0.0055 -> 0.0022 units), and reproject closer; the reference observations stay as detected."""
+    from favormap.build import (
+        BuildConfig,
+        ExtractorSpec,
+        extract_sequence,
+        refine_landmarks,
+        track_frames,
+        triangulate_tracks,
+    )
+    from favormap.synthetic import make_room, surface_distance
+
+    cfg = BuildConfig(max_keypoints=1024, max_side=0, refine_window=9)
+    ff = extract_sequence(small_sequence, ExtractorSpec("sift", 1024), 0)
+    plain = triangulate_tracks(track_frames(ff, cfg), ff, cfg)
+    refined = refine_landmarks(plain, ff, cfg)
+    assert len(refined) >= 0.99 * len(plain)
+    scene = make_room(0)
+    d_plain = np.median(np.abs(surface_distance(scene, plain.positions)))
+    d_refined = np.median(np.abs(surface_distance(scene, refined.positions)))
+    assert d_refined < 0.6 * d_plain, (d_refined, d_plain)
+    assert np.median(refined.mean_reproj_error) < 0.8 * np.median(plain.mean_reproj_error)
+    # the middle observation of each track is the reference: where SIFT detected it
+    from favormap.triangulation import refine_observations
+
+    tracks, moved = refine_observations(
+        plain, [f.dense.gray for f in ff.features], np.stack([c.K for c in ff.cameras]), ff.cam_from_world
+    )
+    mid = plain.tracks.offsets[:-1] + plain.tracks.lengths // 2
+    assert not moved[mid].any() and np.array_equal(tracks.xy[mid], plain.tracks.xy[mid])
+    assert moved.mean() > 0.5
+    assert np.linalg.norm(tracks.xy - plain.tracks.xy, axis=1).max() <= 1.5 + 1e-9
