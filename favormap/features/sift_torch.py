@@ -1,7 +1,7 @@
 """OpenCV's SIFT descriptor, computed in torch: the descriptor patches of a build on a GPU.
 
-A SIFT build describes ~50 points around every observation of every landmark (the S x S training
-patches, :meth:`favormap.features.sift.SIFTExtractor.sample`): ~470,000 descriptors for the fox.
+A SIFT build describes 49 points around every observation of every landmark (the 7 x 7 training
+patches, :meth:`favormap.features.sift.SIFTExtractor.sample`): 967,260 descriptors for the fox.
 OpenCV computes them on the CPU, one image pyramid per frame and one descriptor after another, which
 was half of a GPU build (H200, fox at full resolution: 8.6 of 18.2 s). This module computes the same
 descriptors as OpenCV's ``SIFT.compute`` on a torch device, all points of a frame at once:
@@ -15,9 +15,12 @@ descriptors as OpenCV's ``SIFT.compute`` on a torch device, all points of a fram
   clamp and the rounding to 0..255.
 
 Rounding aside (float sums in another order), the result is OpenCV's descriptor:
-``tests/test_sift_torch.py`` compares them point by point. Only the levels the points use are
-built (layers 1-3 of the octaves they span). On a CPU, OpenCV is faster; favormap uses this module
-only where the build runs on a GPU (:class:`favormap.features.sift.SIFTExtractor` with a device).
+``tests/test_sift_torch.py`` compares them point by point. The pyramid goes up to the highest
+octave a point uses; the levels the points use go into one flat buffer, and all points of a frame
+are described in chunks over it. On a CPU, OpenCV is faster; favormap uses this module only where
+the build runs on a GPU (:class:`favormap.features.sift.SIFTExtractor` with a device). The
+TF32 switches are process-wide: :func:`describe` turns them off while it runs (a GPU task of the
+build runs alone).
 """
 
 from __future__ import annotations
