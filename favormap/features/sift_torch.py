@@ -191,6 +191,20 @@ def _describe_chunk(flat, base, rows, cols, centre, cos_t, sin_t, ori, radius, r
     return torch.round(hist).clamp(0, 255)
 
 
+_BYTES_PER_PIXEL = 400  # a chunk's peak per window pixel, with a margin (measured on the CPU: 250-320 bytes)
+
+
+def _default_budget(device: torch.device) -> int:
+    """Window pixels per chunk: 2^18 on a CPU (chunks that fit its caches are fastest); on a GPU 2^24
+    (fewer, larger steps: kernel launches bound the time), at most a quarter of its free memory."""
+    if device.type == "cpu":
+        return 1 << 18
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(max(1 << 16, min(1 << 24, free // (4 * _BYTES_PER_PIXEL))))
+    return 1 << 24
+
+
 def describe(
     gray: np.ndarray | torch.Tensor,
     xy: np.ndarray,
@@ -204,14 +218,13 @@ def describe(
     (N, 2, OpenCV pixel convention) with OpenCV ``size``, ``angle`` (deg) and packed ``octave``
     (octave & 255 | layer << 8) on the 8-bit grey image ``gray``, computed on ``device``:
     what ``cv2.SIFT_create().compute(gray, keypoints)`` returns when the pyramid starts at the
-    upsampled octave -1. ``budget``: window pixels per chunk (memory: ~300 bytes each; None: 2^18
-    on a CPU, where chunks that fit its caches are fastest, 2^24 on a GPU, where fewer, larger steps
-    are: its kernel launches, not its arithmetic, bound the time)."""
+    upsampled octave -1. ``budget``: window pixels per chunk (memory: 250-320 bytes each; None:
+    :func:`_default_budget`)."""
     n = len(xy)
     if n == 0:
         return np.zeros((0, 128), np.float32)
     if budget is None:
-        budget = 1 << 18 if torch.device(device).type == "cpu" else 1 << 24
+        budget = _default_budget(torch.device(device))
     oct_, layer = _unpack_octave(np.asarray(octave))
     with _float32():
         pyr = gaussian_pyramid(torch.as_tensor(np.ascontiguousarray(gray), device=device), int(oct_.max()))
