@@ -107,3 +107,26 @@ def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequ
     assert not calls
     on_device = sample_patches(task, device="cpu:0")
     assert len(calls) == 1 and np.sum(on_device * opencv, axis=1).min() > 0.9999
+
+
+def test_levels_smaller_than_the_window_and_points_on_the_border():
+    """A 20 x 24 image: OpenCV's descriptors up to the octave whose image is a few pixels wide
+    (zero where no pixel of the window lies inside it), and finite zeros beyond (where OpenCV's
+    own pyramid cannot be built)."""
+    import cv2
+
+    from favormap.features import sift_torch
+
+    gray = np.random.default_rng(0).integers(0, 255, (20, 24), dtype=np.uint8)
+    xy = np.array([[10, 10], [0, 0], [23, 19]], np.float32)
+    for octave in (-1, 0, 2, 4, 7):
+        packed = np.full(3, (octave & 255) | (1 << 8), np.int64)
+        size = np.full(3, 3.2 * 2 ** (octave + 1 / 3), np.float32)
+        mine = sift_torch.describe(gray, xy, size, np.zeros(3, np.float32), packed)
+        assert mine.shape == (3, 128) and np.isfinite(mine).all()
+        if octave <= 4:
+            kps = [cv2.KeyPoint(float(x), float(y), float(s), 0, 0, int(o)) for (x, y), s, o in zip(xy, size, packed)]
+            _, ref = cv2.SIFT_create().compute(gray, kps + [cv2.KeyPoint(12, 10, 3.2, 0, 0, (-1 & 255) | (1 << 8))])
+            np.testing.assert_array_equal(mine, ref[:3])
+        else:
+            assert not mine.any()

@@ -169,8 +169,9 @@ def _describe_chunk(flat, base, rows, cols, centre, cos_t, sin_t, ori, radius, r
     rbin = r_rot + (_D // 2 - 0.5)
     cbin = c_rot + (_D // 2 - 0.5)
     rc = base + torch.minimum(r.clamp(min=1), rows - 2) * cols + torch.minimum(c.clamp(min=1), cols - 2)
-    dx = flat[rc + 1] - flat[rc - 1]
-    dy = flat[rc - cols] - flat[rc + cols]
+    at = lambda i: flat[i.clamp(0, len(flat) - 1)]  # noqa: E731  (outside the image: masked by ``ok``)
+    dx = at(rc + 1) - at(rc - 1)
+    dy = at(rc - cols) - at(rc + cols)
     weight = torch.exp((c_rot * c_rot + r_rot * r_rot) * (-1.0 / (_D * _D * 0.5)))
     mag = torch.sqrt(dx * dx + dy * dy) * weight * ok
     obin = (_fast_atan2(dy, dx) - ori[:, None]) * (_N / 360.0)
