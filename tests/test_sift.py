@@ -156,3 +156,24 @@ def test_features_pickle_with_their_keypoint_frames(room_image):
     assert len(f.dense.size) == len(f.keypoints) and (f.dense.size > 0).all()
     pts = f.keypoints[:20] + 1.5
     assert np.array_equal(ex.sample(g, pts), ex.sample(f, pts))
+
+
+def test_points_described_alike_are_described_once_with_the_same_result(room_image):
+    """Points that OpenCV describes alike (the same position rounded in their octave's pixels, size,
+    angle and octave) are described once: the result equals describing each point on its own."""
+    from favormap.features.sift import _distinct
+
+    ex = features.create("sift", max_keypoints=300)
+    f = ex.extract(room_image)
+    rng = np.random.default_rng(3)
+    base = np.concatenate([f.keypoints[:20], rng.uniform(10, 230, (10, 2))]).astype(np.float32)
+    pts = np.concatenate([base, base + 0.2, base, base + [1.0, 0.0]]).astype(np.float32)  # repeats, near-repeats
+    alone = np.concatenate([ex.sample(f, pts[i : i + 1]) for i in range(len(pts))])
+    np.testing.assert_array_equal(ex.sample(f, pts), alone)
+    first, inverse = _distinct(
+        pts - 0.5,
+        np.full(len(pts), 12.0, np.float32),
+        np.zeros(len(pts), np.float32),
+        np.full(len(pts), 0x301, np.int64),
+    )
+    assert len(first) < 0.6 * len(pts) and np.array_equal(inverse[: len(base)], inverse[2 * len(base) : 3 * len(base)])

@@ -188,10 +188,13 @@ class SIFTExtractor(Extractor):
         p = np.asarray(pts, np.float32) - 0.5
         p[:, 0] = np.clip(p[:, 0], 0, w - 1)
         p[:, 1] = np.clip(p[:, 1], 0, h - 1)
+        # each distinct descriptor once (11 % of the fox build's patch points repeat one), then spread
+        first, inverse = _distinct(p, size, angle, octave)
+        p, size, angle, octave = p[first], size[first], angle[first], octave[first]
         if self.torch_descriptors:  # the same descriptors, computed by torch on the device (a build's patches)
             from . import sift_torch
 
-            return _root_sift(sift_torch.describe(st.gray, p, size, angle, octave, self.device))
+            return _root_sift(sift_torch.describe(st.gray, p, size, angle, octave, self.device))[inverse]
         kps = [
             cv2.KeyPoint(float(x), float(y), float(s), float(a), 0, int(o))
             for (x, y), s, a, o in zip(p, size, angle, octave)
@@ -204,7 +207,31 @@ class SIFTExtractor(Extractor):
                 _, d = self._sift.compute(st.gray, [k, anchor])
                 if d is not None and len(d) == 2:
                     desc[i] = d[0]
-        return _root_sift(desc[: len(kps)])
+        return _root_sift(desc[: len(kps)])[inverse]
+
+
+def _distinct(p: np.ndarray, size: np.ndarray, angle: np.ndarray, octave: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's descriptor of a keypoint depends on its position only through that position rounded
+    in its octave's pixels (``calcSIFTDescriptor`` centres its window on ``cvRound(pt * scale)``):
+    the first of each group of keypoints (OpenCV convention ``p``) that OpenCV describes alike, and
+    each keypoint's group."""
+    o = np.asarray(octave, np.int64) & 255
+    o = np.where(o < 128, o, o - 256)
+    scale = np.where(o >= 0, 1.0 / (1 << np.maximum(o, 0)), 2.0 ** np.maximum(-o, 0)).astype(np.float32)
+    q = np.where(np.isfinite(p), p * scale[:, None], -1.0)  # float32 products (NaN points: one group)
+    centre = np.rint(q).astype(np.int64)  # rounded half to even, as cvRound
+    key = np.stack(
+        [
+            centre[:, 0],
+            centre[:, 1],
+            np.asarray(octave, np.int64),
+            np.asarray(size, np.float32).view(np.int32).astype(np.int64),
+            np.asarray(angle, np.float32).view(np.int32).astype(np.int64),
+        ],
+        1,
+    )
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
 
 
 def _root_sift(desc: np.ndarray) -> np.ndarray:
