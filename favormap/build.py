@@ -316,10 +316,10 @@ def refine_landmarks(lms: Landmarks, ff: FrameFeatures, config: BuildConfig) -> 
                 f"refine_window needs the frames' grey images, which {config.extractor!r} features do not hold"
             )
         grays.append(gray)
-    Ks = np.stack([c.K for c in ff.cameras])
-    tracks = refine_observations(lms, grays, Ks, ff.cam_from_world, config.refine_window)[0]
-    tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
-    return triangulate(tracks, ff.cam_from_world, Ks, tri_cfg)
+    tracks = refine_observations(
+        lms, grays, np.stack([c.K for c in ff.cameras]), ff.cam_from_world, config.refine_window
+    )[0]
+    return triangulate_tracks(tracks, ff, config)
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:

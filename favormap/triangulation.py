@@ -243,6 +243,7 @@ def refine_observations(
     normal_k: int = 12,
     iterations: int = 10,
     max_move_px: float = 1.5,
+    normals: np.ndarray | None = None,
 ) -> tuple[Tracks, np.ndarray]:
     """Each landmark's observations aligned to its middle observation (in frame order) by their image
     content, through the homography of the landmark's local plane: the keypoints of a track are each
@@ -252,7 +253,8 @@ def refine_observations(
     (Lucas-Kanade over a 2D shift in the reference frame, gain and offset removed, ``iterations``
     Gauss-Newton steps). An observation moves at most ``max_move_px``; otherwise it stays where it
     was detected, as does the reference. ``grays``: the frames' grey images at the keypoints'
-    resolution. Returns the tracks (triangulate them again) and which observations moved.
+    resolution; ``normals`` (L, 3): the planes' normals where they are known (a mesh), instead of the
+    PCA. Returns the tracks (triangulate them again) and which observations moved.
 
     Measured on the synthetic room with exact poses (docs/benchmarks/s18-prototypes/plane_lk.py):
     landmarks' median distance to the true surface 0.0055 -> 0.0022 units (true normals: 0.0014);
@@ -274,7 +276,8 @@ def refine_observations(
     ref = np.repeat(tracks.offsets[:-1] + lens // 2, lens)  # observations are sorted by frame within a track
     tid = tracks.track_of_obs
     centers = camera_centers(cam_from_world)
-    normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
+    if normals is None:
+        normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
     imgs = {}
 
     def image(f):  # float image and its gradients (central differences), once per frame

@@ -81,6 +81,16 @@ def min_response(contrast_threshold: float) -> float:
     return contrast_threshold / _LAYERS
 
 
+def unpack_octave(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OpenCV's ``unpackOctave``: octave (-1 for the upsampled first one), layer, and the scale from
+    image pixels to the octave's pixels (float32), of packed octaves (octave & 255 | layer << 8)."""
+    packed = np.asarray(packed, np.int64)
+    octave = packed & 255
+    octave = np.where(octave < 128, octave, octave - 256)
+    scale = np.where(octave >= 0, 1.0 / (1 << np.maximum(octave, 0)), 2.0 ** np.maximum(-octave, 0))
+    return octave, (packed >> 8) & 255, scale.astype(np.float32)
+
+
 def octave_of_size(size: np.ndarray) -> np.ndarray:
     """OpenCV's packed octave (octave & 255 | layer << 8) of keypoints of diameter ``size`` (px):
     the inverse of detection's size = 2 sigma 2^(octave + layer / nOctaveLayers)."""
@@ -216,9 +226,7 @@ def _distinct(p: np.ndarray, size: np.ndarray, angle: np.ndarray, octave: np.nda
     in its octave's pixels (``calcSIFTDescriptor`` centres its window on ``cvRound(pt * scale)``):
     the first of each group of keypoints (OpenCV convention ``p``) that OpenCV describes alike, and
     each keypoint's group."""
-    o = np.asarray(octave, np.int64) & 255
-    o = np.where(o < 128, o, o - 256)
-    scale = np.where(o >= 0, 1.0 / (1 << np.maximum(o, 0)), 2.0 ** np.maximum(-o, 0)).astype(np.float32)
+    scale = unpack_octave(octave)[2]
     q = np.where(np.isfinite(p), p * scale[:, None], -1.0)  # float32 products (NaN points: one group)
     centre = np.rint(q).astype(np.int64)  # rounded half to even, as cvRound
     key = np.stack(

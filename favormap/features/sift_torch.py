@@ -32,6 +32,8 @@ import math
 import numpy as np
 import torch
 
+from .sift import unpack_octave
+
 _LAYERS, _SIGMA, _INIT_SIGMA = 3, 1.6, 0.5  # cv2.SIFT_create's nOctaveLayers and sigma; the camera's blur
 _D, _N = 4, 8  # SIFT_DESCR_WIDTH, SIFT_DESCR_HIST_BINS
 _SCL_FCTR, _MAG_THR, _INT_FCTR = 3.0, 0.2, 512.0  # SIFT_DESCR_SCL_FCTR, SIFT_DESCR_MAG_THR, SIFT_INT_DESCR_FCTR
@@ -136,11 +138,6 @@ def gaussian_pyramid(gray: torch.Tensor, last_octave: int) -> dict[tuple[int, in
     return pyr
 
 
-def _unpack_octave(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    octave = packed.astype(np.int64) & 255
-    return np.where(octave < 128, octave, octave - 256), (packed.astype(np.int64) >> 8) & 255
-
-
 def _fast_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """cv::fastAtan2 (degrees, [0, 360))."""
     ax, ay = x.abs(), y.abs()
@@ -226,7 +223,7 @@ def describe(
         return np.zeros((0, 128), np.float32)
     if budget is None:
         budget = _default_budget(torch.device(device))
-    oct_, layer = _unpack_octave(np.asarray(octave))
+    oct_, layer, scale = unpack_octave(octave)
     with _float32():
         pyr = gaussian_pyramid(torch.as_tensor(np.ascontiguousarray(gray), device=device), int(oct_.max()))
         # the levels the points use, one after the other in one flat buffer
@@ -239,7 +236,6 @@ def describe(
         at = np.searchsorted(used, level)
         rows, cols = shape[at, 0], shape[at, 1]
         # calcDescriptors: the keypoint in its octave's pixels, OpenCV's float32 arithmetic
-        scale = np.where(oct_ >= 0, 1.0 / (1 << np.maximum(oct_, 0)), 2.0 ** np.maximum(-oct_, 0)).astype(np.float32)
         pt = np.asarray(xy, np.float32) * scale[:, None]
         hist_width = np.float32(_SCL_FCTR) * (np.asarray(size, np.float32) * scale * np.float32(0.5))
         radius = np.rint(hist_width * np.float32(1.4142135623730951) * np.float32(_D + 1) * np.float32(0.5))

@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 from favormap.build import BuildConfig, ExtractorSpec, extract_sequence, track_frames, triangulate_tracks, select_landmarks, training_rays
 from favormap.features.base import patch_offsets
 from favormap.features.sift import octave_of_size
-from favormap.features import sift_torch
+from favormap.features.sift import unpack_octave
 from favormap.geometry import project
 from favormap.io import read_sequence
 seq = read_sequence('/work/shared/data/fox')
@@ -27,8 +27,7 @@ for f in range(len(ff.features)):
     size[near], angle[near], octv[near] = st.size[nn[near]], st.angle[nn[near]], st.octave[nn[near]]
     h, w = st.gray.shape
     p = pts - 0.5; p[:, 0] = np.clip(p[:, 0], 0, w - 1); p[:, 1] = np.clip(p[:, 1], 0, h - 1)
-    o, l = sift_torch._unpack_octave(octv)
-    scale = np.where(o >= 0, 1.0 / (1 << np.maximum(o, 0)), 2.0 ** np.maximum(-o, 0)).astype(np.float32)
+    scale = unpack_octave(octv)[2]
     c = np.rint(p * scale[:, None]).astype(np.int64)
     key = np.stack([c[:, 0], c[:, 1], octv, size.view(np.int32), angle.view(np.int32)], 1)
     tot += len(key); uniq += len(np.unique(key, axis=0))
