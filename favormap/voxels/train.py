@@ -224,12 +224,38 @@ class BlockGenerator:
 
 
 def _tv(x: torch.Tensor, R: int) -> torch.Tensor:
+    """The total-variation term of a stack of grids (L, R^3, C): the mean squared difference of
+    neighbouring nodes along each axis, summed over the axes. Its definition; training adds its
+    gradient in closed form (_TVGradient, tested against autograd through this)."""
     g = x.view(x.shape[0], R, R, R, -1)
     return (
         ((g[:, 1:] - g[:, :-1]) ** 2).mean()
         + ((g[:, :, 1:] - g[:, :, :-1]) ** 2).mean()
         + ((g[:, :, :, 1:] - g[:, :, :, :-1]) ** 2).mean()
     )
+
+
+class _TVGradient:
+    """The total-variation term of the training, ``tv_weight * (_tv(desc) + _tv(density))``, added to
+    the parameters' gradients in closed form. Each ``_tv`` is a quadratic form x^T M x over the node
+    axis: M is the grid's graph Laplacian (the sum over the three axes of D^T D, D the differences of
+    neighbouring nodes) over the number of squared differences each of ``_tv``'s means averages
+    ((R - 1) R^2 per axis, times the landmarks and channels), so its gradient is 2 M x, one
+    (R^3 x R^3) matrix product. Autograd through ``_tv``'s slices took ~0.1 s per iteration on two
+    cores for the fox's 3,000 landmarks, in the last quarter of the iterations."""
+
+    def __init__(self, R: int, L: int, C: int, device):
+        lap = _grid_laplacian(R, dtype=torch.float32, device=device) / ((R - 1) * R * R * L)
+        self.m_desc, self.m_dens = lap / C, lap
+
+    @torch.no_grad()
+    def add_to(self, desc: torch.Tensor, dens: torch.Tensor, weight: float) -> float:
+        """Adds ``weight`` times the term's gradient to ``desc.grad`` and ``dens.grad``; returns its value."""
+        y = torch.matmul(self.m_desc, desc)  # (L, R^3, C)
+        z = dens @ self.m_dens  # (L, R^3); M is symmetric
+        desc.grad.add_(y, alpha=2 * weight)
+        dens.grad.add_(z, alpha=2 * weight)
+        return weight * float((desc * y).sum() + (dens * z).sum())
 
 
 def _visibility(data, origins_l, dirs_all, R, cfg, device) -> torch.Tensor:
@@ -380,27 +406,35 @@ def train_voxels(
     group = max(1, cfg.max_batch_rays // (K + Kp))
     history = []
     tv_start = int(cfg.iterations * cfg.tv_from)
+    # flat row views: one index_select per gather (2-4x faster on a CPU than advanced indexing or
+    # torch.gather with an expanded index; the same values)
+    dirs_flat, targets_flat, tsq_flat = dirs_all.view(-1, 3), targets.view(-1, C), target_sq.view(-1)
+    if Kp > 0:
+        pb_o, pb_d, pb_t, pb_sq = pb_o.view(-1, 3), pb_d.view(-1, 3), pb_t.view(-1, C), pb_sq.view(-1)
+    tv_grad = _TVGradient(R, L, C, dev) if cfg.tv_weight > 0 else None
     for it in range(cfg.iterations):
         r = gen.rand(K).to(dev)
         obs = first[:, None] + torch.minimum((r * counts[:, None]).long(), counts[:, None] - 1)  # (L,K) observations
         pix = gen.randint(P, K)
         if cfg.centre_rays > 0:
             pix = torch.where(gen.rand(K) < cfg.centre_rays, P // 2, pix)
-        pix = pix.to(dev)
+        ray = obs * P + pix.to(dev)  # (L,K) rows of the flat (O*P) patch rays
         sel = gen.randint(cfg.prior_bank, Kp).to(dev) if Kp > 0 else None
         total, se_real = 0.0, 0.0
         for g0 in range(0, L, group):
             gs = slice(g0, min(L, g0 + group))
-            o = origins_l[obs[gs]]  # (G,K,3)
-            d = dirs_all[obs[gs], pix[gs]]
-            tgts = [targets[obs[gs], pix[gs]]]  # (G,K,C)
-            tn2 = target_sq[obs[gs], pix[gs]]
+            G = gs.stop - gs.start
+            rg = ray[gs].reshape(-1)
+            o = origins_l.index_select(0, obs[gs].reshape(-1)).view(G, K, 3)
+            d = dirs_flat.index_select(0, rg).view(G, K, 3)
+            tgts = [targets_flat.index_select(0, rg).view(G, K, C)]
+            tn2 = tsq_flat.index_select(0, rg).view(G, K)
             if Kp > 0:
-                sg = sel[gs]
-                o = torch.cat([o, torch.gather(pb_o[gs], 1, sg[..., None].expand(-1, -1, 3))], 1)
-                d = torch.cat([d, torch.gather(pb_d[gs], 1, sg[..., None].expand(-1, -1, 3))], 1)
-                tgts.append(torch.gather(pb_t[gs], 1, sg[..., None].expand(-1, -1, C)))
-                tn2 = torch.cat([tn2, torch.gather(pb_sq[gs], 1, sg)], 1)
+                pr = (torch.arange(g0, gs.stop, device=dev)[:, None] * cfg.prior_bank + sel[gs]).reshape(-1)
+                o = torch.cat([o, pb_o.index_select(0, pr).view(G, Kp, 3)], 1)
+                d = torch.cat([d, pb_d.index_select(0, pr).view(G, Kp, 3)], 1)
+                tgts.append(pb_t.index_select(0, pr).view(G, Kp, C))
+                tn2 = torch.cat([tn2, pb_sq.index_select(0, pr).view(G, Kp)], 1)
             st, delta, hit = ray_stencils(o, d, R, cfg.samples)
             a, opacity = composite(st, delta, dens[gs], hit)  # (G,K,R^3): pred = a @ desc
             se, cos = _losses(a, desc[gs], tgts, tn2)
@@ -411,10 +445,8 @@ def train_voxels(
             loss.backward()
             total += float(loss.detach())
             se_real += float(se[:, :K].detach().sum())
-        if it >= tv_start and cfg.tv_weight > 0:
-            tv = cfg.tv_weight * (_tv(desc, R) + _tv(dens[..., None], R))
-            tv.backward()
-            total += float(tv.detach())
+        if it >= tv_start and tv_grad is not None:
+            total += tv_grad.add_to(desc, dens, cfg.tv_weight)
         lr_scale = cfg.lr_final ** (it / max(1, cfg.iterations - 1))  # exponential decay to lr_final
         opt.step(lr_scale)
         if it % 25 == 0 or it == cfg.iterations - 1:
