@@ -3,6 +3,7 @@
 favormap.features.sift_torch on a device: time per frame, the pyramid's share, and agreement.
 
 python tools/bench_patches.py [SEQ] [--max-side 640] [--device cuda] [--frames 40] [--obs 240] [--profile]
+                              [--budgets 4194304,67108864]
 
 Each frame gets ``--obs`` observations (random keypoints; the fox build has ~240 per frame) with a
 7 x 7 patch around each, as the build samples them.
@@ -29,6 +30,12 @@ def main():
     ap.add_argument("--obs", type=int, default=240, help="observations per frame")
     ap.add_argument("--patch", type=int, default=7)
     ap.add_argument("--profile", action="store_true", help="torch profiler: the kernels that take the time")
+    ap.add_argument(
+        "--budgets",
+        default="",
+        help="also time the device with these chunk sizes (window pixels per chunk, comma-separated) instead of "
+        "sift_torch's default (GPU: 2^24, at most a quarter of the free memory at ~400 bytes each)",
+    )
     args = ap.parse_args()
 
     from favormap import features
@@ -74,6 +81,17 @@ def main():
     sync()
     t_dev = time.perf_counter() - t
     cos = np.concatenate([np.sum(a * b, axis=1) for a, b in zip(out, ref)])
+    t_budget = {}
+    for b in [int(v) for v in args.budgets.split(",") if v.strip()]:
+        default_budget = sift_torch._default_budget
+        sift_torch._default_budget = lambda device, b=b: b  # a benchmark's override, not a build option
+        try:
+            t = time.perf_counter()
+            same = all(np.array_equal(dev.sample(f, p), o) for f, p, o in zip(feats, pts, out))
+            sync()
+            t_budget[b] = (time.perf_counter() - t, same)
+        finally:
+            sift_torch._default_budget = default_budget
 
     h, w = feats[0].dense.gray.shape
     print(
@@ -85,6 +103,9 @@ def main():
     print(f"{f'torch on {args.device}: start-up (once per process)':<44} {t_init:>8.2f}")
     print(f"{f'torch on {args.device}: pyramids alone (octaves -1..6)':<44} {t_pyr:>8.2f}")
     print(f"{f'torch on {args.device}: sample (pyramid + descriptors)':<44} {t_dev:>8.2f} {1e6 * t_dev / n_pts:>9.2f}")
+    for b, (sec, same) in t_budget.items():
+        label = f"torch on {args.device}: sample, chunks of {b} px"
+        print(f"{label:<44} {sec:>8.2f} {1e6 * sec / n_pts:>9.2f}  ({'same' if same else 'OTHER'} descriptors)")
     print(
         f"cosine to OpenCV's: min {cos.min():.6f}, median {np.median(cos):.7f}, exact {np.mean(cos >= 0.9999995):.3f}"
     )

@@ -54,7 +54,9 @@ run)
         if [ -d .gpu/fox ]; then
             export FAVORMAP_FOX="$PWD/.gpu/fox"
             echo "== SIFT patch descriptors alone, full resolution: OpenCV on the CPU threads against torch on the GPU"
-            timeout 120 python3 tools/bench_patches.py .gpu/fox --max-side 0 || echo "(benchmark failed or timed out)"
+            # with two other chunk sizes (sift_torch._default_budget: 2^24 window pixels on a GPU)
+            timeout 150 python3 tools/bench_patches.py .gpu/fox --max-side 0 --budgets 4194304,67108864 \
+                || echo "(benchmark failed or timed out)"
             echo "== fox build, 640 px, fast quality (the defaults), GPU; CPU stages on a thread per core"
             timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(build failed or timed out)"
             echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
