@@ -253,6 +253,9 @@ class _TVGradient:
         """Adds ``weight`` times the term's gradient to ``desc.grad`` and ``dens.grad``; returns its value."""
         y = torch.matmul(self.m_desc, desc)  # (L, R^3, C)
         z = dens @ self.m_dens  # (L, R^3); M is symmetric
+        for p in (desc, dens):
+            if p.grad is None:  # no rendering loss reached it this step
+                p.grad = torch.zeros_like(p)
         desc.grad.add_(y, alpha=2 * weight)
         dens.grad.add_(z, alpha=2 * weight)
         return weight * float((desc * y).sum() + (dens * z).sum())
