@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from .base import Extractor, Features, register
+from .sift_octave import SIGMA, octave_of_size, unpack_octave
 
 
 class _SiftState:
@@ -66,39 +67,10 @@ class _SiftState:
 # OpenCV's contrast threshold (its default 0.04 halved: more keypoints on low-texture surfaces); maps
 # are always built with it. A query may use a lower one (LocalizeConfig.sift_contrast)
 CONTRAST_THRESHOLD = 0.02
-# nOctaveLayers and sigma of cv2.SIFT_create's defaults (used to place a size in the pyramid)
-_LAYERS, _SIGMA = 3, 1.6
 # a keypoint on the upsampled first octave (-1, layer 1): added to every compute() call so that
 # OpenCV always builds the pyramid from the upsampled image, as detection does, and a descriptor
 # does not depend on which other points are described with it
 _ANCHOR_OCTAVE = (-1 & 255) | (1 << 8)
-
-
-def min_response(contrast_threshold: float) -> float:
-    """The smallest keypoint response OpenCV keeps at ``contrast_threshold`` (it drops an extremum
-    whose |DoG| * nOctaveLayers is below the threshold): the keypoints of an extraction at a lower
-    threshold with at least this response are those an extraction at this one finds."""
-    return contrast_threshold / _LAYERS
-
-
-def unpack_octave(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """OpenCV's ``unpackOctave``: octave (-1 for the upsampled first one), layer, and the scale from
-    image pixels to the octave's pixels (float32), of packed octaves (octave & 255 | layer << 8)."""
-    packed = np.asarray(packed, np.int64)
-    octave = packed & 255
-    octave = np.where(octave < 128, octave, octave - 256)
-    scale = np.where(octave >= 0, 1.0 / (1 << np.maximum(octave, 0)), 2.0 ** np.maximum(-octave, 0))
-    return octave, (packed >> 8) & 255, scale.astype(np.float32)
-
-
-def octave_of_size(size: np.ndarray) -> np.ndarray:
-    """OpenCV's packed octave (octave & 255 | layer << 8) of keypoints of diameter ``size`` (px):
-    the inverse of detection's size = 2 sigma 2^(octave + layer / nOctaveLayers)."""
-    total = np.log2(np.maximum(np.asarray(size, np.float64), 1e-6) / (2 * _SIGMA)) * _LAYERS
-    octave = np.floor((total - 0.5) / _LAYERS).astype(np.int64)
-    layer = np.clip(np.round(total - _LAYERS * octave), 1, _LAYERS).astype(np.int64)
-    octave = np.maximum(octave, -1)
-    return (octave & 255) | (layer << 8)
 
 
 @register("sift")
@@ -210,7 +182,7 @@ class SIFTExtractor(Extractor):
             cv2.KeyPoint(float(x), float(y), float(s), float(a), 0, int(o))
             for (x, y), s, a, o in zip(p, size, angle, octave)
         ]
-        anchor = cv2.KeyPoint(w / 2, h / 2, 2 * _SIGMA, 0, 0, _ANCHOR_OCTAVE)
+        anchor = cv2.KeyPoint(w / 2, h / 2, 2 * SIGMA, 0, 0, _ANCHOR_OCTAVE)
         kps_out, desc = self._sift.compute(st.gray, kps + [anchor])
         if desc is None or len(kps_out) != len(kps) + 1:  # OpenCV dropped some: recompute one by one
             desc = np.zeros((len(kps), 128), np.float32)

@@ -32,9 +32,11 @@ import math
 import numpy as np
 import torch
 
-from .sift import unpack_octave
+from .sift_octave import LAYERS as _LAYERS
+from .sift_octave import SIGMA as _SIGMA
+from .sift_octave import unpack_octave
 
-_LAYERS, _SIGMA, _INIT_SIGMA = 3, 1.6, 0.5  # cv2.SIFT_create's nOctaveLayers and sigma; the camera's blur
+_INIT_SIGMA = 0.5  # the blur OpenCV assumes of the camera's image (SIFT_INIT_SIGMA)
 _D, _N = 4, 8  # SIFT_DESCR_WIDTH, SIFT_DESCR_HIST_BINS
 _SCL_FCTR, _MAG_THR, _INT_FCTR = 3.0, 0.2, 512.0  # SIFT_DESCR_SCL_FCTR, SIFT_DESCR_MAG_THR, SIFT_INT_DESCR_FCTR
 _FLT_EPSILON = float(np.finfo(np.float32).eps)

@@ -531,12 +531,12 @@ class Localizer:
     def _strong_first(self, feats) -> tuple[object, int | None, int | None]:
         """(features, matching_n, guided_n): where descriptor matching and the guided step use
         different SIFT contrast thresholds, the query's keypoints reordered so that those passing the
-        higher one come first (features.sift.min_response: the keypoints an extraction at that
+        higher one come first (features.sift_octave.min_response: the keypoints an extraction at that
         threshold finds), and how many leading keypoints each step uses (None: all)."""
         matching, guided = self._contrasts()
         if matching == guided or self.map.extractor != "sift":
             return feats, None, None
-        from ..features.sift import min_response
+        from ..features.sift_octave import min_response
 
         strong = np.asarray(feats.scores) >= min_response(max(matching, guided))
         order = np.r_[np.flatnonzero(strong), np.flatnonzero(~strong)]
