@@ -32,9 +32,7 @@ import math
 import numpy as np
 import torch
 
-from .sift_octave import LAYERS as _LAYERS
-from .sift_octave import SIGMA as _SIGMA
-from .sift_octave import unpack_octave
+from .sift_octave import LAYERS, SIGMA, unpack_octave
 
 _INIT_SIGMA = 0.5  # the blur OpenCV assumes of the camera's image (SIFT_INIT_SIGMA)
 _D, _N = 4, 8  # SIFT_DESCR_WIDTH, SIFT_DESCR_HIST_BINS
@@ -116,10 +114,10 @@ def _halve(img: torch.Tensor) -> torch.Tensor:
 
 def _layer_sigmas() -> list[float]:
     """buildGaussianPyramid's incremental blur of layers 1 .. nOctaveLayers."""
-    k = 2.0 ** (1.0 / _LAYERS)
-    out = [_SIGMA]
-    for i in range(1, _LAYERS + 1):
-        prev = k ** (i - 1) * _SIGMA
+    k = 2.0 ** (1.0 / LAYERS)
+    out = [SIGMA]
+    for i in range(1, LAYERS + 1):
+        prev = k ** (i - 1) * SIGMA
         out.append(math.sqrt((prev * k) ** 2 - prev**2))
     return out
 
@@ -130,12 +128,12 @@ def gaussian_pyramid(gray: torch.Tensor, last_octave: int) -> dict[tuple[int, in
     next octave halves): ``{(octave, layer): float image}``."""
     sig = _layer_sigmas()
     pyr: dict[tuple[int, int], torch.Tensor] = {}
-    img = _blur(_upsample2(gray), math.sqrt(max(_SIGMA**2 - 4 * _INIT_SIGMA**2, 0.01)))
+    img = _blur(_upsample2(gray), math.sqrt(max(SIGMA**2 - 4 * _INIT_SIGMA**2, 0.01)))
     for o in range(-1, last_octave + 1):
         if o > -1:
-            img = _halve(pyr[(o - 1, _LAYERS)])
+            img = _halve(pyr[(o - 1, LAYERS)])
         pyr[(o, 0)] = img
-        for i in range(1, _LAYERS + 1):
+        for i in range(1, LAYERS + 1):
             img = pyr[(o, i)] = _blur(img, sig[i])
     return pyr
 
@@ -229,9 +227,9 @@ def describe(
     with _float32():
         pyr = gaussian_pyramid(torch.as_tensor(np.ascontiguousarray(gray), device=device), int(oct_.max()))
         # the levels the points use, one after the other in one flat buffer
-        level = (oct_ + 1) * (_LAYERS + 1) + layer
+        level = (oct_ + 1) * (LAYERS + 1) + layer
         used = np.unique(level)
-        images = [pyr[(int(v) // (_LAYERS + 1) - 1, int(v) % (_LAYERS + 1))] for v in used]
+        images = [pyr[(int(v) // (LAYERS + 1) - 1, int(v) % (LAYERS + 1))] for v in used]
         flat = torch.cat([im.reshape(-1) for im in images])
         start = np.concatenate([[0], np.cumsum([im.numel() for im in images])[:-1]])
         shape = np.array([im.shape for im in images], np.int64)

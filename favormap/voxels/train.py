@@ -223,26 +223,15 @@ class BlockGenerator:
         return self._cat(lambda n, g: torch.randint(0, high, (n, *shape), generator=g))
 
 
-def _tv(x: torch.Tensor, R: int) -> torch.Tensor:
-    """The total-variation term of a stack of grids (L, R^3, C): the mean squared difference of
-    neighbouring nodes along each axis, summed over the axes. Its definition; training adds its
-    gradient in closed form (_TVGradient, tested against autograd through this)."""
-    g = x.view(x.shape[0], R, R, R, -1)
-    return (
-        ((g[:, 1:] - g[:, :-1]) ** 2).mean()
-        + ((g[:, :, 1:] - g[:, :, :-1]) ** 2).mean()
-        + ((g[:, :, :, 1:] - g[:, :, :, :-1]) ** 2).mean()
-    )
-
-
 class _TVGradient:
-    """The total-variation term of the training, ``tv_weight * (_tv(desc) + _tv(density))``, added to
-    the parameters' gradients in closed form. Each ``_tv`` is a quadratic form x^T M x over the node
-    axis: M is the grid's graph Laplacian (the sum over the three axes of D^T D, D the differences of
-    neighbouring nodes) over the number of squared differences each of ``_tv``'s means averages
-    ((R - 1) R^2 per axis, times the landmarks and channels), so its gradient is 2 M x, one
-    (R^3 x R^3) matrix product. Autograd through ``_tv``'s slices took ~0.1 s per iteration on two
-    cores for the fox's 3,000 landmarks, in the last quarter of the iterations."""
+    """The total-variation term of the training, ``tv_weight * (TV(desc) + TV(density))``, added to
+    the parameters' gradients in closed form. TV of a stack of grids (L, R^3, C) is the mean squared
+    difference of neighbouring nodes along each axis, summed over the axes: a quadratic form x^T M x
+    over the node axis, M the grid's graph Laplacian (the sum over the three axes of D^T D, D the
+    differences of neighbouring nodes) over the number of squared differences each mean averages
+    ((R - 1) R^2 per axis, times the landmarks and channels). So its gradient is 2 M x, one
+    (R^3 x R^3) matrix product (tests/test_core.py checks it against autograd through the slices,
+    which took ~0.1 s per iteration on two cores for the fox's 3,000 landmarks)."""
 
     def __init__(self, R: int, L: int, C: int, device):
         lap = _grid_laplacian(R, dtype=torch.float32, device=device) / ((R - 1) * R * R * L)
