@@ -130,7 +130,7 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     from conftest import localize_perturbed, small_build_config
 
     from favormap.build import build_map
-    from favormap.localize import Localizer
+    from favormap.localize import LocalizeConfig, Localizer
     from favormap.mapfile import write_map
 
     m = build_map(small_sequence, small_build_config(extractor="sift", iterations=60, max_landmarks=300))
@@ -139,6 +139,9 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     loc = Localizer(path)
     # the extractor's ratio test when matching without a prior (0.9 since 2026-11-26, was 0.8)
     assert loc.config.global_ratio == loc.extractor.match_ratio == 0.9
+    # and its cosine threshold (the paper's 0.7); one given explicitly is kept
+    assert loc.config.match_threshold == loc.extractor.match_threshold == 0.7
+    assert Localizer(path, LocalizeConfig(match_threshold=0.55)).config.match_threshold == 0.55
     errs = localize_perturbed(loc, small_sequence.frames[1::5])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
 

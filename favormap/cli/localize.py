@@ -19,7 +19,12 @@ def add_localize_options(p):
         default=3,
         help="render-match-PnP iterations, at most (default 3; they stop once the estimate stops moving)",
     )
-    p.add_argument("--threshold", type=float, default=0.7, help="descriptor similarity threshold (default 0.7)")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="descriptor similarity threshold (default: the map's extractor's, 0.7; DISK 0.5)",
+    )
     p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
     p.add_argument(
         "--ransac-px",
@@ -156,7 +161,7 @@ def config_from_args(args):
 
     if args.iters < 1:
         raise InputError("--iters must be >= 1")
-    if not 0 < args.threshold <= 1:
+    if args.threshold is not None and not 0 < args.threshold <= 1:
         raise InputError("--threshold must be in (0, 1]")
     if not 0 < args.ratio <= 1:
         raise InputError("--ratio must be in (0, 1]")

@@ -36,6 +36,8 @@ class Extractor(ABC):
     name: str = ""
     channels: int = 0
     match_ratio: float = 1.0  # default Lowe ratio for matching these descriptors (1: no ratio test)
+    # default cosine threshold of the localizer's descriptor matching (LocalizeConfig.match_threshold None)
+    match_threshold: float = 0.7
 
     def __init__(self, max_keypoints: int = 2048, device: str | None = None):
         self.max_keypoints = int(max_keypoints)

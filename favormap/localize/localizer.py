@@ -74,7 +74,9 @@ class SuccessChecks:
 @dataclass
 class LocalizeConfig:
     iterations: int = 3
-    match_threshold: float = 0.7  # cosine similarity (paper's reference config)
+    # cosine similarity of descriptor matching and (unless guided_match_threshold) of the guided step;
+    # None: the extractor's (Extractor.match_threshold: 0.7, the paper's reference config; DISK 0.5)
+    match_threshold: float | None = None
     mutual: bool = True  # also require the landmark to be the query feature's best
     ratio: float = 1.0  # Lowe ratio on descriptor distances in the rendering iterations (1: off)
     global_ratio: float | None = None  # Lowe ratio when matching against all landmarks (None: the extractor's)
@@ -506,6 +508,8 @@ class Localizer:
         configure_threads(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
         if self.config.global_ratio is None:
             self.config = dataclasses.replace(self.config, global_ratio=self.extractor.match_ratio)
+        if self.config.match_threshold is None:
+            self.config = dataclasses.replace(self.config, match_threshold=self.extractor.match_threshold)
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
 
