@@ -1,6 +1,7 @@
 """Prototype: DISK query keypoints moved to where the query's dense descriptor field best matches the
 landmark's rendered descriptor (within +-R px), then the pose localized again from the first pose;
-the control localizes again from the first pose without the moves. From the repository root:
+the control localizes again from the first pose without the moves; "gated" keeps the second pose
+only where its inliers' median reprojection residual is below the first pose's. From the repository root:
 
     PYTHONPATH=. FAVORMAP_FOX=../shared/data/fox [R=2] [STEP=0.25] [GATE=0.0] [CONE=0] \
         python docs/benchmarks/s21-prototypes/kpref.py fox-holdout /tmp/acc19/fox-holdout-disk.h5
@@ -42,7 +43,7 @@ class Fixed:
     def __getattr__(self, n): return getattr(ex, n)
 
 
-e0, e1, e2, moved = [], [], [], []
+e0, e1, e2, e3, acc, moved = [], [], [], [], [], []
 for fr, prior in zip(sp.queries.frames, priors):
     cam = sp.queries.cameras[fr.camera_id]
     img, wcam = loc.prepare(fr.image_path, cam)
@@ -82,7 +83,19 @@ for fr, prior in zip(sp.queries.frames, priors):
     r0 = loc.localize(fr.image_path, r1.cam_from_world, cam)
     e0.append(terr(r0.cam_from_world, fr.cam_from_world) if r0.success else np.nan)
     loc.extractor = ex
+    def resid(r):
+        mt_ = np.asarray(r.matches)[np.asarray(r.inlier_mask, bool)]
+        X = np.asarray(m.positions)[mt_[:, 0]]
+        Xc = X @ r.cam_from_world[:3, :3].T + r.cam_from_world[:3, 3]
+        p = Xc @ np.asarray(r.camera.K).T
+        uv = p[:, :2] / p[:, 2:3]
+        return np.median(np.linalg.norm(uv - np.asarray(r.keypoints)[mt_[:, 1]], axis=1)), len(mt_)
+    if r2.success:
+        (q1, n1), (q2, n2) = resid(r1), resid(r2)
+        acc.append(q2 < q1)
+        e3.append(terr(r2.cam_from_world, fr.cam_from_world) if q2 < q1 else terr(r1.cam_from_world, fr.cam_from_world))
+        print(f"   resid {q1:.3f} ({n1}) -> {q2:.3f} ({n2})")
     a, b = terr(r1.cam_from_world, fr.cam_from_world), terr(r2.cam_from_world, fr.cam_from_world) if r2.success else np.nan
     e1.append(a); e2.append(b)
     print(f"{fr.name} {a:.4f} -> {b:.4f}  moved med {moved[-1]:.2f} px  inl {r1.num_inliers if hasattr(r1,'num_inliers') else len(kidx)}", flush=True)
-print("median first", np.median(e1), "again unmoved", np.nanmedian(e0), "moved", np.nanmedian(e2), "n", len(e1), "px", np.median(moved))
+print("median first", np.median(e1), "again unmoved", np.nanmedian(e0), "moved", np.nanmedian(e2), "n", len(e1), "px", np.median(moved), "gated", np.median(e3), "accepted", np.sum(acc))
