@@ -527,6 +527,11 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
         check_patch(config.voxel.patch_size, config.voxel.patch_stride)
     except ValueError as e:
         raise InputError(f"VoxelConfig: {e}") from None
+    if config.match_window < 1 or not config.max_epipolar_px > 0:
+        raise InputError(
+            f"BuildConfig: match_window must be >= 1 and max_epipolar_px > 0 "
+            f"(got {config.match_window}, {config.max_epipolar_px})"
+        )
     problems = check_frames(
         seq.cameras,
         [f.name for f in seq.frames],

@@ -155,3 +155,15 @@ def test_build_with_a_truncated_image_names_the_file(tiny_seq, tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and str(img) in lines[0] and "truncated JPEG" in lines[0], r.stderr
     assert not (tmp_path / "m.h5").exists()
+
+
+@pytest.mark.parametrize("field, value", [("match_window", 0), ("max_epipolar_px", 0.0)])
+def test_build_map_refuses_a_tracking_config_before_reading_images(tiny_seq, no_image_reads, field, value):
+    """The Python API checks the tracking settings up front, as the CLI checks its flags."""
+    from dataclasses import replace
+
+    from favormap.build import BuildConfig, build_map
+    from favormap.errors import InputError
+
+    with pytest.raises(InputError, match=field):
+        build_map(read_sequence(tiny_seq), replace(BuildConfig(), **{field: value}))

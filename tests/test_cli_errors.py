@@ -235,6 +235,8 @@ def test_build_bad_sequences_and_arguments(sequences, tmp_path):
             "negative iterations": ["build", s["good"], "-o", out, "--iterations", "-3", "-q"],
             "grid 1": ["build", s["good"], "-o", out, "--grid", "1", "-q"],
             "negative resize": ["build", s["good"], "-o", out, "--resize", "-1", "-q"],
+            "match window 0": ["build", s["good"], "-o", out, "--match-window", "0", "-q"],
+            "epipolar 0 px": ["build", s["good"], "-o", out, "--max-epipolar", "0", "-q"],
             "non-numeric patch": ["build", s["good"], "-o", out, "--patch", "seven", "-q"],
             "missing -o": ["build", s["good"], *q],
         }

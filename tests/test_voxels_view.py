@@ -238,6 +238,11 @@ def test_quality_presets_and_cli_flags():
         ap.parse_args(["build", "seq", "-o", "x.h5", "--min-track", "6", "--max-landmarks", "700"])
     )
     assert (given.min_track, given.max_landmarks) == (6, 700)
+    assert (plain.match_window, plain.max_epipolar_px) == (BuildConfig().match_window, BuildConfig().max_epipolar_px)
+    tracking = cli_build.config_from_args(
+        ap.parse_args(["build", "seq", "-o", "x.h5", "--match-window", "10", "--max-epipolar", "1"])
+    )
+    assert (tracking.match_window, tracking.max_epipolar_px) == (10, 1.0)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
     assert cli_build.config_from_args(args).voxel == VoxelConfig()
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])

@@ -21,6 +21,10 @@ def main():
     ap.add_argument("sequence", nargs="?", default=None)
     ap.add_argument("--max-landmarks", type=int, default=None, help="default: the build default")
     ap.add_argument("--min-track", type=int, default=None, help="default: the build default")
+    ap.add_argument("--match-window", type=int, default=None, help="tracking window (default: the build default)")
+    ap.add_argument(
+        "--max-epipolar", type=float, default=None, help="tracking epipolar px (default: the build default)"
+    )
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--extractor", default=None, help="default: the build default")
     ap.add_argument("--quality", default=None, help="voxel training preset (quick | fast | reference)")
@@ -58,9 +62,14 @@ def main():
             write_sequence(seq_path, n_frames=30)
     seq = read_sequence(seq_path)
     cfg = BuildConfig()
-    for k in ("max_landmarks", "min_track"):
+    for k, field in (
+        ("max_landmarks", "max_landmarks"),
+        ("min_track", "min_track"),
+        ("match_window", "match_window"),
+        ("max_epipolar", "max_epipolar_px"),
+    ):
         if getattr(args, k) is not None:
-            setattr(cfg, k, getattr(args, k))
+            setattr(cfg, field, getattr(args, k))
     if args.extractor:
         cfg.extractor = args.extractor
     if args.max_side is not None:
@@ -87,7 +96,8 @@ def main():
     st = m.provenance["stats"]
     print(
         f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
-        f"quality {args.quality or 'default'}, max side {cfg.max_side}, device {args.device}, "
+        f"quality {args.quality or 'default'}, match window {cfg.match_window}, "
+        f"epipolar {cfg.max_epipolar_px:g} px, max side {cfg.max_side}, device {args.device}, "
         f"patches on {'cpu' if args.patches_on == 'cpu' or args.device == 'cpu' else args.device}, "
         f"CPU-stage workers {m.provenance['executor']['workers']}, torch threads {torch.get_num_threads()}, "
         f"cores {os.cpu_count()}"

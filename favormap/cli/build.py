@@ -44,6 +44,22 @@ def register(sub):
     p.add_argument("--max-landmarks", type=int, default=None, help="landmark budget (default 3000)")
     p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
     p.add_argument(
+        "--match-window",
+        type=int,
+        default=None,
+        metavar="N",
+        help="tracking: match each frame with its next N frames (default 3). With --max-epipolar 1, 10 gives "
+        "longer, cleaner tracks: better landmarks far from the mapping path, worse 90th percentiles between its "
+        "views (README, Accuracy)",
+    )
+    p.add_argument(
+        "--max-epipolar",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="tracking: largest distance of a match from its epipolar line, in px (default 2)",
+    )
+    p.add_argument(
         "--quality",
         choices=("quick", "fast", "reference"),
         default="fast",
@@ -129,7 +145,20 @@ def config_from_args(args):
         if v is not None
     }
     vox = VoxelConfig.preset(getattr(args, "quality", "fast"), **over)
-    given = {k: getattr(args, k) for k in ("min_track", "max_landmarks") if getattr(args, k) is not None}
+    if args.match_window is not None and args.match_window < 1:
+        raise InputError(f"--match-window must be >= 1, not {args.match_window}")
+    if args.max_epipolar is not None and not args.max_epipolar > 0:
+        raise InputError(f"--max-epipolar must be > 0 px, not {args.max_epipolar}")
+    given = {
+        k: v
+        for k, v in (
+            ("min_track", args.min_track),
+            ("max_landmarks", args.max_landmarks),
+            ("match_window", args.match_window),
+            ("max_epipolar_px", args.max_epipolar),
+        )
+        if v is not None
+    }
     return BuildConfig(
         extractor=args.extractor,
         max_keypoints=args.max_keypoints,
