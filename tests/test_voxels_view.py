@@ -214,11 +214,13 @@ def test_quality_presets_and_cli_flags():
     from favormap.cli import build as cli_build
     from favormap.voxels import QUALITY_PRESETS, VoxelConfig
 
-    assert set(QUALITY_PRESETS) == {"quick", "fast", "reference"}
+    assert set(QUALITY_PRESETS) == {"quick", "balanced", "fast", "reference"}
     ref = VoxelConfig.preset("reference")
     assert (ref.iterations, ref.rays_per_landmark, ref.box_factor, ref.solver) == (2000, 1024, 12.0, "adam")
     assert VoxelConfig.preset("fast") == VoxelConfig() and VoxelConfig().solver == "adam"
     assert VoxelConfig.preset("quick") == VoxelConfig(solver="lstsq", patch_size=3, density_init=20.0)
+    balanced = VoxelConfig(solver="lstsq", patch_size=7, density_init=20.0, lstsq_ridge=0.03)
+    assert VoxelConfig.preset("balanced") == balanced
     with pytest.raises(ValueError):
         VoxelConfig.preset("slow")
     ap = argparse.ArgumentParser()

@@ -911,7 +911,9 @@ def main():
     ap.add_argument("--max-landmarks", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
     ap.add_argument(
-        "--quality", default=None, help="voxel training preset (fast | reference; default: the build default)"
+        "--quality",
+        default=None,
+        help="voxel training preset (quick | balanced | fast | reference; default: the build default)",
     )
     ap.add_argument("--device", default="cpu", help="torch device for training and localization (cpu | cuda)")
     ap.add_argument("--orbit-frames", type=int, default=24)

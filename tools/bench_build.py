@@ -27,7 +27,7 @@ def main():
     )
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--extractor", default=None, help="default: the build default")
-    ap.add_argument("--quality", default=None, help="voxel training preset (quick | fast | reference)")
+    ap.add_argument("--quality", default=None, help="voxel training preset (quick | balanced | fast | reference)")
     ap.add_argument(
         "--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)"
     )
