@@ -134,8 +134,8 @@ QUALITY_PRESETS: dict[str, dict] = {
     # 0.001: the nodes few rays constrain keep the mean instead of fitting them). Twenty-second session,
     # tools/bench_accuracy.py --train-seeds 0,1,2, seed-pooled error / the fast preset's: fox hold-out
     # 1.05 [1.01, 1.10], extrapolation 1.00 [0.92, 1.10], orbit 0.99 [0.96, 1.02]; ridge 0.001 (density 20):
-    # extrapolation 0.0075 against 0.0062 (seed 0); ridge 0.02: 1.04 / 1.05 / 0.98. Fox build 24 s on two
-    # cores against fast's 81-88 s (patches 13.3 s of it)
+    # extrapolation 0.0075 against 0.0062 (seed 0); ridge 0.02: 1.04 / 1.05 / 0.98. Fox build 23.4-24.8 s on
+    # two cores against fast's 81-88 s (tools/bench_build.py --quality balanced; patches 12.3-13.3 s of it)
     "balanced": dict(solver="lstsq", patch_size=7, density_init=20.0, lstsq_ridge=0.03),
     # the reference implementation's budget (utiasSTARS/FaVoR configs/default_base.py: N_iters 2000,
     # N_rand 1024, lr decay 0.1 per 10,000 steps, TV from step 1500; box side 4 * 3 px * l / f),
