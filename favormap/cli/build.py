@@ -117,6 +117,11 @@ def register(sub):
     p.set_defaults(func=run)
 
 
+def _given(**options) -> dict:
+    """The options given on the command line (None: left to the config's default)."""
+    return {k: v for k, v in options.items() if v is not None}
+
+
 def config_from_args(args):
     from ..build import BuildConfig
     from ..errors import InputError
@@ -125,6 +130,7 @@ def config_from_args(args):
     for name in (
         "min_track",
         "max_landmarks",
+        "match_window",
         "grid",
         "patch",
         "patch_stride",
@@ -136,31 +142,18 @@ def config_from_args(args):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
         raise InputError("--resize must be >= 0")
-    over = {
-        k: v
-        for k, v in (
-            ("resolution", args.grid),
-            ("patch_size", args.patch),
-            ("patch_stride", args.patch_stride),
-            ("iterations", args.iterations),
-        )
-        if v is not None
-    }
-    vox = VoxelConfig.preset(getattr(args, "quality", "fast"), **over)
-    if args.match_window is not None and args.match_window < 1:
-        raise InputError(f"--match-window must be >= 1, not {args.match_window}")
     if args.max_epipolar is not None and not args.max_epipolar > 0:
         raise InputError(f"--max-epipolar must be > 0 px, not {args.max_epipolar}")
-    given = {
-        k: v
-        for k, v in (
-            ("min_track", args.min_track),
-            ("max_landmarks", args.max_landmarks),
-            ("match_window", args.match_window),
-            ("max_epipolar_px", args.max_epipolar),
-        )
-        if v is not None
-    }
+    over = _given(
+        resolution=args.grid, patch_size=args.patch, patch_stride=args.patch_stride, iterations=args.iterations
+    )
+    vox = VoxelConfig.preset(getattr(args, "quality", "fast"), **over)
+    given = _given(
+        min_track=args.min_track,
+        max_landmarks=args.max_landmarks,
+        match_window=args.match_window,
+        max_epipolar_px=args.max_epipolar,
+    )
     return BuildConfig(
         extractor=args.extractor,
         max_keypoints=args.max_keypoints,
