@@ -256,7 +256,13 @@ def test_lstsq_solver_is_the_regularised_least_squares_fit():
     cfg = VoxelConfig(
         resolution=R, patch_size=S, prior_rays=0, lstsq_ridge=0.05, lstsq_tv=0.2, centre_rays=0.5, solver="lstsq"
     )
-    got = train_voxels(data, cfg).descriptors.double().numpy()
+    grids = train_voxels(data, cfg)
+    got = grids.descriptors.double().numpy()
+    # its training curve is one point, the solution's: PSNR of the landmarks' mean squared error
+    ((it, loss, psnr),) = grids.history
+    mse = 4.0 / 10 ** (grids.psnr.astype(np.float64) / 10)
+    assert it == cfg.iterations - 1 and np.isclose(psnr, 10 * np.log10(4.0 / mse.mean()), atol=1e-4)
+    assert np.isclose(loss, np.mean(4 * mse + 1 - grids.cosine), rtol=1e-5) and loss > 0
     P = S * S
     pix_w = np.full(P, 0.5 / P)
     pix_w[P // 2] += 0.5

@@ -155,7 +155,13 @@ def test_merge_keeps_the_better_duplicate_and_unique_ids(small_map, tmp_path):
     q = m.quality.copy()
     q[better] += 1.0
     jitter = rng.normal(size=m.positions.shape)
-    jitter *= 0.2 * m.voxel_size[:, None] / np.linalg.norm(jitter, axis=1, keepdims=True)
+    # each copy moved by 0.2 voxel sides, and by less than half the way to its landmark's nearest neighbour
+    # (some lie 0.3 voxel sides apart), so that it duplicates its own landmark and no other
+    from scipy.spatial import cKDTree
+
+    nn_dist = cKDTree(m.positions).query(m.positions, k=2)[0][:, 1]
+    step = np.minimum(0.2 * m.voxel_size, 0.4 * nn_dist)
+    jitter *= step[:, None] / np.linalg.norm(jitter, axis=1, keepdims=True)
     b = write_variant(m, tmp_path / "b.h5", quality=q, positions=m.positions + jitter)
     res = merge_maps([path, b], tmp_path / "m.h5")
     d = check_written_map(tmp_path / "m.h5")

@@ -242,11 +242,16 @@ def test_quality_presets_and_cli_flags():
     assert (given.min_track, given.max_landmarks) == (6, 700)
     assert (plain.match_window, plain.max_epipolar_px) == (BuildConfig().match_window, BuildConfig().max_epipolar_px)
     tracking = cli_build.config_from_args(
-        ap.parse_args(["build", "seq", "-o", "x.h5", "--match-window", "10", "--max-epipolar", "1"])
+        ap.parse_args(["build", "seq", "-o", "x.h5", "--match-window", "3", "--max-epipolar", "2"])
     )
-    assert (tracking.match_window, tracking.max_epipolar_px) == (10, 1.0)
+    assert (tracking.match_window, tracking.max_epipolar_px) == (3, 2.0)
+    # the default preset: the CLI's, the API's and DEFAULT_QUALITY's are one
+    from favormap.voxels.train import DEFAULT_QUALITY
+
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
-    assert cli_build.config_from_args(args).voxel == VoxelConfig()
+    assert args.quality == DEFAULT_QUALITY
+    assert cli_build.config_from_args(args).voxel == VoxelConfig.preset(DEFAULT_QUALITY) == BuildConfig().voxel
+    assert (BuildConfig().match_window, BuildConfig().max_epipolar_px) == (10, 1.0)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])
     assert cli_build.config_from_args(args).voxel.solver == "lstsq"
 

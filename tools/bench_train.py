@@ -50,6 +50,7 @@ def main():
     ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size)")
     ap.add_argument("--quality", default="fast")
     ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--samples", type=int, default=None, help="samples per ray (default: the preset's)")
     ap.add_argument("--rays", default=None, help="cache of the training rays (.npz): read if it exists, else written")
     ap.add_argument("--batch", type=int, default=None, help="landmarks per training batch (default: the build's)")
     ap.add_argument("--repeat", type=int, default=2)
@@ -71,6 +72,8 @@ def main():
     cfg.voxel = VoxelConfig.preset(args.quality)
     if args.iterations:
         cfg.voxel.iterations = args.iterations
+    if args.samples:
+        cfg.voxel.samples = args.samples
     if args.batch:
         cfg.train_batch = args.batch
     if cfg.voxel.prior_mean_deg is None:  # as build_map resolves it
@@ -90,6 +93,7 @@ def main():
     print(
         f"{seq_path}: {L} landmarks, {O} observations, {rays.targets.shape[1]} pixels x {rays.targets.shape[2]} "
         f"channels per patch ({made}); quality {args.quality}, {cfg.voxel.iterations} iterations, "
+        f"{cfg.voxel.samples} samples per ray, "
         f"batches of {cfg.train_batch}, device {args.device}, torch threads {torch.get_num_threads()}"
     )
     sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)

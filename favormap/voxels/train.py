@@ -24,9 +24,9 @@ away from the mapping path, XFeat): mean cosine of the rendered to the truly ext
 0.8886 with the former training (box S l/f, 200 x 32 patch rays; = the mean descriptor, 0.8890),
 0.9031 with the defaults (nearest training view 0.9008), at about the same training time.
 
-``QUALITY_PRESETS`` / :meth:`VoxelConfig.preset`: "fast" (the defaults, sized for a few CPU cores),
-"quick" and "balanced" (closed-form descriptors: speed first, or the fast preset's accuracy within a
-few per cent in a quarter of its time) and "reference" (the budget of the reference implementation,
+``QUALITY_PRESETS`` / :meth:`VoxelConfig.preset`: "fast" (the dataclass's defaults: Adam, sized for a
+few CPU cores), "quick" and "balanced" (closed-form descriptors: speed first, or Adam's accuracy in a
+quarter of its time; "balanced" is what a build uses, ``DEFAULT_QUALITY``) and "reference" (the budget of the reference implementation,
 2,000 iterations x 1,024 rays and a 12 l/f box; meant for a GPU).
 """
 
@@ -115,7 +115,8 @@ PRIOR_MEAN_DEG_OTHER = 30.0  # extractors not listed
 
 
 QUALITY_PRESETS: dict[str, dict] = {
-    # the defaults: the fox (40 frames, 3,000 landmarks) trains in ~2 minutes on 2 CPU cores
+    # the dataclass's defaults, 200 Adam iterations (the build default until the twenty-third session): the
+    # fox (40 frames, 3,000 landmarks) trains in ~1 minute on 2 CPU cores
     "fast": {},
     # closed-form descriptors at fixed densities from 3 x 3 patches: speed first (fox build 17.0 s on 2
     # cores, tools/bench_build.py --quality quick; fast: 155.8 s). tools/bench_accuracy.py
@@ -150,6 +151,12 @@ QUALITY_PRESETS: dict[str, dict] = {
         tv_from=0.75,
     ),
 }
+
+
+# the preset a build uses unless told otherwise (favormap.build.BuildConfig, `favormap build --quality`):
+# with the build's clean tracks (next 10 frames, 1 px) "balanced" localizes as well as "fast" or better
+# (twenty-third session, three training seeds, paired: fox hold-out 0.88x, extrapolation 0.87x, orbit 1.01x)
+DEFAULT_QUALITY = "balanced"
 
 
 @dataclass
@@ -546,9 +553,14 @@ def _train_lstsq(
     if not evaluate_fit:
         return VoxelGrids(desc, dens, np.zeros(0, np.float32), np.zeros(0, np.float32), [])
     psnr, cosine = evaluate(data, desc, dens, cfg)
+    history = []
+    if len(psnr):  # one point, the solution's: Adam's data terms and PSNR over the real rays, landmark-weighted
+        mse = 4.0 / 10 ** (psnr.astype(np.float64) / 10)  # per descriptor element, as evaluate() has it
+        loss = float(np.mean(cfg.mse_weight * C * mse + cfg.cosine_weight * (1.0 - cosine)))
+        history.append((cfg.iterations - 1, loss, float(10 * np.log10(4.0 / max(np.mean(mse), 1e-12)))))
     if progress:
         progress(cfg.iterations - 1, float("nan"), float(np.median(psnr)) if len(psnr) else float("nan"))
-    return VoxelGrids(desc, dens, psnr, cosine, [])
+    return VoxelGrids(desc, dens, psnr, cosine, history)
 
 
 @torch.no_grad()

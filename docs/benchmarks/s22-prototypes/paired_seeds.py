@@ -31,6 +31,8 @@ for split in ("fox-holdout", "fox-extrap", "orbit"):
         per_seed.append(lr)
         print(f"{split:12s} seed{s or '-s0'}: {np.exp(np.mean(list(lr.values()))):.2f}  median {a['median_translation']:.5f} "
               f"(default {b['median_translation']:.5f}), p90 {a['p90_translation']:.4f} ({b['p90_translation']:.4f})")
+    if not per_seed:  # split not in this run
+        continue
     keys = set.intersection(*(set(d) for d in per_seed))
     v = np.array([np.mean([d[k] for d in per_seed]) for k in keys])
     rng = np.random.default_rng(0)
