@@ -26,8 +26,9 @@ away from the mapping path, XFeat): mean cosine of the rendered to the truly ext
 
 ``QUALITY_PRESETS`` / :meth:`VoxelConfig.preset`: "fast" (the dataclass's defaults: Adam, sized for a
 few CPU cores), "quick" and "balanced" (closed-form descriptors: speed first, or Adam's accuracy in a
-quarter of its time; "balanced" is what a build uses, ``DEFAULT_QUALITY``) and "reference" (the budget of the reference implementation,
-2,000 iterations x 1,024 rays and a 12 l/f box; meant for a GPU).
+quarter of its time; "balanced" is what a build uses, ``DEFAULT_QUALITY``) and "reference" (the
+budget of the reference implementation, 2,000 iterations x 1,024 rays and a 12 l/f box; meant for a
+GPU).
 """
 
 from __future__ import annotations
