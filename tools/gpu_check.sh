@@ -57,13 +57,18 @@ run)
             # with two other chunk sizes (sift_torch._default_budget: 2^24 window pixels on a GPU)
             timeout 150 python3 tools/bench_patches.py .gpu/fox --max-side 0 --budgets 4194304,67108864 \
                 || echo "(benchmark failed or timed out)"
-            echo "== fox build, 640 px, fast quality (the defaults), GPU; CPU stages on a thread per core"
+            echo "== fox build, 640 px, the defaults (balanced quality, next 10 frames at 1 px), GPU; CPU stages on a thread per core"
             timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda || echo "(build failed or timed out)"
+            echo "== fox build, 640 px, fast quality (Adam), GPU"
+            timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --quality fast || echo "(build failed or timed out)"
             echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
             timeout 150 python3 tools/bench_build.py .gpu/fox --device cuda --patches-on cpu \
                 || echo "(build failed or timed out)"
-            echo "== fox build, full resolution, fast quality, GPU"
+            echo "== fox build, full resolution, the defaults (balanced quality), GPU"
             timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 || echo "(build failed or timed out)"
+            echo "== fox build, full resolution, fast quality (Adam), GPU: issue 14's <= 10 s"
+            timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --quality fast \
+                || echo "(build failed or timed out)"
             echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
             timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --patches-on cpu \
                 || echo "(build failed or timed out)"
