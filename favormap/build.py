@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from collections.abc import Sequence as SequenceABC
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -34,7 +34,7 @@ from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
-from .voxels.train import DEFAULT_QUALITY, PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
+from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER, default_quality
 
 
 @dataclass
@@ -73,10 +73,15 @@ class BuildConfig:
     # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
     # this, not on who runs the batches (LocalExecutor or Ray workers)
     train_batch: int = 1024
-    # the "balanced" preset (closed-form descriptors on 7 x 7 patches, pulled towards the track mean): on the
-    # clean tracks above it localizes as well as Adam ("fast") or better, in a third of the build time
-    voxel: VoxelConfig = field(default_factory=lambda: VoxelConfig.preset(DEFAULT_QUALITY))
+    # None: the extractor's default preset (favormap.voxels.train.default_quality), set on construction. SIFT:
+    # "balanced" (closed-form descriptors on 7 x 7 patches, pulled towards the track mean), which on the clean
+    # tracks above localizes as well as Adam ("fast") or better, in a third of the build time
+    voxel: VoxelConfig | None = None
     threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule); not stored in the map
+
+    def __post_init__(self):
+        if self.voxel is None:
+            self.voxel = VoxelConfig.preset(default_quality(self.extractor))
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -224,7 +224,7 @@ def test_unknown_command_and_option(tmp_path):
 def test_build_bad_sequences_and_arguments(sequences, tmp_path):
     s = sequences
     out = "out.h5"
-    q = ["--resize", "0", "--iterations", "2", "-q"]
+    q = ["--resize", "0", "--quality", "fast", "--iterations", "2", "-q"]
     cases = {
         name: ["build", s[name], "-o", out, *q]
         for name in ("images missing", "unreadable image", "broken transforms.json", "broken sequence.json")
@@ -233,6 +233,7 @@ def test_build_bad_sequences_and_arguments(sequences, tmp_path):
         {
             "unknown --format": ["build", s["good"], "-o", out, "--format", "bogus", *q],
             "negative iterations": ["build", s["good"], "-o", out, "--iterations", "-3", "-q"],
+            "iterations, closed form": ["build", s["good"], "-o", out, "--iterations", "5", "-q"],
             "grid 1": ["build", s["good"], "-o", out, "--grid", "1", "-q"],
             "negative resize": ["build", s["good"], "-o", out, "--resize", "-1", "-q"],
             "match window 0": ["build", s["good"], "-o", out, "--match-window", "0", "-q"],
@@ -307,6 +308,8 @@ def test_build_progress_bars_do_not_precede_an_error(sequences, tmp_path):
                 "out.h5",
                 "--resize",
                 "0",
+                "--quality",
+                "fast",
                 "--iterations",
                 "2",
             ]

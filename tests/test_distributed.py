@@ -149,6 +149,8 @@ def test_ray_build_with_a_dead_worker_and_no_retries_writes_no_map(ray_two_worke
         "1024",
         "--max-landmarks",
         "150",
+        "--quality",
+        "fast",
         "--iterations",
         "150",
         "--train-batch",

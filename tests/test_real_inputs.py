@@ -330,6 +330,8 @@ def test_near_rigid_7scenes_sequence_builds(small_sequence, tmp_path, capsys):
             str(out),
             "--resize",
             "0",
+            "--quality",
+            "fast",
             "--iterations",
             "10",
             "--max-landmarks",

@@ -78,6 +78,8 @@ def built(tmp_path_factory):
                 str(mp),
                 "--resize",
                 "0",
+                "--quality",
+                "fast",
                 "--iterations",
                 "30",
                 "--max-landmarks",

@@ -245,12 +245,18 @@ def test_quality_presets_and_cli_flags():
         ap.parse_args(["build", "seq", "-o", "x.h5", "--match-window", "3", "--max-epipolar", "2"])
     )
     assert (tracking.match_window, tracking.max_epipolar_px) == (3, 2.0)
-    # the default preset: the CLI's, the API's and DEFAULT_QUALITY's are one
-    from favormap.voxels.train import DEFAULT_QUALITY
+    # the default preset follows the extractor, the same in the CLI and the API: SIFT balanced, the learned
+    # extractors Adam ("fast")
+    from favormap.voxels.train import default_quality
 
-    args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu"])
-    assert args.quality == DEFAULT_QUALITY
-    assert cli_build.config_from_args(args).voxel == VoxelConfig.preset(DEFAULT_QUALITY) == BuildConfig().voxel
+    assert (default_quality("sift"), default_quality("disk"), default_quality("xfeat")) == ("balanced", "fast", "fast")
+    for ex in ("sift", "disk", "xfeat"):
+        args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu", "--extractor", ex])
+        want = VoxelConfig.preset(default_quality(ex))
+        assert cli_build.config_from_args(args).voxel == want == BuildConfig(extractor=ex).voxel
+    assert BuildConfig().voxel == VoxelConfig.preset("balanced")
+    given = BuildConfig(extractor="disk", voxel=VoxelConfig.preset("quick"))  # a given preset stays
+    assert given.voxel == VoxelConfig.preset("quick")
     assert (BuildConfig().match_window, BuildConfig().max_epipolar_px) == (10, 1.0)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])
     assert cli_build.config_from_args(args).voxel.solver == "lstsq"

@@ -61,7 +61,7 @@ def main():
             seq_path = str(Path(tmp.name) / "room")
             write_sequence(seq_path, n_frames=30)
     seq = read_sequence(seq_path)
-    cfg = BuildConfig()
+    cfg = BuildConfig(**({"extractor": args.extractor} if args.extractor else {}))  # its default voxel preset
     for k, field in (
         ("max_landmarks", "max_landmarks"),
         ("min_track", "min_track"),
@@ -70,8 +70,6 @@ def main():
     ):
         if getattr(args, k) is not None:
             setattr(cfg, field, getattr(args, k))
-    if args.extractor:
-        cfg.extractor = args.extractor
     if args.max_side is not None:
         cfg.max_side = args.max_side
     if args.quality:

@@ -48,7 +48,7 @@ def main():
     ap.add_argument("sequence", nargs="?", default=None, help="default: ../shared/data/fox")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size)")
-    ap.add_argument("--quality", default="fast")
+    ap.add_argument("--quality", default=None, help="voxel preset (default: the build's)")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--samples", type=int, default=None, help="samples per ray (default: the preset's)")
     ap.add_argument("--rays", default=None, help="cache of the training rays (.npz): read if it exists, else written")
@@ -69,7 +69,8 @@ def main():
     cfg = BuildConfig()
     if args.max_side is not None:
         cfg.max_side = args.max_side
-    cfg.voxel = VoxelConfig.preset(args.quality)
+    if args.quality:
+        cfg.voxel = VoxelConfig.preset(args.quality)
     if args.iterations:
         cfg.voxel.iterations = args.iterations
     if args.samples:
@@ -92,7 +93,8 @@ def main():
     L, O = len(rays.centers), len(rays.obs_landmark)
     print(
         f"{seq_path}: {L} landmarks, {O} observations, {rays.targets.shape[1]} pixels x {rays.targets.shape[2]} "
-        f"channels per patch ({made}); quality {args.quality}, {cfg.voxel.iterations} iterations, "
+        f"channels per patch ({made}); quality {args.quality or 'default'} ({cfg.voxel.solver}), "
+        f"{cfg.voxel.iterations} iterations, "
         f"{cfg.voxel.samples} samples per ray, "
         f"batches of {cfg.train_batch}, device {args.device}, torch threads {torch.get_num_threads()}"
     )

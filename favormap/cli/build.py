@@ -62,11 +62,11 @@ def register(sub):
     p.add_argument(
         "--quality",
         choices=("quick", "balanced", "fast", "reference"),
-        default="balanced",  # favormap.voxels.train.DEFAULT_QUALITY (tests/test_voxels_view.py checks they agree)
+        default=None,  # None: the extractor's (favormap.voxels.train.default_quality)
         help="voxel training preset: quick (closed-form descriptors at fixed, nearly opaque densities from 3x3 "
-        "patches: fastest, slightly less accurate), balanced (default; the same on 7x7 patches, pulled towards "
-        "the track mean), fast (200 Adam iterations: 3-4x the build time of balanced, no more accurate on the "
-        "benchmark) or "
+        "patches: fastest, slightly less accurate), balanced (SIFT's default; the same on 7x7 patches, pulled "
+        "towards the track mean), fast (200 Adam iterations; the default of the learned extractors, whose "
+        "descriptors change with the view; with SIFT 2-3x the build time of balanced, no more accurate) or "
         "reference (the reference implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: "
         "use a GPU)",
     )
@@ -82,7 +82,10 @@ def register(sub):
         help="describe every K-th pixel of the patch, from its centre out to its edges (default: the preset's, 1)",
     )
     p.add_argument(
-        "--iterations", type=int, default=None, help="voxel training iterations (default: the preset's; fast 200)"
+        "--iterations",
+        type=int,
+        default=None,
+        help="Adam training iterations (presets fast and reference; default: the preset's, fast 200)",
     )
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     add_threads_arg(p)
@@ -147,7 +150,14 @@ def config_from_args(args):
     over = _given(
         resolution=args.grid, patch_size=args.patch, patch_stride=args.patch_stride, iterations=args.iterations
     )
-    vox = VoxelConfig.preset(getattr(args, "quality", "balanced"), **over)
+    from ..voxels.train import default_quality
+
+    vox = VoxelConfig.preset(getattr(args, "quality", None) or default_quality(args.extractor), **over)
+    if args.iterations is not None and vox.solver != "adam":  # the closed form has no iterations to set
+        raise InputError(
+            f"--iterations applies to Adam training (--quality fast or reference); the {vox.solver} preset "
+            f"{getattr(args, 'quality', None) or default_quality(args.extractor)!r} solves in closed form"
+        )
     given = _given(
         min_track=args.min_track,
         max_landmarks=args.max_landmarks,

@@ -25,7 +25,12 @@ def register(sub):
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--noise", default="0.3,15", help="prior perturbation 'T_UNITS,DEG' (default 0.3,15)")
-    p.add_argument("--iterations", type=int, default=200, help="voxel training iterations")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="train the voxels with Adam (--quality fast) for this many iterations (default: the build's defaults)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto")
     add_threads_arg(p)
@@ -46,6 +51,8 @@ def run(args) -> int:
 
     if args.frames < 10:
         raise InputError("--frames must be >= 10")
+    if args.iterations is not None and args.iterations < 1:
+        raise InputError("--iterations must be >= 1")
     noise = parse_noise(args.noise)
     device = auto_device(args.device)
     work = Path(args.workdir)
@@ -54,7 +61,10 @@ def run(args) -> int:
     seq = write_sequence(work / "room", n_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
     held = [i for i in range(len(seq)) if i % 5 == 2]
     train = [i for i in range(len(seq)) if i % 5 != 2]
-    cfg = BuildConfig(voxel=VoxelConfig(iterations=args.iterations))
+    # the build's defaults; --iterations: Adam training ("fast") with that many iterations
+    cfg = BuildConfig()
+    if args.iterations is not None:
+        cfg.voxel = VoxelConfig.preset("fast", iterations=args.iterations)
     bars = StageBars(args.quiet)
     try:
         m = build_map(seq.subset(train), cfg, progress=bars, device=device)

@@ -26,7 +26,7 @@ away from the mapping path, XFeat): mean cosine of the rendered to the truly ext
 
 ``QUALITY_PRESETS`` / :meth:`VoxelConfig.preset`: "fast" (the dataclass's defaults: Adam, sized for a
 few CPU cores), "quick" and "balanced" (closed-form descriptors: speed first, or Adam's accuracy in a
-quarter of its time; "balanced" is what a build uses, ``DEFAULT_QUALITY``) and "reference" (the
+quarter of its time; "balanced" is what a SIFT build uses, ``DEFAULT_QUALITY``) and "reference" (the
 budget of the reference implementation, 2,000 iterations x 1,024 rays and a 12 l/f box; meant for a
 GPU).
 """
@@ -154,10 +154,18 @@ QUALITY_PRESETS: dict[str, dict] = {
 }
 
 
-# the preset a build uses unless told otherwise (favormap.build.BuildConfig, `favormap build --quality`):
-# with the build's clean tracks (next 10 frames, 1 px) "balanced" localizes as well as "fast" or better
-# (twenty-third session, three training seeds, paired: fox hold-out 0.88x, extrapolation 0.87x, orbit 1.01x)
-DEFAULT_QUALITY = "balanced"
+# the preset a build uses unless told otherwise, per extractor (favormap.build.BuildConfig, `favormap build
+# --quality`). SIFT: with the build's clean tracks (next 10 frames, 1 px) "balanced" localizes as well as
+# "fast" or better (twenty-third session, three training seeds, paired: fox hold-out 0.88x, extrapolation
+# 0.87x, orbit 1.01x). DISK's view-dependent descriptors want Adam: on the same tracks fox extrapolation
+# 0.0102 (p90 0.061) with "balanced" against 0.0082 with "fast" (twenty-first and twenty-third sessions)
+DEFAULT_QUALITY: dict[str, str] = {"sift": "balanced"}
+DEFAULT_QUALITY_OTHER = "fast"
+
+
+def default_quality(extractor: str) -> str:
+    """The quality preset a build with ``extractor`` uses unless told otherwise."""
+    return DEFAULT_QUALITY.get(extractor, DEFAULT_QUALITY_OTHER)
 
 
 @dataclass
