@@ -650,6 +650,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             all_lms = refine_landmarks(all_lms, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks)
         n_tracks, n_triangulated = len(tracks), len(all_lms)
+        epipolar_kept = tracks.epipolar_matches / max(tracks.matches, 1)
+        epipolar_kept_3x = tracks.epipolar_matches_3x / max(tracks.matches, 1)
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on
         release_free_memory()
         pr.callback("triangulate", 1, 1)
@@ -682,6 +684,10 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         "frames": len(seq.frames),
         "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,
         "tracks": int(n_tracks),
+        # shares of the mutual matches within the epipolar limit and 3x it (favormap.tracking.Tracks)
+        "epipolar_kept": round(epipolar_kept, 4),
+        "epipolar_kept_3x": round(epipolar_kept_3x, 4),  # within 3x the limit
+        "max_epipolar_px": float(config.max_epipolar_px),
         "triangulated": int(n_triangulated),
         "landmarks": int(len(lms)),
         "mean_track_length": float(lms.tracks.lengths.mean()),

@@ -35,6 +35,14 @@ class Tracks:
     keypoint_idx: np.ndarray  # (O,) int32
     xy: np.ndarray  # (O, 2) float64 pixels
     offsets: np.ndarray  # (T+1,) int64
+    # of the tracking run that made these tracks (0 for tracks derived from others): mutual matches between
+    # frame pairs, how many of them lay within the epipolar limit and how many within 3x the limit. Most
+    # mutual matches of frames far apart are wrong and lie anywhere; of the right ones, nearly all lie within
+    # the limit when the poses are as accurate as it assumes, so a small share within the limit of those
+    # within 3x says the poses are less accurate than that (favormap build prints it)
+    matches: int = 0
+    epipolar_matches: int = 0
+    epipolar_matches_3x: int = 0
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -243,6 +251,7 @@ def track_features(
         return held[i]
 
     rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
+    n_mutual = n_kept = n_kept3 = 0
     for a in range(n):
         held.pop(a - 1, None)
         for b in range(a + 1, min(n, a + 1 + window)):
@@ -258,15 +267,20 @@ def track_features(
                 continue
             if epipolar_first:  # chosen among the pairs within max_epipolar_px already
                 ok = np.ones(len(ia), bool)
+                n_kept3 += len(ia)
             else:
-                ok = epipolar_distance(F, ka[ia], kb[ib]) <= max_epipolar_px
+                dist = epipolar_distance(F, ka[ia], kb[ib])
+                ok = dist <= max_epipolar_px
+                n_kept3 += int((dist <= 3 * max_epipolar_px).sum())
+            n_mutual, n_kept = n_mutual + len(ia), n_kept + int(ok.sum())
             rows.append((base[a] + ia[ok]).astype(gid))
             cols.append((base[b] + ib[ok]).astype(gid))
             xy_rows.append(ka[ia[ok]])
             xy_cols.append(kb[ib[ok]])
             sims.append(sab[ok].astype(np.float32))
     if not rows or not sum(len(r) for r in rows):
-        return Tracks(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
+        empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
+        return Tracks(*empty, matches=n_mutual, epipolar_matches=n_kept, epipolar_matches_3x=n_kept3)
     # the graph of matched keypoints only (global keypoint index -> node)
     ends = np.concatenate(rows + cols)
     node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
@@ -290,4 +304,6 @@ def track_features(
         bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
-    return Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])
+    tracks = Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])
+    tracks.matches, tracks.epipolar_matches, tracks.epipolar_matches_3x = n_mutual, n_kept, n_kept3
+    return tracks

@@ -189,7 +189,19 @@ def summary(m, path: Path) -> dict:
 
 def print_summary(s: dict) -> None:
     print(f"frames              {s['frames']}")
-    print(f"tracks              {s['tracks']}")
+    kept, kept3 = s.get("epipolar_kept"), s.get("epipolar_kept_3x")
+    line = f"tracks              {s['tracks']}"
+    if kept is not None and kept3:
+        px = s["max_epipolar_px"]
+        line += f"  (mutual matches within {px:g} px of their epipolar line: {100 * kept:.0f} %, "
+        line += f"within {3 * px:g} px: {100 * kept3:.0f} %"
+        # accurate poses put nearly every right match within the limit; wrong matches spread evenly
+        line += (
+            "; many beyond: poses less accurate than the limit? try --max-epipolar 2 or 3)"
+            if kept < 0.6 * kept3
+            else ")"
+        )
+    print(line)
     print(f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']})")
     print(f"mean track length   {s['mean_track_length']:.2f}")
     print(reproj_error_line(s["median_reproj_error_px"]))
