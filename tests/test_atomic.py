@@ -131,19 +131,8 @@ def test_partial_files_are_never_maps(tmp_path, monkeypatch):
 
 
 # -- killing a real build ------------------------------------------------------------------------------
-BUILD_ARGS = [
-    "--resize",
-    "0",
-    "--quality",
-    "fast",
-    "--iterations",
-    "10",
-    "--max-landmarks",
-    "100",
-    "--max-keypoints",
-    "512",
-    "-q",
-]
+BUILD_ARGS = ["--resize", "0", "--quality", "fast", "--iterations", "10"]  # Adam: a build long enough to kill
+BUILD_ARGS += ["--max-landmarks", "100", "--max-keypoints", "512", "-q"]
 
 
 @pytest.fixture(scope="module")
