@@ -909,7 +909,12 @@ def main():
     )
     ap.add_argument("--min-track", type=int, default=None)
     ap.add_argument("--max-landmarks", type=int, default=None)
-    ap.add_argument("--iterations", type=int, default=None, help="voxel training iterations")
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="Adam iterations (--quality fast / reference; the closed-form presets have none)",
+    )
     ap.add_argument(
         "--quality",
         default=None,

@@ -25,7 +25,12 @@ def main():
     ap.add_argument(
         "--max-epipolar", type=float, default=None, help="tracking epipolar px (default: the build default)"
     )
-    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="Adam iterations (--quality fast / reference; the closed-form presets have none)",
+    )
     ap.add_argument("--extractor", default=None, help="default: the build default")
     ap.add_argument("--quality", default=None, help="voxel training preset (quick | balanced | fast | reference)")
     ap.add_argument(

@@ -49,7 +49,12 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size)")
     ap.add_argument("--quality", default=None, help="voxel preset (default: the build's)")
-    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="Adam iterations (--quality fast / reference; the closed-form presets have none)",
+    )
     ap.add_argument("--samples", type=int, default=None, help="samples per ray (default: the preset's)")
     ap.add_argument("--rays", default=None, help="cache of the training rays (.npz): read if it exists, else written")
     ap.add_argument("--batch", type=int, default=None, help="landmarks per training batch (default: the build's)")
