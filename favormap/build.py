@@ -23,7 +23,7 @@ from . import features as feats_mod
 from .errors import FavormapError, InputError, SequenceError
 from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
-from .features.base import check_patch
+from .features.base import check_patch, patch_interpolation
 from .features.cache import FeatureCache, source_stamp
 from .geometry import camera_centers, project, unproject, view_geometry
 from .heap import release_free_memory
@@ -34,7 +34,7 @@ from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
-from .voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER, default_quality
+from .voxels.train import default_quality, voxel_config_for
 
 
 @dataclass
@@ -370,10 +370,13 @@ def training_rays(
     executor: Executor | None = None,
     progress=None,
     patch_stride: int = 1,
+    patch_interp: bool = False,
 ) -> TrainingRays:
     """Descriptor patches S x S around the projection of each landmark in each of its frames (every
     ``patch_stride``-th pixel: features.patch_offsets), and the viewing rays of their pixels. One
-    ``extractor.sample`` task per frame.
+    ``extractor.sample`` task per frame. With ``patch_interp`` the extractor describes only the
+    pixels :func:`favormap.features.base.patch_interpolation` picks (25 of 49 for S = 7) and the
+    others are interpolated bilinearly from them (then L2-normalised, as every sampled descriptor).
 
     Voxel side of landmark j: ``box_factor * min_i l_ij / f_i`` (paper eq. 2 uses the patch size S,
     the reference code 12 for S = 7); ``box_factor`` None means S."""
@@ -387,10 +390,19 @@ def training_rays(
     offs = patch_offsets(patch_size, patch_stride)
     pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
+    if patch_interp:
+        if patch_stride != 1:
+            raise ValueError("patch_interp interpolates a patch of every pixel: patch_stride must be 1")
+        described, weights = patch_interpolation(patch_size)
+        spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
+    else:
+        spix, weights = pix, None
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
     frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
-    tasks = (PatchTask(extractor, ff.features[f], pix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames)
+    tasks = (
+        PatchTask(extractor, ff.features[f], spix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames
+    )
     n = len(frames)
     executor = executor or LocalExecutor()
     held: list[np.ndarray] = []  # the (O, P, C) targets, made when the first frame's samples arrive
@@ -400,7 +412,12 @@ def training_rays(
             held.append(np.zeros((len(tid), P, samples.shape[-1]), np.float32))
         f = frames[k]
         sel = order[bounds[f] : bounds[f + 1]]
-        held[0][sel] = samples.reshape(len(sel), P, -1)
+        if weights is None:
+            held[0][sel] = samples.reshape(len(sel), P, -1)
+        else:
+            d = samples.reshape(len(sel), weights.shape[1], -1)  # (o, Pd, C) -> (o, P, C) in one product
+            full = (weights @ d.transpose(1, 0, 2).reshape(d.shape[1], -1)).reshape(P, len(sel), -1).transpose(1, 0, 2)
+            held[0][sel] = full / np.maximum(np.linalg.norm(full, axis=-1, keepdims=True), 1e-12)
 
     map_into(
         executor,
@@ -537,6 +554,10 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
         raise SequenceError(f"sequence {seq.root} has no frames")
     try:
         check_patch(config.voxel.patch_size, config.voxel.patch_stride)
+        if config.voxel.patch_interp:
+            if config.voxel.patch_stride != 1:
+                raise ValueError("patch_interp interpolates a patch of every pixel: patch_stride must be 1")
+            patch_interpolation(config.voxel.patch_size)
     except ValueError as e:
         raise InputError(f"VoxelConfig: {e}") from None
     if config.match_window < 1 or not config.max_epipolar_px > 0:
@@ -624,11 +645,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             return _build(seq, config, progress, observer, ex, device, cache)
     pr = _Progress(progress)
     obs = observer or BuildObserver()
-    if config.voxel.prior_mean_deg is None:  # resolve the per-extractor default (recorded in the provenance)
-        config = replace(
-            config,
-            voxel=replace(config.voxel, prior_mean_deg=PRIOR_MEAN_DEG.get(config.extractor, PRIOR_MEAN_DEG_OTHER)),
-        )
+    # the per-extractor defaults resolved (recorded in the provenance)
+    config = replace(config, voxel=voxel_config_for(config.voxel, config.extractor))
     images = [] if obs.wants_images else None
     extractor = ExtractorSpec(config.extractor, config.max_keypoints)
     with pr.stage("extract"):
@@ -668,6 +686,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             executor,
             pr.callback,
             config.voxel.patch_stride,
+            config.voxel.patch_interp,
         )
     release_free_memory()
     with pr.stage("train"):

@@ -184,6 +184,42 @@ def test_a_strided_patch_describes_the_same_pixels_as_the_full_patch(small_seque
         patch_offsets(7, 2)
 
 
+def test_an_interpolated_patch_describes_a_subgrid_and_interpolates_the_rest(small_sequence):
+    """VoxelConfig.patch_interp: the extractor describes 25 of a 7 x 7 patch's pixels (offsets -3, -1,
+    0, 1, 3 along each axis) with the descriptors the full patch has there; the other 24 lie midway
+    between two described ones and take their normalised bilinear blend, close to their own
+    descriptors; the rays are the full patch's. A build with it trains on 49 rays per observation."""
+    from favormap.build import BuildConfig, BuildObserver, ExtractorSpec, build_map, training_rays
+    from favormap.features import patch_offsets
+    from favormap.features.base import patch_interpolation
+    from favormap.voxels import VoxelConfig
+
+    class Keep(BuildObserver):
+        def on_landmarks(self, lms, ff):
+            self.lms, self.ff = lms, ff
+
+    keep = Keep()
+    cfg = BuildConfig(max_landmarks=60, voxel=VoxelConfig.preset("balanced", patch_interp=True))
+    m = build_map(small_sequence, cfg, observer=keep)
+    assert len(m.positions) == len(keep.lms) > 20 and m.descriptors.shape[-1] == 128
+    ex = ExtractorSpec(cfg.extractor, cfg.max_keypoints)
+    full = training_rays(keep.lms, keep.ff, ex, 7)
+    interp = training_rays(keep.lms, keep.ff, ex, 7, patch_interp=True)
+    offs = patch_offsets(7)
+    described, weights = patch_interpolation(7)
+    at = np.array([np.flatnonzero((offs == o).all(1))[0] for o in described])
+    assert len(at) == 25 and 24 in at
+    assert weights.shape == (49, 25) and np.allclose(weights @ described, offs)
+    np.testing.assert_allclose(interp.targets[:, at], full.targets[:, at], atol=1e-5)
+    np.testing.assert_allclose(interp.ray_dirs, full.ray_dirs)
+    mid = np.setdiff1d(np.arange(49), at)
+    cos = np.sum(interp.targets[:, mid] * full.targets[:, mid], -1)
+    assert np.allclose(np.linalg.norm(interp.targets, axis=-1), 1.0, atol=1e-5)
+    assert 0.9 < cos.mean() < 0.9999, cos.mean()  # interpolated: near the true descriptors, not equal
+    with pytest.raises(ValueError, match="odd size"):
+        patch_interpolation(6)
+
+
 def test_plane_aligned_observations_move_landmarks_onto_the_true_surface(small_sequence):
     """triangulation.refine_observations (BuildConfig.refine_window): on the synthetic room with exact
     poses, each track's keypoints aligned to its middle observation through the landmark's local plane

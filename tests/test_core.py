@@ -298,6 +298,22 @@ def test_lstsq_solver_is_the_regularised_least_squares_fit():
         assert np.allclose(got[j], want, atol=2e-4), np.abs(got[j] - want).max()
 
 
+def test_closed_form_fit_figures_are_those_of_rendering_the_training_rays_again():
+    """The closed form reports each landmark's PSNR and cosine from the stencils its fit made
+    (train._fit_quality): the figures of :func:`evaluate`, which traces every training ray again
+    through the solved grids, over several ray chunks (max_batch_rays)."""
+    from favormap.voxels import VoxelConfig, train_voxels
+    from favormap.voxels.train import evaluate
+
+    data = _patch_rays(L=9, C=8, S=5)
+    cfg = VoxelConfig(resolution=3, patch_size=5, solver="lstsq", density_init=20.0, max_batch_rays=4 * 25)
+    grids = train_voxels(data, cfg)
+    psnr, cosine = evaluate(data, grids.descriptors, grids.density, cfg)
+    np.testing.assert_allclose(grids.psnr, psnr, atol=1e-3)
+    np.testing.assert_allclose(grids.cosine, cosine, atol=1e-5)
+    assert np.ptp(psnr) > 0.1 and 0.5 < cosine.min() < cosine.max() < 1.0  # landmarks differ: not a constant
+
+
 def test_quaternions_match_scipy_including_half_turns():
     """The NumPy quaternion conversions (the localization path imports no scipy) agree with scipy's
     Rotation on random rotations and on the half turns where the trace-based formula breaks down."""

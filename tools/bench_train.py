@@ -39,7 +39,14 @@ def training_data(seq_path: str, cfg, device: str):
         ff = extract_sequence(seq, spec, cfg.max_side, executor=ex)
         lms = select_landmarks(triangulate_tracks(track_frames(ff, cfg), ff, cfg), cfg.max_landmarks)
         return training_rays(
-            lms, ff, spec, cfg.voxel.patch_size, cfg.voxel.box_factor, ex, patch_stride=cfg.voxel.patch_stride
+            lms,
+            ff,
+            spec,
+            cfg.voxel.patch_size,
+            cfg.voxel.box_factor,
+            ex,
+            patch_stride=cfg.voxel.patch_stride,
+            patch_interp=cfg.voxel.patch_interp,
         )
 
 
@@ -68,7 +75,7 @@ def main():
     from favormap.executor import LocalExecutor
     from favormap.threads import configure_threads
     from favormap.voxels import VoxelConfig
-    from favormap.voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER, TrainingRays
+    from favormap.voxels.train import TrainingRays, voxel_config_for
 
     configure_threads()
     cfg = BuildConfig()
@@ -82,8 +89,7 @@ def main():
         cfg.voxel.samples = args.samples
     if args.batch:
         cfg.train_batch = args.batch
-    if cfg.voxel.prior_mean_deg is None:  # as build_map resolves it
-        cfg.voxel.prior_mean_deg = PRIOR_MEAN_DEG.get(cfg.extractor, PRIOR_MEAN_DEG_OTHER)
+    cfg.voxel = voxel_config_for(cfg.voxel, cfg.extractor)  # as build_map resolves it
     seq_path = args.sequence or str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fox")
     t = time.perf_counter()
     if args.rays and Path(args.rays).exists():

@@ -139,3 +139,33 @@ def patch_offsets(size: int, stride: int = 1) -> np.ndarray:
     r = (np.arange(0, size, stride) - (size - 1) / 2.0).astype(np.float32)
     vv, uu = np.meshgrid(r, r, indexing="ij")
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
+def patch_interpolation(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of an S x S patch (every pixel, :func:`patch_offsets` order) to describe when the
+    others are interpolated from them: along each axis the centre, its two neighbours, every pixel
+    an odd distance from the centre and the edges (S = 7: offsets -3, -1, 0, 1, 3 of -3..3; the
+    even offsets >= 2 lie midway between two described ones). Returns the (m*m, 2) offsets to
+    describe, row-major as :func:`patch_offsets`, and the (S*S, m*m) bilinear weights that give every
+    pixel's descriptor from theirs (rows of the described pixels: one 1).
+
+    Measured on fox frames at 640 px (OpenCV SIFT, 900 patches around keypoints, a /tmp script in
+    the twenty-fourth session's issue-14 note): the interpolated pixels' descriptors have a mean
+    cosine of 0.989 to the described ones over the whole 7 x 7 patch (5th percentile 0.91), the
+    patch's mean descriptor 0.9994; 25 of 49 descriptors."""
+    check_patch(size)
+    if size % 2 == 0:
+        raise ValueError(f"an interpolated patch must have an odd size (a centre pixel), not {size}")
+    h = (size - 1) // 2
+    full = np.arange(size) - h
+    keep = full[(np.abs(full) <= 1) | (np.abs(full) % 2 == 1) | (np.abs(full) == h)]
+    w1 = np.zeros((size, len(keep)))
+    for i, x in enumerate(full):  # the described pixels below and above x (x itself when described)
+        j = min(int(np.searchsorted(keep, x, side="right")) - 1, max(len(keep) - 2, 0))
+        t = 0.0 if len(keep) == 1 else (x - keep[j]) / (keep[j + 1] - keep[j])
+        w1[i, j] = 1.0 - t
+        if t:
+            w1[i, j + 1] = t
+    vv, uu = np.meshgrid(keep, keep, indexing="ij")
+    offsets = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float32)
+    return offsets, np.kron(w1, w1).astype(np.float32)  # rows (v, u) row-major, as patch_offsets

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -55,6 +55,10 @@ class VoxelConfig:
     # described every patch_stride pixels from the centre out to the patch's edges (1: every pixel;
     # S = 7 with stride 3: a 3 x 3 grid spanning the same 7 x 7 pixels, 5.4x fewer descriptors)
     patch_stride: int = 1
+    # describe only some pixels of each patch (the centre 3 x 3, every second pixel beyond, the edges:
+    # 25 of 49 for S = 7) and interpolate the others (favormap.features.base.patch_interpolation).
+    # None: per extractor, PATCH_INTERP (build_map resolves it, voxel_config_for)
+    patch_interp: bool | None = None
     # the stored mean descriptor (the prior-free step's and the "mean" baseline's) averages the central
     # mean_patch x mean_patch pixels of each patch (0: the whole patch)
     mean_patch: int = 0
@@ -113,6 +117,25 @@ class VoxelConfig:
 # is detected near it in each image, so beyond ~10 deg the track's mean predicts better.
 PRIOR_MEAN_DEG: dict[str, float] = {"xfeat": 0.0, "sift": 10.0}
 PRIOR_MEAN_DEG_OTHER = 30.0  # extractors not listed
+
+# patch_interp per extractor. SIFT describes one point at a time (~40 us per point per core on the fox
+# at 640 px: half of a build), so its default patches describe 25 of 49 pixels; twenty-fourth session,
+# tools/bench_accuracy.py --train-seeds 0,1,2 --build-variant "pi:patch_interp=true" against the
+# default (balanced) maps, paired query by query, seed-pooled: fox hold-out 0.96x [0.92, 0.99],
+# extrapolation 0.93x [0.79, 1.06], orbit 1.02x [0.99, 1.07]. A dense extractor (XFeat, DISK) samples a
+# descriptor map bilinearly: nothing to save, and its patches stay exact.
+PATCH_INTERP: dict[str, bool] = {"sift": True}
+
+
+def voxel_config_for(cfg: VoxelConfig, extractor: str) -> VoxelConfig:
+    """``cfg`` with its per-extractor defaults (None fields: ``prior_mean_deg``, ``patch_interp``)
+    filled in for ``extractor``, as a build records them in the map's provenance."""
+    if cfg.prior_mean_deg is None:
+        cfg = replace(cfg, prior_mean_deg=PRIOR_MEAN_DEG.get(extractor, PRIOR_MEAN_DEG_OTHER))
+    if cfg.patch_interp is None:  # only a full patch (stride 1) of odd size has the pixels to interpolate from
+        whole = cfg.patch_stride == 1 and cfg.patch_size % 2 == 1
+        cfg = replace(cfg, patch_interp=whole and PATCH_INTERP.get(extractor, False))
+    return cfg
 
 
 QUALITY_PRESETS: dict[str, dict] = {
@@ -533,6 +556,7 @@ def _train_lstsq(
     B = torch.zeros(L, R3, C, **f32)  # sum w a^T t
     O = len(obs_lm)
     chunk = max(1, cfg.max_batch_rays // max(1, P))
+    kept: list[tuple[slice, torch.Tensor]] = []  # the real rays' stencils, for the fit's evaluation
     for s in range(0, O, chunk):
         sl = slice(s, min(O, s + chunk))
         lm = obs_lm[sl]
@@ -541,6 +565,8 @@ def _train_lstsq(
             origins[:, None, :].expand(-1, P, -1), torch.as_tensor(data.ray_dirs[sl], **f32), R, cfg.samples
         )
         a, _ = composite(st, delta, dens[lm], hit)  # (n, P, R^3)
+        if evaluate_fit:  # a batch's (O, P, R^3) stencils: ~40 MB for 1,024 fox landmarks
+            kept.append((sl, a))
         aw = (a * (pix_w / counts[lm, None].float())[..., None]).transpose(1, 2)
         A.index_add_(0, lm, torch.bmm(aw, a))
         B.index_add_(0, lm, torch.bmm(aw, targets[sl]))
@@ -561,7 +587,7 @@ def _train_lstsq(
     desc = torch.linalg.solve(A, B + cfg.lstsq_ridge * mean_desc[:, None, :])
     if not evaluate_fit:
         return VoxelGrids(desc, dens, np.zeros(0, np.float32), np.zeros(0, np.float32), [])
-    psnr, cosine = evaluate(data, desc, dens, cfg)
+    psnr, cosine = _fit_quality(data, desc, kept)
     history = []
     if len(psnr):  # one point, the solution's: Adam's data terms and PSNR over the real rays, landmark-weighted
         mse = 4.0 / 10 ** (psnr.astype(np.float64) / 10)  # per descriptor element, as evaluate() has it
@@ -570,6 +596,30 @@ def _train_lstsq(
     if progress:
         progress(cfg.iterations - 1, float("nan"), float(np.median(psnr)) if len(psnr) else float("nan"))
     return VoxelGrids(desc, dens, psnr, cosine, history)
+
+
+def _fit_quality(data: TrainingRays, desc: torch.Tensor, stencils: list[tuple[slice, torch.Tensor]]):
+    """:func:`evaluate` of the closed form's solution from the composite stencils its fit made
+    (the densities are fixed, so they are the rendering's): the same figures without tracing every
+    ray again (that was 43 % of the fox's closed-form training on two cores)."""
+    L, O, C = len(data.centers), len(data.obs_landmark), desc.shape[-1]
+    se, cos = torch.zeros(O), torch.zeros(O)
+    obs_lm = torch.as_tensor(data.obs_landmark, device=desc.device).long()
+    for sl, a in stencils:
+        tgt = torch.as_tensor(data.targets[sl], dtype=torch.float32, device=desc.device)
+        s_, c_ = _losses(a, desc[obs_lm[sl]], [tgt], (tgt * tgt).sum(-1))
+        se[sl], cos[sl] = (s_.mean(-1) / C).cpu(), c_.mean(-1).cpu()
+    return _per_landmark(data, se, cos, L)
+
+
+def _per_landmark(data: TrainingRays, se: torch.Tensor, cos: torch.Tensor, L: int):
+    """Per-landmark PSNR (MAX = 2) and mean cosine from per-observation squared errors and cosines."""
+    lm = torch.as_tensor(data.obs_landmark).long()
+    n = torch.bincount(lm, minlength=L).clamp_min(1).float()
+    mse = torch.zeros(L).index_add_(0, lm, se) / n
+    cs = torch.zeros(L).index_add_(0, lm, cos) / n
+    psnr = 10 * torch.log10(4.0 / mse.clamp_min(1e-12))
+    return psnr.numpy().astype(np.float32), cs.numpy().astype(np.float32)
 
 
 @torch.no_grad()
@@ -612,9 +662,4 @@ def evaluate(data: TrainingRays, desc, dens, cfg: VoxelConfig):
         tgt = torch.as_tensor(data.targets[sl], dtype=torch.float32, device=desc.device)
         s_, c_ = _losses(a, desc[lm], [tgt], (tgt * tgt).sum(-1))
         se[sl], cos[sl] = (s_.mean(-1) / C).cpu(), c_.mean(-1).cpu()  # per observation (se per element)
-    lm = torch.as_tensor(data.obs_landmark).long()
-    n = torch.bincount(lm, minlength=L).clamp_min(1).float()
-    mse = torch.zeros(L).index_add_(0, lm, se) / n
-    cs = torch.zeros(L).index_add_(0, lm, cos) / n
-    psnr = 10 * torch.log10(4.0 / mse.clamp_min(1e-12))
-    return psnr.numpy().astype(np.float32), cs.numpy().astype(np.float32)
+    return _per_landmark(data, se, cos, L)
