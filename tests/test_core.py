@@ -298,6 +298,25 @@ def test_lstsq_solver_is_the_regularised_least_squares_fit():
         assert np.allclose(got[j], want, atol=2e-4), np.abs(got[j] - want).max()
 
 
+def test_uniform_density_compositing_equals_the_general_one():
+    """render.composite_uniform (the closed form's fixed densities) gives composite's stencils and
+    opacities of ray_stencils, for rays through the box from outside, from inside and missing it."""
+    from favormap.voxels.render import composite, composite_uniform, ray_stencils
+
+    torch.manual_seed(1)
+    R, N, B, K = 3, 12, 5, 40
+    origins = torch.rand(B, K, 3) * 4 - 1.5  # local frame: the box is [0, 1]^3
+    dirs = torch.nn.functional.normalize(0.5 - origins + 0.6 * torch.randn(B, K, 3), dim=-1)
+    for density in (0.5, 20.0):
+        raw = torch.full((B, R**3), float(np.log(np.expm1(density))))
+        st, delta, hit = ray_stencils(origins, dirs, R, N)
+        want_a, want_op = composite(st, delta, raw, hit)
+        a, op = composite_uniform(origins, dirs, R, N, float(torch.nn.functional.softplus(raw[0, 0])))
+        torch.testing.assert_close(a, want_a, atol=2e-6, rtol=1e-5)
+        torch.testing.assert_close(op, want_op, atol=2e-6, rtol=1e-5)
+        assert (op == 0).any() and (op > 0.3).any()  # some rays miss the box, others cross it
+
+
 def test_closed_form_fit_figures_are_those_of_rendering_the_training_rays_again():
     """The closed form reports each landmark's PSNR and cosine from the stencils its fit made
     (train._fit_quality): the figures of :func:`evaluate`, which traces every training ray again

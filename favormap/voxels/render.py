@@ -100,6 +100,31 @@ def composite(stencils: torch.Tensor, delta: torch.Tensor, density_raw: torch.Te
     return torch.einsum("grkn,gkn->grk", stencils, w).transpose(1, 2), w.sum(-1)
 
 
+def composite_uniform(origins: torch.Tensor, dirs: torch.Tensor, R: int, n_samples: int, sigma: float):
+    """:func:`composite` of :func:`ray_stencils` for grids of one uniform density ``sigma`` (per voxel
+    side; the closed-form solver's fixed densities): the composite stencils (B, K, R^3) and
+    accumulated opacities (B, K) of rays (B, K, 3) in the local frame.
+
+    Every sample of a ray then has the same opacity, so its compositing weight is alpha (1 - alpha)^n,
+    and the sample weights fold into the z hats before the outer product: the (B, R^3, K, N) stencils
+    and the density product are never formed (fox, 1,024 landmarks: 2x faster, equal to 2e-7)."""
+    dirs = F.normalize(dirs, dim=-1)
+    t_near, t_far, hit = box_intersections(origins, dirs)
+    span = (t_far - t_near).clamp_min(0.0)
+    steps = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + 0.5) / n_samples
+    t = t_near[..., None] + span[..., None] * steps  # (B, K, N)
+    hx, hy, hz = (
+        _hats_node_second((origins[..., ax, None] + t * dirs[..., ax, None]).clamp_(0.0, 1.0).mul_(R - 1), R)
+        for ax in range(3)
+    )
+    alpha = 1.0 - torch.exp(-sigma * span / n_samples)  # (B, K)
+    powers = torch.arange(n_samples, dtype=origins.dtype, device=origins.device)
+    w = (1.0 - alpha + 1e-10)[..., None] ** powers * (alpha * hit)[..., None]  # (B, K, N), as composite's cumprod
+    xy = (hx[:, :, None] * hy[:, None]).flatten(1, 2)  # (B, R^2, K, N)
+    a = torch.einsum("bxkn,bzkn->bkxz", xy, hz * w[:, None]).flatten(2)  # (B, K, R^3), node order (x, y, z)
+    return a, w.sum(-1)
+
+
 def render(descriptors: torch.Tensor, density_raw: torch.Tensor, stencils, delta, hit):
     """Descriptors (G, K, C) of rays grouped by landmark, and their accumulated opacity (G, K).
     descriptors: (G, R^3, C)."""

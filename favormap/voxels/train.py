@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from ..heap import reuse_freed_blocks
-from .render import composite, ray_stencils, render, to_local
+from .render import composite, composite_uniform, ray_stencils, render, to_local
 
 
 @dataclass
@@ -550,6 +550,8 @@ def _train_lstsq(
     targets = torch.as_tensor(data.targets, **f32)
     mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, targets.mean(1)), dim=-1)
     dens = torch.full((L, R3), math.log(math.expm1(cfg.density_init)), **f32)
+    # the densities stay uniform (composite_uniform): softplus of the raw value, as composite takes it
+    sigma = float(F.softplus(torch.tensor(math.log(math.expm1(cfg.density_init)))))
     pix_w = torch.full((P,), (1.0 - cfg.centre_rays) / P, **f32)
     pix_w[P // 2] += cfg.centre_rays
     A = torch.zeros(L, R3, R3, **f32)  # sum w a^T a
@@ -561,10 +563,8 @@ def _train_lstsq(
         sl = slice(s, min(O, s + chunk))
         lm = obs_lm[sl]
         origins = (torch.as_tensor(data.obs_origin[sl], **f32) - centers[lm]) / sizes[lm, None] + 0.5
-        st, delta, hit = ray_stencils(
-            origins[:, None, :].expand(-1, P, -1), torch.as_tensor(data.ray_dirs[sl], **f32), R, cfg.samples
-        )
-        a, _ = composite(st, delta, dens[lm], hit)  # (n, P, R^3)
+        dirs = torch.as_tensor(data.ray_dirs[sl], **f32)
+        a, _ = composite_uniform(origins[:, None, :].expand(-1, P, -1), dirs, R, cfg.samples, sigma)  # (n, P, R^3)
         if evaluate_fit:  # a batch's (O, P, R^3) stencils: ~40 MB for 1,024 fox landmarks
             kept.append((sl, a))
         aw = (a * (pix_w / counts[lm, None].float())[..., None]).transpose(1, 2)
@@ -578,8 +578,7 @@ def _train_lstsq(
         step = max(1, cfg.max_batch_rays // max(1, po.shape[1]))
         for s in range(0, L, step):
             ls = slice(s, min(L, s + step))
-            st, delta, hit = ray_stencils(po[ls], pd[ls], R, cfg.samples)
-            a, _ = composite(st, delta, dens[ls], hit)
+            a, _ = composite_uniform(po[ls], pd[ls], R, cfg.samples, sigma)
             aw = (a * (cfg.lstsq_prior_weight / po.shape[1])).transpose(1, 2)
             A[ls] += torch.bmm(aw, a)
             B[ls] += torch.bmm(aw, pt[ls])
