@@ -260,6 +260,16 @@ def test_quality_presets_and_cli_flags():
     assert (BuildConfig().match_window, BuildConfig().max_epipolar_px) == (10, 1.0)
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])
     assert cli_build.config_from_args(args).voxel.solver == "lstsq"
+    # patch interpolation: per extractor (SIFT describes half of its full, odd patches), unless asked
+    from favormap.voxels.train import voxel_config_for
+
+    assert BuildConfig().voxel.patch_interp is None
+    assert voxel_config_for(BuildConfig().voxel, "sift").patch_interp is True
+    assert voxel_config_for(BuildConfig().voxel, "disk").patch_interp is False
+    for over in (dict(patch_stride=3), dict(patch_size=6), dict(patch_interp=False)):
+        assert voxel_config_for(VoxelConfig.preset("balanced", **over), "sift").patch_interp is False, over
+    exact = cli_build.config_from_args(ap.parse_args(["build", "seq", "-o", "x.h5", "--exact-patches"]))
+    assert exact.voxel.patch_interp is False and plain.voxel.patch_interp is None
 
 
 def test_reference_preset_trains_in_memory_bounded_groups():
