@@ -32,6 +32,9 @@ def main():
         help="Adam iterations (--quality fast / reference; the closed-form presets have none)",
     )
     ap.add_argument("--extractor", default=None, help="default: the build default")
+    ap.add_argument(
+        "--exact-patches", action="store_true", help="describe every patch pixel (favormap build --exact-patches)"
+    )
     ap.add_argument("--quality", default=None, help="voxel training preset (quick | balanced | fast | reference)")
     ap.add_argument(
         "--max-side", type=int, default=None, help="working resolution (0: full size; default: the build default)"
@@ -83,6 +86,8 @@ def main():
         cfg.voxel = VoxelConfig.preset(args.quality)
     if args.iterations:
         cfg.voxel.iterations = args.iterations
+    if args.exact_patches:
+        cfg.voxel.patch_interp = False
     if args.patches_on == "cpu":
         import favormap.build as fb
 

@@ -14,7 +14,8 @@ import numpy as np
 
 rows = json.load(open(sys.argv[1]))
 A_label, B_label = sys.argv[2], sys.argv[3]
-by = {(r["split"], r["method"]): r for r in rows if r["prior"] == "noise"}
+PRIOR = sys.argv[4] if len(sys.argv) > 4 else "noise"
+by = {(r["split"], r["method"]): r for r in rows if r["prior"] == PRIOR}
 
 
 def seeded(label, s):
