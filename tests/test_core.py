@@ -331,6 +331,16 @@ def test_closed_form_fit_figures_are_those_of_rendering_the_training_rays_again(
     np.testing.assert_allclose(grids.psnr, psnr, atol=1e-3)
     np.testing.assert_allclose(grids.cosine, cosine, atol=1e-5)
     assert np.ptp(psnr) > 0.1 and 0.5 < cosine.min() < cosine.max() < 1.0  # landmarks differ: not a constant
+    # beyond the memory bound for the kept stencils, the same figures by tracing the rays again
+    import favormap.voxels.train as train
+
+    bound, train._KEEP_STENCIL_BYTES = train._KEEP_STENCIL_BYTES, 0
+    try:
+        traced = train_voxels(data, cfg)
+    finally:
+        train._KEEP_STENCIL_BYTES = bound
+    np.testing.assert_allclose(traced.psnr, grids.psnr, atol=1e-3)
+    np.testing.assert_allclose(traced.descriptors.numpy(), grids.descriptors.numpy(), atol=1e-6)
 
 
 def test_quaternions_match_scipy_including_half_turns():

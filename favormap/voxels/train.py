@@ -558,14 +558,15 @@ def _train_lstsq(
     B = torch.zeros(L, R3, C, **f32)  # sum w a^T t
     O = len(obs_lm)
     chunk = max(1, cfg.max_batch_rays // max(1, P))
-    kept: list[tuple[slice, torch.Tensor]] = []  # the real rays' stencils, for the fit's evaluation
+    kept: list[tuple[slice, torch.Tensor]] = []  # the real rays' stencils, for the fit's evaluation ...
+    keep = evaluate_fit and O * P * R3 * 4 <= _KEEP_STENCIL_BYTES  # ... unless they would take much memory
     for s in range(0, O, chunk):
         sl = slice(s, min(O, s + chunk))
         lm = obs_lm[sl]
         origins = (torch.as_tensor(data.obs_origin[sl], **f32) - centers[lm]) / sizes[lm, None] + 0.5
         dirs = torch.as_tensor(data.ray_dirs[sl], **f32)
         a, _ = composite_uniform(origins[:, None, :].expand(-1, P, -1), dirs, R, cfg.samples, sigma)  # (n, P, R^3)
-        if evaluate_fit:  # a batch's (O, P, R^3) stencils: ~40 MB for 1,024 fox landmarks
+        if keep:  # a batch's (O, P, R^3) stencils: ~40 MB for 1,024 fox landmarks
             kept.append((sl, a))
         aw = (a * (pix_w / counts[lm, None].float())[..., None]).transpose(1, 2)
         A.index_add_(0, lm, torch.bmm(aw, a))
@@ -586,7 +587,7 @@ def _train_lstsq(
     desc = torch.linalg.solve(A, B + cfg.lstsq_ridge * mean_desc[:, None, :])
     if not evaluate_fit:
         return VoxelGrids(desc, dens, np.zeros(0, np.float32), np.zeros(0, np.float32), [])
-    psnr, cosine = _fit_quality(data, desc, kept)
+    psnr, cosine = _fit_quality(data, desc, kept) if keep else evaluate(data, desc, dens, cfg)
     history = []
     if len(psnr):  # one point, the solution's: Adam's data terms and PSNR over the real rays, landmark-weighted
         mse = 4.0 / 10 ** (psnr.astype(np.float64) / 10)  # per descriptor element, as evaluate() has it
@@ -595,6 +596,12 @@ def _train_lstsq(
     if progress:
         progress(cfg.iterations - 1, float("nan"), float(np.median(psnr)) if len(psnr) else float("nan"))
     return VoxelGrids(desc, dens, psnr, cosine, history)
+
+
+# the closed form keeps its stencils for the fit's figures up to this size (a batch of 1,024 landmarks
+# with 7 x 7 patches: ~40 MB on the fox, ~390 MB with the 72 observations per landmark of a 5,000-frame
+# build); beyond it the figures trace the rays again (evaluate), as before
+_KEEP_STENCIL_BYTES = 256 << 20
 
 
 def _fit_quality(data: TrainingRays, desc: torch.Tensor, stencils: list[tuple[slice, torch.Tensor]]):
