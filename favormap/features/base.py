@@ -149,10 +149,10 @@ def patch_interpolation(size: int) -> tuple[np.ndarray, np.ndarray]:
     describe, row-major as :func:`patch_offsets`, and the (S*S, m*m) bilinear weights that give every
     pixel's descriptor from theirs (rows of the described pixels: one 1).
 
-    Measured on fox frames at 640 px (OpenCV SIFT, 900 patches around keypoints, a /tmp script in
-    the twenty-fourth session's issue-14 note): the interpolated pixels' descriptors have a mean
-    cosine of 0.989 to the described ones over the whole 7 x 7 patch (5th percentile 0.91), the
-    patch's mean descriptor 0.9994; 25 of 49 descriptors."""
+    Measured on fox frames at 640 px (OpenCV SIFT, 900 patches around keypoints,
+    docs/benchmarks/s24-prototypes/interp_cos.py): over the 7 x 7 patch, every pixel's descriptor so
+    made has a mean cosine of 0.989 to the pixel's own descriptor (5th percentile 0.91), the patch's
+    mean descriptor 0.9994; 25 of 49 descriptors."""
     check_patch(size)
     if size % 2 == 0:
         raise ValueError(f"an interpolated patch must have an odd size (a centre pixel), not {size}")
