@@ -142,8 +142,8 @@ def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
         dist = lambda v: (2.0 - 2.0 * v).clamp_min(0.0).sqrt()  # noqa: E731
         ta = sim.topk(2, dim=1).values
         tb = sim.topk(2, dim=0).values
-        abt = torch.from_numpy(ab)
-        ok &= ((dist(ta[:, 0]) < ratio * dist(ta[:, 1])) & (dist(tb[0, abt]) < ratio * dist(tb[1, abt]))).numpy()
+        abt = torch.from_numpy(ab).to(sim.device)
+        ok &= ((dist(ta[:, 0]) < ratio * dist(ta[:, 1])) & (dist(tb[0, abt]) < ratio * dist(tb[1, abt]))).cpu().numpy()
     ia, ab = ia[ok], ab[ok]
     _, first = np.unique(ab, return_index=True)  # a column that several rows reach at its maximum: the first
     keep = np.sort(first)
