@@ -391,8 +391,7 @@ def training_rays(
     pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
     if patch_interp:
-        if patch_stride != 1:
-            raise ValueError("patch_interp interpolates a patch of every pixel: patch_stride must be 1")
+        check_patch(patch_size, patch_stride, interp=True)
         described, weights = patch_interpolation(patch_size)
         spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
     else:
@@ -553,11 +552,7 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
     if not seq.frames:
         raise SequenceError(f"sequence {seq.root} has no frames")
     try:
-        check_patch(config.voxel.patch_size, config.voxel.patch_stride)
-        if config.voxel.patch_interp:
-            if config.voxel.patch_stride != 1:
-                raise ValueError("patch_interp interpolates a patch of every pixel: patch_stride must be 1")
-            patch_interpolation(config.voxel.patch_size)
+        check_patch(config.voxel.patch_size, config.voxel.patch_stride, bool(config.voxel.patch_interp))
     except ValueError as e:
         raise InputError(f"VoxelConfig: {e}") from None
     if config.match_window < 1 or not config.max_epipolar_px > 0:

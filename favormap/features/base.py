@@ -117,8 +117,10 @@ def create(name: str, **kwargs) -> Extractor:
     return extractor_class(name)(**kwargs)
 
 
-def check_patch(size: int, stride: int = 1) -> None:
-    """ValueError unless an S x S patch can be sampled every ``stride`` pixels (patch_offsets)."""
+def check_patch(size: int, stride: int = 1, interp: bool = False) -> None:
+    """ValueError unless an S x S patch can be sampled every ``stride`` pixels (patch_offsets) and,
+    with ``interp``, interpolated from a sub-grid of its pixels (patch_interpolation: every pixel,
+    odd S)."""
     if not (isinstance(size, (int, np.integer)) and size >= 1):
         raise ValueError(f"patch size must be an integer >= 1, not {size!r}")
     if not (isinstance(stride, (int, np.integer)) and stride >= 1):
@@ -127,6 +129,11 @@ def check_patch(size: int, stride: int = 1) -> None:
         raise ValueError(
             f"a patch of {size} px sampled every {stride} px must be odd with a half-width ({(size - 1) / 2:g}) "
             f"that is a multiple of the stride, so that its centre and edges are sampled"
+        )
+    if interp and (stride != 1 or size % 2 == 0):
+        raise ValueError(
+            f"an interpolated patch must have every pixel (stride 1, not {stride}) and an odd size (a centre "
+            f"pixel), not {size}"
         )
 
 
@@ -153,9 +160,7 @@ def patch_interpolation(size: int) -> tuple[np.ndarray, np.ndarray]:
     docs/benchmarks/s24-prototypes/interp_cos.py): over the 7 x 7 patch, every pixel's descriptor so
     made has a mean cosine of 0.989 to the pixel's own descriptor (5th percentile 0.91), the patch's
     mean descriptor 0.9994; 25 of 49 descriptors."""
-    check_patch(size)
-    if size % 2 == 0:
-        raise ValueError(f"an interpolated patch must have an odd size (a centre pixel), not {size}")
+    check_patch(size, interp=True)
     h = (size - 1) // 2
     full = np.arange(size) - h
     keep = full[(np.abs(full) <= 1) | (np.abs(full) % 2 == 1) | (np.abs(full) == h)]
