@@ -25,8 +25,8 @@ from .executor import Executor, LocalExecutor
 from .features import Extractor, Features, patch_offsets
 from .features.base import check_patch, patch_interpolation
 from .features.cache import FeatureCache, source_stamp
-from .geometry import camera_centers, project, unproject, view_geometry
-from .heap import release_free_memory
+from .geometry import camera_centers, project, sum_by_group, unproject, view_geometry
+from .heap import release_free_memory, reuse_freed_blocks
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
@@ -583,8 +583,8 @@ def track_mean_descriptors(
         raise ValueError(f"VoxelConfig.mean_patch must be >= 0 (0: the whole patch), not {mean_patch}")
     half = (mean_patch or patch_size) / 2
     central = np.flatnonzero(np.abs(patch_offsets(patch_size, patch_stride)).max(1) < half)
-    out = np.zeros((n_landmarks, rays.targets.shape[-1]), np.float64)
-    np.add.at(out, rays.obs_landmark, rays.targets[:, central].mean(1))
+    means = rays.targets.mean(1) if len(central) == rays.targets.shape[1] else rays.targets[:, central].mean(1)
+    out = sum_by_group(means, rays.obs_landmark, n_landmarks)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
@@ -635,6 +635,7 @@ def build_map(
 
 def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
+    reuse_freed_blocks()
     if executor is None:  # this process: CPU stages on as many threads as configure_threads allows
         with LocalExecutor(device) as ex:
             return _build(seq, config, progress, observer, ex, device, cache)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, direction_cones, inverse, project
+from .geometry import camera_centers, direction_cones, inverse, project, sum_by_group
 from .tracking import Tracks
 
 
@@ -52,14 +52,6 @@ class Landmarks:
         return Landmarks(self.positions[idx], tr, self.reproj_errors[keep_obs], self.angles_deg[idx], src)
 
 
-def _sum_by_track(values: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
-    """Per-track sums of per-observation ``values`` (O, ...) -> (n, ...) (bincount per entry: unlike
-    ``np.add.at``, fast for millions of observations)."""
-    flat = values.reshape(len(values), -1)
-    out = np.stack([np.bincount(tid, flat[:, k], n) for k in range(flat.shape[1])], 1)
-    return out.reshape((n,) + values.shape[1:])
-
-
 def dlt(P: np.ndarray, xy: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
     """Batched linear triangulation of ``n`` tracks. P: (O, 3, 4) projection matrices (pixels) of the
     observations, xy: (O, 2) their pixels, tid: (O,) their track.
@@ -71,7 +63,7 @@ def dlt(P: np.ndarray, xy: np.ndarray, tid: np.ndarray, n: int) -> np.ndarray:
     r2 = xy[:, 1:2] * P[:, 2, :] - P[:, 1, :]
     r1 = r1 / np.maximum(np.linalg.norm(r1, axis=1, keepdims=True), 1e-12)
     r2 = r2 / np.maximum(np.linalg.norm(r2, axis=1, keepdims=True), 1e-12)
-    M = _sum_by_track(r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :], tid, n)
+    M = sum_by_group(r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :], tid, n)
     _, vecs = np.linalg.eigh(M)
     X = vecs[:, :, 0]
     return X[:, :3] / np.where(np.abs(X[:, 3:]) < 1e-12, 1e-12, X[:, 3:])
@@ -154,8 +146,8 @@ def _triangulate_block(
         J = np.empty((len(tid), 2, 3))
         J[:, 0] = fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
         J[:, 1] = fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
-        H = _sum_by_track(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, len(tracks))
-        g = _sum_by_track(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, len(tracks))
+        H = sum_by_group(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, len(tracks))
+        g = sum_by_group(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, len(tracks))
         Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
         try:
             step = -np.linalg.solve(Hd, g[..., None])[..., 0]

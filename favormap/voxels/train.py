@@ -539,6 +539,8 @@ def _train_lstsq(
     66.6 CPU s; lstsq with prior weight 0.5 .9124 .8623 .8233 .7525 .8736, 1.0 .9129 .8640 .8258
     .7558 .8750, 2.0 .9132 .8652 .8277 .7581 .8760 in ~4 CPU s."""
     dev = torch.device(device)
+    if dev.type == "cpu":
+        reuse_freed_blocks()  # the chunks' large temporaries: reused heap blocks, not fresh mappings
     f32 = dict(dtype=torch.float32, device=dev)
     R, C = cfg.resolution, data.targets.shape[-1]
     R3, L, P = R**3, len(data.centers), data.ray_dirs.shape[1]
