@@ -394,6 +394,10 @@ def training_rays(
         check_patch(patch_size, patch_stride, interp=True)
         described, weights = patch_interpolation(patch_size)
         spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
+        # the described pixels' rows copy their descriptor; only the others are blended (and normalised)
+        copied = np.flatnonzero(weights.max(1) == 1.0)
+        source, blended = weights[copied].argmax(1), np.setdiff1d(np.arange(P), copied)
+        blend = weights[blended]
     else:
         spix, weights = pix, None
     order = np.argsort(fi, kind="stable")
@@ -413,10 +417,14 @@ def training_rays(
         sel = order[bounds[f] : bounds[f + 1]]
         if weights is None:
             held[0][sel] = samples.reshape(len(sel), P, -1)
-        else:
-            d = samples.reshape(len(sel), weights.shape[1], -1)  # (o, Pd, C) -> (o, P, C) in one product
-            full = (weights @ d.transpose(1, 0, 2).reshape(d.shape[1], -1)).reshape(P, len(sel), -1).transpose(1, 0, 2)
-            held[0][sel] = full / np.maximum(np.linalg.norm(full, axis=-1, keepdims=True), 1e-12)
+        else:  # (o, Pd, C) -> (o, P, C)
+            d = samples.reshape(len(sel), weights.shape[1], -1)
+            b = np.matmul(blend, d)
+            norm = np.sqrt(np.einsum("opc,opc->op", b, b))
+            b /= np.maximum(norm, 1e-12, out=norm)[..., None]
+            full = np.empty((len(sel), P, d.shape[-1]), np.float32)
+            full[:, copied], full[:, blended] = d[:, source], b
+            held[0][sel] = full
 
     map_into(
         executor,

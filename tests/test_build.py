@@ -185,8 +185,8 @@ def test_a_strided_patch_describes_the_same_pixels_as_the_full_patch(small_seque
 
 
 def test_an_interpolated_patch_describes_a_subgrid_and_interpolates_the_rest(small_sequence):
-    """VoxelConfig.patch_interp: the extractor describes 25 of a 7 x 7 patch's pixels (offsets -3, -1,
-    0, 1, 3 along each axis) with the descriptors the full patch has there; the other 24 lie midway
+    """VoxelConfig.patch_interp: the extractor describes 25 of a 7 x 7 patch's pixels (offsets -3, -2,
+    0, 2, 3 along each axis) with the descriptors the full patch has there; the other 24 lie midway
     between two described ones and take their normalised bilinear blend, close to their own
     descriptors; the rays are the full patch's. A build with it trains on 49 rays per observation."""
     from favormap.build import BuildConfig, BuildObserver, ExtractorSpec, build_map, training_rays

@@ -119,10 +119,12 @@ PRIOR_MEAN_DEG: dict[str, float] = {"xfeat": 0.0, "sift": 10.0}
 PRIOR_MEAN_DEG_OTHER = 30.0  # extractors not listed
 
 # patch_interp per extractor. SIFT describes one point at a time (~40 us per point per core on the fox
-# at 640 px: half of a build), so its default patches describe 25 of 49 pixels; twenty-fourth session,
-# tools/bench_accuracy.py --train-seeds 0,1,2 --build-variant "pi:patch_interp=true" against the
-# default (balanced) maps, paired query by query, seed-pooled: fox hold-out 0.96x [0.92, 0.99],
-# extrapolation 0.93x [0.79, 1.06], orbit 1.02x [0.99, 1.07]. A dense extractor (XFeat, DISK) samples a
+# at 640 px: half of a build), so its default patches describe 25 of 49 pixels (the grid -3, -2, 0, 2,
+# 3: favormap.features.base.patch_interpolation). Twenty-fifth session, tools/bench_accuracy.py
+# --train-seeds 0,1,2 --priors noise,stream --build-variant "e2:patch_interp=true" against the
+# twenty-fourth session's grid (-3, -1, 0, 1, 3), paired query by query, seed-pooled: fox hold-out
+# 1.00x, extrapolation 1.04x [0.89, 1.25] per query and 0.89x [0.74, 1.03] as a stream (where the
+# former grid lost 1.12x to exact patches), orbit 0.97x. A dense extractor (XFeat, DISK) samples a
 # descriptor map bilinearly: nothing to save, and its patches stay exact.
 PATCH_INTERP: dict[str, bool] = {"sift": True}
 
