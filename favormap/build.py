@@ -412,11 +412,12 @@ def training_rays(
 
     def sink(k, samples):
         if not held:
-            held.append(np.zeros((len(tid), P, samples.shape[-1]), np.float32))
+            held.append(np.zeros((len(tid), P, samples.shape[-1]), np.float16))  # TrainingRays.targets
+            held.append(np.zeros((len(tid), samples.shape[-1]), np.float32))  # and their patch means
         f = frames[k]
         sel = order[bounds[f] : bounds[f + 1]]
         if weights is None:
-            held[0][sel] = samples.reshape(len(sel), P, -1)
+            full = samples.reshape(len(sel), P, -1)
         else:  # (o, Pd, C) -> (o, P, C)
             d = samples.reshape(len(sel), weights.shape[1], -1)
             b = np.matmul(blend, d)
@@ -424,7 +425,8 @@ def training_rays(
             b /= np.maximum(norm, 1e-12, out=norm)[..., None]
             full = np.empty((len(sel), P, d.shape[-1]), np.float32)
             full[:, copied], full[:, blended] = d[:, source], b
-            held[0][sel] = full
+        held[0][sel] = full
+        held[1][sel] = full.mean(1)
 
     map_into(
         executor,
@@ -436,7 +438,7 @@ def training_rays(
         gpu=isinstance(extractor, ExtractorSpec) and extractor.samples_on_device and executor.has_gpu,
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
     )
-    targets = held[0] if held else np.zeros((len(tid), P, 0), np.float32)
+    targets, means = held if held else (np.zeros((len(tid), P, 0), np.float16), np.zeros((len(tid), 0), np.float32))
     # ray directions in world
     d_cam = unproject(Ks[fi][:, None], pix)
     d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
@@ -446,7 +448,7 @@ def training_rays(
     dist = np.linalg.norm(X - centers, axis=1)
     sizes = np.full(len(lms), np.inf)
     np.minimum.at(sizes, tid, (patch_size if box_factor is None else box_factor) * dist / focal)
-    return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets)
+    return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets, means)
 
 
 @dataclass
@@ -494,6 +496,7 @@ def rays_subset(rays: TrainingRays, lo: int, hi: int) -> TrainingRays:
         rays.obs_origin[sel],
         rays.ray_dirs[sel],
         rays.targets[sel],
+        None if rays.target_means is None else rays.target_means[sel],
     )
 
 
@@ -591,7 +594,11 @@ def track_mean_descriptors(
         raise ValueError(f"VoxelConfig.mean_patch must be >= 0 (0: the whole patch), not {mean_patch}")
     half = (mean_patch or patch_size) / 2
     central = np.flatnonzero(np.abs(patch_offsets(patch_size, patch_stride)).max(1) < half)
-    means = rays.targets.mean(1) if len(central) == rays.targets.shape[1] else rays.targets[:, central].mean(1)
+    means = (
+        rays.patch_means()
+        if len(central) == rays.targets.shape[1]
+        else rays.targets[:, central].mean(1, dtype=np.float32)
+    )
     out = sum_by_group(means, rays.obs_landmark, n_landmarks)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 

@@ -244,7 +244,7 @@ def prepare(args) -> dict:
         training_rays,
         triangulate_tracks,
     )
-    from favormap.geometry import camera_centers
+    from favormap.geometry import camera_centers, sum_by_group
     from favormap.ops.spatial import project_inside
     from favormap.synthetic import camera_path, make_camera, make_room, render, write_sequence
 
@@ -278,8 +278,7 @@ def prepare(args) -> dict:
     obs_centres = rays.obs_origin
     obs_unit = obs_centres - X[rays.obs_landmark]
     obs_unit /= np.linalg.norm(obs_unit, axis=1, keepdims=True)
-    mean_desc = np.zeros((len(X), rays.targets.shape[-1]))
-    np.add.at(mean_desc, rays.obs_landmark, rays.targets.mean(1))
+    mean_desc = sum_by_group(rays.patch_means(), rays.obs_landmark, len(X))
     mean_desc /= np.linalg.norm(mean_desc, axis=1, keepdims=True)
     first = np.searchsorted(rays.obs_landmark, np.arange(len(X)))
     counts = np.bincount(rays.obs_landmark, minlength=len(X))
@@ -325,7 +324,7 @@ def prepare(args) -> dict:
         rays=rays,
         positions=X,
         mean_desc=mean_desc.astype(np.float32),
-        centre_targets=rays.targets[:, P // 2],
+        centre_targets=rays.targets[:, P // 2].astype(np.float32),
         queries=qs,
         key=key,
         train_frames=len(train_idx),

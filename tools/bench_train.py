@@ -94,12 +94,12 @@ def main():
     t = time.perf_counter()
     if args.rays and Path(args.rays).exists():
         with np.load(args.rays) as z:
-            rays = TrainingRays(**{f.name: z[f.name] for f in fields(TrainingRays)})
+            rays = TrainingRays(**{f.name: z[f.name] for f in fields(TrainingRays) if f.name in z})
         made = "read from " + args.rays
     else:
         rays = training_data(seq_path, cfg, args.device)
         if args.rays:
-            np.savez(args.rays, **asdict(rays))
+            np.savez(args.rays, **{k: v for k, v in asdict(rays).items() if v is not None})
         made = f"made in {time.perf_counter() - t:.1f} s"
     L, O = len(rays.centers), len(rays.obs_landmark)
     print(

@@ -202,7 +202,19 @@ class TrainingRays:
     obs_landmark: np.ndarray  # (O,) landmark of each observation, sorted
     obs_origin: np.ndarray  # (O, 3) camera centre (world)
     ray_dirs: np.ndarray  # (O, S*S, 3) world directions of the patch pixels
-    targets: np.ndarray  # (O, S*S, C) descriptors extracted at the patch pixels (unit norm)
+    # (O, S*S, C) descriptors extracted at the patch pixels (unit norm): float16 from a build (half the
+    # memory of the build's largest array, 518 -> 259 MB for the fox; rounding < 2.5e-4 per element),
+    # float32 accepted; training computes in float32, chunk by chunk
+    targets: np.ndarray
+    # (O, C) float32 mean of each observation's patch descriptors, as the build computed it from the
+    # float32 descriptors before rounding the targets (None: patch_means computes it from the targets)
+    target_means: np.ndarray | None = None
+
+    def patch_means(self) -> np.ndarray:
+        """(O, C) float32 mean descriptor of each observation's patch (not normalised)."""
+        if self.target_means is not None:
+            return self.target_means
+        return self.targets.mean(1, dtype=np.float32)
 
 
 @dataclass
@@ -344,7 +356,7 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
         vec = origins[idx] - centers[ls, None]
         dist = vec.norm(dim=-1)
         U = vec / dist[..., None].clamp_min(1e-12)  # landmark -> camera, unit
-        D = targets[idx, P // 2]  # (l, n_max, C) centre descriptors
+        D = targets[idx, P // 2].to(torch.float32)  # (l, n_max, C) centre descriptors
         u0 = torch.gather(U, 1, base[ls, :, None].expand(-1, -1, 3))
         t = F.normalize(g[ls] - (g[ls] * u0).sum(-1, keepdim=True) * u0, dim=-1)
         v = torch.cos(theta[ls]) * u0 + torch.sin(theta[ls]) * t
@@ -551,8 +563,9 @@ def _train_lstsq(
     obs_lm = torch.as_tensor(data.obs_landmark, device=dev).long()
     counts = torch.bincount(obs_lm, minlength=L)
     first = torch.cumsum(counts, 0) - counts
-    targets = torch.as_tensor(data.targets, **f32)
-    mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, targets.mean(1)), dim=-1)
+    targets = torch.as_tensor(data.targets, device=dev)  # its own dtype (float16 from a build): float32 by chunk
+    means = torch.as_tensor(data.patch_means(), **f32)
+    mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, means), dim=-1)
     dens = torch.full((L, R3), math.log(math.expm1(cfg.density_init)), **f32)
     # the densities stay uniform (composite_uniform): softplus of the raw value, as composite takes it
     sigma = float(F.softplus(torch.tensor(math.log(math.expm1(cfg.density_init)))))
@@ -574,7 +587,7 @@ def _train_lstsq(
             kept.append((sl, a))
         aw = (a * (pix_w / counts[lm, None].float())[..., None]).transpose(1, 2)
         A.index_add_(0, lm, torch.bmm(aw, a))
-        B.index_add_(0, lm, torch.bmm(aw, targets[sl]))
+        B.index_add_(0, lm, torch.bmm(aw, targets[sl].to(torch.float32)))
         if progress:
             progress(int(0.8 * cfg.iterations * sl.stop / max(O, 1)), float("nan"), float("nan"))
     if cfg.prior_rays > 0 and cfg.lstsq_prior_weight > 0:
