@@ -202,16 +202,21 @@ def _distinct(p: np.ndarray, size: np.ndarray, angle: np.ndarray, octave: np.nda
     scale = unpack_octave(octave)[2]
     q = np.where(np.isfinite(p), p * scale[:, None], -1.0)  # float32 products (NaN points: one group)
     centre = np.rint(q).astype(np.int64)  # rounded half to even, as cvRound
-    key = np.stack(
-        [
-            centre[:, 0],
-            centre[:, 1],
-            np.asarray(octave, np.int64),
-            np.asarray(size, np.float32).view(np.int32).astype(np.int64),
-            np.asarray(angle, np.float32).view(np.int32).astype(np.int64),
-        ],
-        1,
-    )
+    octave = np.asarray(octave, np.int64)
+    size_bits = np.asarray(size, np.float32).view(np.uint32).astype(np.uint64)
+    angle_bits = np.asarray(angle, np.float32).view(np.uint32).astype(np.uint64)
+    # one int64 key per point where it fits (the few keypoint parameters of a call numbered first):
+    # sorting it is ~10x faster than the rows of the 5-column key below
+    _, kind = np.unique((size_bits << np.uint64(32)) | angle_bits, return_inverse=True)
+    _, kind = np.unique((kind.reshape(-1).astype(np.int64) << 32) | (octave & 0xFFFFFFFF), return_inverse=True)
+    kind = kind.reshape(-1)
+    bound = 1 << 21
+    fits = len(p) and octave.min() >= 0 and octave.max() < 1 << 32 and centre.min() >= -1 and centre.max() < bound - 1
+    if fits and kind.max() < bound:
+        key = ((centre[:, 0] + 1) << 42) | ((centre[:, 1] + 1) << 21) | kind
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        return first, inverse.reshape(-1)
+    key = np.stack([centre[:, 0], centre[:, 1], octave, size_bits.astype(np.int64), angle_bits.astype(np.int64)], 1)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     return first, inverse.reshape(-1)
 
