@@ -650,6 +650,8 @@ def build_map(
 
 def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
+    # large temporaries (tracking's similarity blocks, the closed form's chunks) from reused heap blocks,
+    # not fresh mappings faulted in page by page (fox: training 3.2 -> 1.7-2.1 s on two cores)
     reuse_freed_blocks()
     if executor is None:  # this process: CPU stages on as many threads as configure_threads allows
         with LocalExecutor(device) as ex:
