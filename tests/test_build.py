@@ -213,7 +213,7 @@ def test_an_interpolated_patch_describes_a_subgrid_and_interpolates_the_rest(sma
     np.testing.assert_allclose(interp.targets[:, at], full.targets[:, at], atol=1e-5)
     np.testing.assert_allclose(interp.ray_dirs, full.ray_dirs)
     mid = np.setdiff1d(np.arange(49), at)
-    cos = np.sum(interp.targets[:, mid] * full.targets[:, mid], -1)
+    cos = np.sum(interp.targets[:, mid].astype(np.float32) * full.targets[:, mid].astype(np.float32), -1)
     # stored as float16 (TrainingRays.targets): unit norm up to float16 rounding (2^-11 per element)
     assert interp.targets.dtype == np.float16
     assert np.allclose(np.linalg.norm(interp.targets.astype(np.float32), axis=-1), 1.0, atol=1e-3)
