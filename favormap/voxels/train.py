@@ -378,6 +378,13 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
     return torch.cat(out_o), torch.cat(out_d), torch.cat(out_t)
 
 
+def _track_means(data: TrainingRays, obs_lm: torch.Tensor, L: int, **f32) -> torch.Tensor:
+    """(L, C) unit mean descriptor of each landmark's track, as the map's mean_descriptor: the mean of
+    its observations' patch means (:meth:`TrainingRays.patch_means`, from before the float16 rounding)."""
+    means = torch.as_tensor(data.patch_means(), **f32)
+    return F.normalize(torch.zeros(L, means.shape[-1], **f32).index_add_(0, obs_lm, means), dim=-1)
+
+
 def _losses(a: torch.Tensor, desc: torch.Tensor, targets: list[torch.Tensor], target_sq: torch.Tensor):
     """Squared L2 distance and cosine similarity (G, K) of the rendered descriptors a @ desc to the
     targets, without forming the rendered descriptors: with p = a D and D the (R^3, C) node
@@ -429,8 +436,7 @@ def train_voxels(
     counts = torch.bincount(obs_lm, minlength=L)
     first = torch.cumsum(counts, 0) - counts
 
-    # the track's mean descriptor (as the map's mean_descriptor: mean of the patch means)
-    mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, targets.mean(1)), dim=-1)
+    mean_desc = _track_means(data, obs_lm, L, **f32)
     # init: every node holds the mean descriptor (or zero); uniform density
     if cfg.init not in ("mean", "zero", "lstsq"):
         raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero, lstsq)")
@@ -564,8 +570,7 @@ def _train_lstsq(
     counts = torch.bincount(obs_lm, minlength=L)
     first = torch.cumsum(counts, 0) - counts
     targets = torch.as_tensor(data.targets, device=dev)  # its own dtype (float16 from a build): float32 by chunk
-    means = torch.as_tensor(data.patch_means(), **f32)
-    mean_desc = F.normalize(torch.zeros(L, C, **f32).index_add_(0, obs_lm, means), dim=-1)
+    mean_desc = _track_means(data, obs_lm, L, **f32)
     dens = torch.full((L, R3), math.log(math.expm1(cfg.density_init)), **f32)
     # the densities stay uniform (composite_uniform): softplus of the raw value, as composite takes it
     sigma = float(F.softplus(torch.tensor(math.log(math.expm1(cfg.density_init)))))
