@@ -349,16 +349,59 @@ def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
 
 
 @dataclass
+class PatchLayout:
+    """How a frame's samples become its observations' S x S training patches (P = S * S pixels): the
+    extractor describes ``described`` pixels per observation, every pixel when ``blend`` is None;
+    else patch pixel ``copied[k]`` copies described pixel ``source[k]`` and the pixels ``blended``
+    are ``blend`` (len(blended), described) times the described ones, L2-normalised
+    (:func:`favormap.features.base.patch_interpolation`)."""
+
+    pixels: int
+    described: int
+    copied: np.ndarray | None = None
+    source: np.ndarray | None = None
+    blended: np.ndarray | None = None
+    blend: np.ndarray | None = None
+
+    @classmethod
+    def interpolated(cls, weights: np.ndarray) -> PatchLayout:
+        copied = np.flatnonzero(weights.max(1) == 1.0)
+        blended = np.setdiff1d(np.arange(len(weights)), copied)
+        return cls(len(weights), weights.shape[1], copied, weights[copied].argmax(1), blended, weights[blended])
+
+    def assemble(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(o * described, C) samples -> the (o, P, C) float16 patches (TrainingRays.targets) and
+        their (o, C) float32 means taken before the rounding (TrainingRays.target_means)."""
+        d = samples.reshape(-1, self.described, samples.shape[-1])
+        if self.blend is None:
+            full = d
+        else:
+            b = np.matmul(self.blend, d)
+            norm = np.sqrt(np.einsum("opc,opc->op", b, b))
+            b /= np.maximum(norm, 1e-12, out=norm)[..., None]
+            full = np.empty((len(d), self.pixels, d.shape[-1]), np.float32)
+            full[:, self.copied], full[:, self.blended] = d[:, self.source], b
+        return full.astype(np.float16), full.mean(1, dtype=np.float32)
+
+
+@dataclass
 class PatchTask:
-    """Descriptor samples at ``points`` (n, 2) of one frame."""
+    """Descriptor samples at ``points`` (n, 2) of one frame (with ``layout``: its training patches)."""
 
     extractor: Extractor | ExtractorSpec
     features: Features
     points: np.ndarray
+    layout: PatchLayout | None = None
 
 
 def sample_patches(task: PatchTask, device: str | None = None, report=None) -> np.ndarray:
     return _extractor(task.extractor, device or "cpu").sample(task.features, task.points)
+
+
+def patch_targets(task: PatchTask, device: str | None = None, report=None) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's training patches, float16, and their float32 means: :meth:`PatchLayout.assemble` of
+    its samples, in the task (on the executor's threads or workers, not in the driver)."""
+    return task.layout.assemble(sample_patches(task, device, report))
 
 
 def training_rays(
@@ -394,43 +437,32 @@ def training_rays(
         check_patch(patch_size, patch_stride, interp=True)
         described, weights = patch_interpolation(patch_size)
         spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
-        # the described pixels' rows copy their descriptor; only the others are blended (and normalised)
-        copied = np.flatnonzero(weights.max(1) == 1.0)
-        source, blended = weights[copied].argmax(1), np.setdiff1d(np.arange(P), copied)
-        blend = weights[blended]
+        layout = PatchLayout.interpolated(weights)
     else:
-        spix, weights = pix, None
+        spix, layout = pix, PatchLayout(P, P)
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
     frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
     tasks = (
-        PatchTask(extractor, ff.features[f], spix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2)) for f in frames
+        PatchTask(extractor, ff.features[f], spix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2), layout)
+        for f in frames
     )
     n = len(frames)
     executor = executor or LocalExecutor()
-    held: list[np.ndarray] = []  # the (O, P, C) targets, made when the first frame's samples arrive
+    held: list[np.ndarray] = []  # the (O, P, C) targets and (O, C) means, made when the first frame's arrive
 
-    def sink(k, samples):
+    def sink(k, result):
+        full, mean = result
         if not held:
-            held.append(np.zeros((len(tid), P, samples.shape[-1]), np.float16))  # TrainingRays.targets
-            held.append(np.zeros((len(tid), samples.shape[-1]), np.float32))  # and their patch means
+            held.append(np.zeros((len(tid), P, full.shape[-1]), np.float16))  # TrainingRays.targets
+            held.append(np.zeros((len(tid), full.shape[-1]), np.float32))  # and their patch means
         f = frames[k]
         sel = order[bounds[f] : bounds[f + 1]]
-        if weights is None:
-            full = samples.reshape(len(sel), P, -1)
-        else:  # (o, Pd, C) -> (o, P, C)
-            d = samples.reshape(len(sel), weights.shape[1], -1)
-            b = np.matmul(blend, d)
-            norm = np.sqrt(np.einsum("opc,opc->op", b, b))
-            b /= np.maximum(norm, 1e-12, out=norm)[..., None]
-            full = np.empty((len(sel), P, d.shape[-1]), np.float32)
-            full[:, copied], full[:, blended] = d[:, source], b
-        held[0][sel] = full
-        held[1][sel] = full.mean(1)
+        held[0][sel], held[1][sel] = full, mean
 
     map_into(
         executor,
-        sample_patches,
+        patch_targets,
         tasks,
         n,
         sink,

@@ -94,7 +94,7 @@ def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequ
     for gpu in (False, True):
         ex = Recording(gpu)
         got[gpu] = training_rays(lms, ff, spec, 3, executor=ex).targets
-        assert ("sample_patches", gpu) in ex.flags
+        assert ("patch_targets", gpu) in ex.flags
     np.testing.assert_array_equal(got[True], got[False])  # a GPU task on a CPU device: OpenCV, the same
     # a task given a GPU device samples through torch (here: "cpu:0", torch on the CPU), with OpenCV's result
     task = PatchTask(spec, ff.features[0], ff.features[0].keypoints[:20] + 1.0)

@@ -273,3 +273,32 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
         out = capsys.readouterr().out
         assert f"within 1 px of their epipolar line: {round(100 * kept)} %, within 3 px: {round(100 * kept3)} %" in out
         assert ("--max-epipolar 2" in out) == hint
+
+
+@pytest.mark.parametrize("epipolar_first", [False, True])
+def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks(epipolar_first):
+    """With more than one torch thread, a frame's pairs are matched on a pool of threads (one torch
+    thread each): the tracks and match counts are those of the serial run, and torch's thread count
+    is restored afterwards."""
+    import torch
+
+    X, T, D, rng = _rig(n_frames=10, n_points=300)
+    feats, _ = _features(X, T, D, rng, noise_px=0.6)
+    before = torch.get_num_threads()
+    got = {}
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            got[n] = track_features(feats, T, [CAM] * len(T), min_track=3, window=4, epipolar_first=epipolar_first)
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(before)
+    a, b = got[1], got[2]
+    assert len(a) > 200
+    for k in ("frame_idx", "keypoint_idx", "xy", "offsets"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    assert (a.matches, a.epipolar_matches, a.epipolar_matches_3x) == (
+        b.matches,
+        b.epipolar_matches,
+        b.epipolar_matches_3x,
+    )
