@@ -381,7 +381,9 @@ class PatchLayout:
             b /= np.maximum(norm, 1e-12, out=norm)[..., None]
             full = np.empty((len(d), self.pixels, d.shape[-1]), np.float32)
             full[:, self.copied], full[:, self.blended] = d[:, self.source], b
-        return full.astype(np.float16), full.mean(1, dtype=np.float32)
+        import torch  # its float16 conversion (F16C): the same bits as NumPy's, 18x faster (16 -> 0.9 ms per fox frame)
+
+        return torch.from_numpy(np.ascontiguousarray(full)).half().numpy(), full.mean(1, dtype=np.float32)
 
 
 @dataclass
@@ -442,7 +444,10 @@ def training_rays(
         spix, layout = pix, PatchLayout(P, P)
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
-    frames = [f for f in range(len(ff.features)) if bounds[f + 1] > bounds[f]]
+    # the frames with most observations first: the pool's threads then finish together (the last
+    # tasks are the shortest) instead of one thread describing a large frame while the other idles
+    sizes = np.diff(bounds)
+    frames = [int(f) for f in np.argsort(-sizes, kind="stable") if sizes[f] > 0]
     tasks = (
         PatchTask(extractor, ff.features[f], spix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2), layout)
         for f in frames

@@ -67,7 +67,7 @@ class LocalExecutor(Executor):
     """Every task in this process. Tasks that can use a GPU run one after the other on ``device``
     (torch uses its own threads); CPU-only tasks (SIFT extraction, descriptor patches) run on a pool
     of ``workers`` threads (OpenCV releases the GIL; its own pool is held at one thread meanwhile,
-    favormap.threads.serial_opencv, so each thread has one core). ``workers`` None:
+    favormap.threads.serial_pools, so each thread has one core; torch's too). ``workers`` None:
     the thread count favormap.threads configured for this process; 1: one after the other.
 
     Results are the same whatever the worker count (tests/test_feature_cache.py): each task is a
@@ -119,9 +119,9 @@ class LocalExecutor(Executor):
         if self._pool is None or self._pool_size != n:
             self.close()
             self._pool, self._pool_size = ThreadPoolExecutor(n, thread_name_prefix="favormap"), n
-        from .threads import serial_opencv
+        from .threads import serial_pools
 
-        with serial_opencv():  # one core per thread (see there)
+        with serial_pools():  # one core per thread (see there)
             futures = [self._pool.submit(fn, t, device="cpu") for t in tasks]
             try:
                 out = []

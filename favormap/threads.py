@@ -156,7 +156,7 @@ def others_busy(since: _Sample, now: _Sample) -> float | None:
 _start = _Sample()  # at import: the CLI imports this module first, so the window spans its imports
 _lock = threading.Lock()
 _torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
-_opencv_serial = 0  # open serial_opencv() blocks: OpenCV's pool stays at one thread meanwhile
+_serial = 0  # open serial_pools() blocks: OpenCV's and torch's pools stay at one thread meanwhile
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
@@ -249,7 +249,7 @@ def _set_pools(n: int, first: bool) -> None:
     global _torch_sized
     torch = sys.modules.get("torch")
     if torch is not None:
-        if torch.get_num_threads() != n:
+        if torch.get_num_threads() != n and not _serial:  # a serial_pools() block sizes it on leaving
             torch.set_num_threads(n)
         if first or not _torch_sized:
             try:
@@ -257,7 +257,7 @@ def _set_pools(n: int, first: bool) -> None:
             except RuntimeError:  # inter-op pool already started (set by the caller or used): leave it
                 pass
         _torch_sized = True
-    if _opencv_serial:  # a pool of Python threads runs OpenCV calls: its pool is sized on leaving
+    if _serial:  # a pool of Python threads runs OpenCV calls: its pool is sized on leaving
         return
     try:
         import cv2
@@ -268,25 +268,37 @@ def _set_pools(n: int, first: bool) -> None:
 
 
 @contextmanager
-def serial_opencv():
-    """OpenCV calls run in the calling thread while the block runs (``cv2.setNumThreads(1)``), for
-    a pool of Python threads that each run OpenCV calls (favormap.executor.LocalExecutor): one core
-    per thread instead of every thread's calls queueing for OpenCV's one pool (OpenCV runs a call
-    serially while its pool is busy with another thread's, and that call's share of the cores
-    idles). On leaving, the pool gets the configured count again."""
-    global _opencv_serial
+def serial_pools():
+    """OpenCV and torch calls run in their calling thread while the block runs
+    (``cv2.setNumThreads(1)``, ``torch.set_num_threads(1)`` when torch is loaded), for a pool of
+    Python threads that each run such calls (favormap.executor.LocalExecutor, the tracking's pairs):
+    one core per thread. OpenCV runs a call serially while its pool is busy with another thread's,
+    so that call's share of the cores idled; a torch call from another thread than the one that
+    sized torch's pool starts an OpenMP team of its own, and once the threads of all teams outnumber
+    the cores, libgomp stops spinning between parallel regions, so torch ran slower for the rest
+    of the process (fox: the build's training 2.0 -> 3.0 s, system time doubled, after one float16
+    conversion per patch task on two threads). A resize by the rule meanwhile (configure_threads,
+    rebalance) takes effect on leaving; nested blocks restore when the last one ends."""
+    global _serial
     import cv2
 
     with _lock:
-        _opencv_serial += 1
+        _serial += 1
         cv2.setNumThreads(1)
+        torch = sys.modules.get("torch")
+        if torch is not None and torch.get_num_threads() != 1:
+            torch.set_num_threads(1)
     try:
         yield
     finally:
         with _lock:
-            _opencv_serial -= 1
-            if not _opencv_serial:
-                cv2.setNumThreads(_applied if _applied is not None else resolve_threads())
+            _serial -= 1
+            if not _serial:
+                n = _applied if _applied is not None else resolve_threads()
+                cv2.setNumThreads(n)
+                torch = sys.modules.get("torch")
+                if torch is not None and torch.get_num_threads() != n:
+                    torch.set_num_threads(n)
 
 
 def _positive_int(s: str) -> int:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence as SequenceABC
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -24,6 +24,7 @@ import numpy as np
 from .features import Features
 from .geometry import inverse
 from .io import Camera
+from .threads import serial_pools
 
 if TYPE_CHECKING:  # torch and scipy load with the matching functions: Tracks alone (a localizer's stream) needs neither
     import torch
@@ -224,19 +225,6 @@ def _split_conflicts(label, bad_labels, r, c, sim, node_frame) -> np.ndarray:
     return out
 
 
-@contextmanager
-def _torch_threads(n: int):
-    """torch's intra-op pool at ``n`` threads while the block runs (then as before)."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def _counts(features) -> np.ndarray:
     counts = getattr(features, "counts", None)  # a feature cache knows them without reading the frames
     return np.asarray(counts() if callable(counts) else [len(f) for f in features], np.int64)
@@ -288,14 +276,14 @@ def track_features(
 
     rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
     n_mutual = n_kept = n_kept3 = 0
-    # the pairs of one frame on a pool of threads, one torch thread each: the matrix products are the
-    # same (each similarity is one 128-term dot product whatever the thread count) and the NumPy
-    # reductions after each, which run on one core, overlap another pair's product (fox: 345 pairs
-    # 3.6 -> 3.0 s on two cores, /tmp/s26/mm.py in the issue-14 note)
+    # the pairs of one frame on a pool of threads, one torch thread each (favormap.threads.serial_pools):
+    # the matrix products are the same (each similarity is one 128-term dot product whatever the thread
+    # count) and the NumPy reductions after each, which run on one core, overlap another pair's product
+    # (fox, 345 pairs on two cores: 3.6 -> 2.9-3.1 s, docs/benchmarks/s26-prototypes/mm.py)
     workers = torch.get_num_threads()
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
-        with _torch_threads(1 if pool else workers):
+        with serial_pools() if pool else nullcontext():
             for a in range(n):
                 held.pop(a - 1, None)
                 bs = [b for b in range(a + 1, min(n, a + 1 + window)) if counts[a] and counts[b]]

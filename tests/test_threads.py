@@ -150,22 +150,22 @@ def test_configure_sizes_torch_and_opencv(restore_pools):
     assert torch.get_num_threads() == 2 and cv2.getNumThreads() == 2
 
 
-def test_serial_opencv_holds_opencv_at_one_thread_and_gives_the_count_back(restore_pools):
-    """LocalExecutor's thread pool: OpenCV runs each call in its calling thread while the block runs,
-    a resize by the rule meanwhile (configure_threads, rebalance) leaves OpenCV alone and takes
-    effect on leaving, and nested blocks (two executors) restore only when the last one ends."""
+def test_serial_pools_hold_opencv_and_torch_at_one_thread_and_give_the_count_back(restore_pools):
+    """LocalExecutor's thread pool: OpenCV and torch run each call in its calling thread while the
+    block runs, a resize by the rule meanwhile (configure_threads, rebalance) takes effect on leaving,
+    and nested blocks (two executors) restore only when the last one ends."""
     import cv2
     import torch
 
     thr.configure_threads(2)
-    with thr.serial_opencv():
-        assert cv2.getNumThreads() == 1
-        thr.configure_threads(3)  # torch follows at once, OpenCV on leaving
-        assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 1
-        with thr.serial_opencv():
-            assert cv2.getNumThreads() == 1
-        assert cv2.getNumThreads() == 1
-    assert cv2.getNumThreads() == 3
+    with thr.serial_pools():
+        assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 1
+        thr.configure_threads(3)  # both follow on leaving
+        assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 1
+        with thr.serial_pools():
+            assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 1
+        assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 1
+    assert cv2.getNumThreads() == 3 and torch.get_num_threads() == 3
 
 
 def test_a_fresh_process_follows_the_rule():

@@ -43,7 +43,7 @@ def main():
     from favormap.features.base import patch_offsets
     from favormap.io import read_sequence
     from favormap.io.images import load_image
-    from favormap.threads import configure_threads, serial_opencv
+    from favormap.threads import configure_threads, serial_pools
 
     seq_path = args.sequence or str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fox")
     seq = read_sequence(seq_path)
@@ -61,7 +61,7 @@ def main():
     cpu_ex = [features.create("sift") for _ in range(workers)]
 
     t = time.perf_counter()
-    with serial_opencv(), ThreadPoolExecutor(workers) as pool:
+    with serial_pools(), ThreadPoolExecutor(workers) as pool:
         ref = list(pool.map(lambda i: cpu_ex[i % workers].sample(feats[i], pts[i]), range(len(frames))))
     t_cpu = time.perf_counter() - t
 
