@@ -218,8 +218,9 @@ MAP_CHUNK = 64  # tasks per executor.map call of a streamed stage (results held 
 
 
 def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False, progress=None, chunk: int = MAP_CHUNK):
-    """``executor.map`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
-    ``sink(i, result)`` (in order) as its chunk completes: only one chunk of results is ever held."""
+    """``executor.map_each`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
+    ``sink(i, result)`` (in order): at most one chunk of results is ever held (none by an executor
+    that hands each over as it completes)."""
     it = iter(tasks)
     done = 0
     while done < total:
@@ -228,11 +229,9 @@ def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False,
             break
         off = done
         report = (lambda d, off=off: progress(off + d)) if progress else None
-        out = executor.map(fn, block, len(block), gpu=gpu, progress=report)
-        for k, r in enumerate(out):
-            sink(off + k, r)
+        executor.map_each(fn, block, len(block), lambda k, r, off=off: sink(off + k, r), gpu=gpu, progress=report)
         done += len(block)
-        del out, block
+        del block
 
 
 def _image_key(path) -> str:

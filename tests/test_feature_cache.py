@@ -143,9 +143,9 @@ def test_map_into_hands_results_in_order_one_chunk_at_a_time():
     class Counting(LocalExecutor):
         sizes: list = []
 
-        def map(self, fn, tasks, total, gpu=False, progress=None):
+        def map_each(self, fn, tasks, total, sink, gpu=False, progress=None):
             self.sizes.append(total)
-            return super().map(fn, tasks, total, gpu, progress)
+            return super().map_each(fn, tasks, total, sink, gpu, progress)
 
     got, seen = [], []
     ex = Counting()
@@ -156,6 +156,44 @@ def test_map_into_hands_results_in_order_one_chunk_at_a_time():
 
 def _square(x, device=None, report=None):
     return x * x
+
+
+def test_local_executor_hands_each_result_over_while_later_tasks_run():
+    """map_each on the thread pool: task 0's result reaches the sink while the last task still waits
+    for it (an executor that held every result until all tasks were done would time out here), in
+    order, and the executor keeps no result it handed over."""
+    import threading
+    import weakref
+
+    from favormap.executor import LocalExecutor
+
+    first_sunk = threading.Event()
+    refs = []
+
+    class Result:
+        def __init__(self, t):
+            self.t = t
+
+    def task(t, device=None, report=None):
+        if t == 3:  # the last task finishes only once the first result was handed over
+            assert first_sunk.wait(10), "the first result was not handed over while the last task ran"
+        return Result(t)
+
+    order = []
+
+    def sink(i, r):
+        order.append((i, r.t))
+        refs.append(weakref.ref(r))
+        if i == 0:
+            first_sunk.set()
+
+    with LocalExecutor("cpu", workers=2) as ex:
+        ex.map_each(task, range(4), 4, sink)
+        assert order == [(i, i) for i in range(4)]
+        import gc
+
+        gc.collect()
+        assert all(ref() is None for ref in refs)  # nothing held by the executor
 
 
 def test_threaded_cpu_stages_build_the_same_map(small_sequence):

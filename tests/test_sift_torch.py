@@ -79,9 +79,9 @@ def test_sift_patches_are_gpu_tasks_only_where_the_executor_has_a_gpu(small_sequ
         def has_gpu(self):
             return self.gpu
 
-        def map(self, fn, tasks, total, gpu=False, progress=None):
+        def map_each(self, fn, tasks, total, sink, gpu=False, progress=None):
             self.flags.append((fn.__name__, gpu))
-            return super().map(fn, tasks, total, gpu, progress)
+            return super().map_each(fn, tasks, total, sink, gpu, progress)
 
     from favormap.build import BuildConfig, extract_sequence, select_landmarks, track_frames, triangulate_tracks
 
