@@ -156,7 +156,8 @@ def others_busy(since: _Sample, now: _Sample) -> float | None:
 _start = _Sample()  # at import: the CLI imports this module first, so the window spans its imports
 _lock = threading.Lock()
 _torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
-_serial = 0  # open serial_pools() blocks: OpenCV's and torch's pools stay at one thread meanwhile
+_serial = 0  # open serial_pools() blocks: OpenCV's, torch's and BLAS's pools stay at one thread meanwhile
+_blas_limits = None  # threadpoolctl's limit while a serial_pools() block is open
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
@@ -269,21 +270,27 @@ def _set_pools(n: int, first: bool) -> None:
 
 @contextmanager
 def serial_pools():
-    """OpenCV and torch calls run in their calling thread while the block runs
-    (``cv2.setNumThreads(1)``, ``torch.set_num_threads(1)`` when torch is loaded), for a pool of
-    Python threads that each run such calls (favormap.executor.LocalExecutor, the tracking's pairs):
-    one core per thread. OpenCV runs a call serially while its pool is busy with another thread's,
-    so that call's share of the cores idled; a torch call from another thread than the one that
-    sized torch's pool starts an OpenMP team of its own, and once the threads of all teams outnumber
-    the cores, libgomp stops spinning between parallel regions, so torch ran slower for the rest
-    of the process (fox: the build's training 2.0 -> 3.0 s, system time doubled, after one float16
-    conversion per patch task on two threads). A resize by the rule meanwhile (configure_threads,
-    rebalance) takes effect on leaving; nested blocks restore when the last one ends."""
-    global _serial
+    """OpenCV, torch and NumPy's BLAS run each call in its calling thread while the block runs
+    (``cv2.setNumThreads(1)``, ``torch.set_num_threads(1)`` when torch is loaded, threadpoolctl's
+    BLAS limit), for a pool of Python threads that each run such calls (favormap.executor.LocalExecutor,
+    the tracking's frame pairs): one core per thread. OpenCV runs a call serially while its pool is
+    busy with another thread's, so that call's share of the cores idled; a torch call from another
+    thread than the one that sized torch's pool starts an OpenMP team of its own, and once the threads
+    of all teams outnumber the cores, libgomp stops spinning between parallel regions, so torch ran
+    slower for the rest of the process (fox: the build's training 2.0 -> 3.0 s, system time doubled,
+    after one float16 conversion per patch task on two threads). A resize by the rule meanwhile
+    (configure_threads, rebalance) takes effect on leaving; nested blocks restore when the last one ends."""
+    global _serial, _blas_limits
     import cv2
 
     with _lock:
         _serial += 1
+        if _serial == 1:  # first: it records the limits it changes to restore them
+            try:
+                from threadpoolctl import threadpool_limits
+            except ImportError:  # a dependency, but a copied tree (tools/gpu_check.sh) may run without it
+                threadpool_limits = None
+            _blas_limits = threadpool_limits(1, user_api="blas") if threadpool_limits else None
         cv2.setNumThreads(1)
         torch = sys.modules.get("torch")
         if torch is not None and torch.get_num_threads() != 1:
@@ -294,6 +301,9 @@ def serial_pools():
         with _lock:
             _serial -= 1
             if not _serial:
+                if _blas_limits is not None:  # first: restoring MKL's limit may set OpenMP's (torch's) too
+                    _blas_limits.restore_original_limits()
+                    _blas_limits = None
                 n = _applied if _applied is not None else resolve_threads()
                 cv2.setNumThreads(n)
                 torch = sys.modules.get("torch")

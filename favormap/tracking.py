@@ -17,17 +17,13 @@ from collections.abc import Sequence as SequenceABC
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .features import Features
 from .geometry import inverse
 from .io import Camera
-from .threads import serial_pools
-
-if TYPE_CHECKING:  # torch and scipy load with the matching functions: Tracks alone (a localizer's stream) needs neither
-    import torch
+from .threads import configure_threads, serial_pools
 
 
 @dataclass
@@ -119,19 +115,19 @@ def epipolar_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarr
 
 
 def mutual_nn(
-    da: torch.Tensor, db: torch.Tensor, min_sim: float, ratio: float = 1.0
+    da: np.ndarray, db: np.ndarray, min_sim: float, ratio: float = 1.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mutual nearest neighbours with similarity >= ``min_sim`` (and, with ``ratio`` < 1, Lowe's ratio
-    both ways): (rows of da, rows of db, their similarity)."""
-    return _mutual(da @ db.T, min_sim, ratio)
+    both ways): (rows of da, rows of db, their similarity). ``da``, ``db``: (N, C) unit descriptors
+    (NumPy arrays, or CPU tensors)."""
+    return _mutual(np.asarray(da) @ np.asarray(db).T, min_sim, ratio)
 
 
-def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
-    """Mutual nearest neighbours of a (CPU) similarity matrix. A row's best column is mutual when
-    its similarity is the column's maximum (ties: the first such row), which needs the columns'
-    maxima but not their argmax: NumPy's row argmax and column max take ~2 ms for 2,048 x 2,048
-    where torch's column argmax took ~14 ms, more than the matrix product (tracking 2.5x faster)."""
-    s = sim.detach().cpu().numpy()  # a view of a CPU tensor
+def _mutual(s: np.ndarray, min_sim: float, ratio: float):
+    """Mutual nearest neighbours of a similarity matrix. A row's best column is mutual when its
+    similarity is the column's maximum (ties: the first such row), which needs the columns' maxima
+    but not their argmax (NumPy's row argmax and column max take ~2 ms for 2,048 x 2,048; torch's
+    column argmax took ~14 ms, more than the matrix product)."""
     ia = np.arange(s.shape[0])
     if s.size == 0:
         return ia[:0], ia[:0], np.zeros(0, s.dtype)
@@ -139,39 +135,34 @@ def _mutual(sim: torch.Tensor, min_sim: float, ratio: float):
     best = s[ia, ab]
     ok = (best >= s.max(0)[ab]) & (best >= min_sim)
     if ratio < 1.0 and s.shape[1] > 1 and s.shape[0] > 1:
-        import torch
-
-        # unit descriptors: distance^2 = 2 - 2 sim
-        dist = lambda v: (2.0 - 2.0 * v).clamp_min(0.0).sqrt()  # noqa: E731
-        ta = sim.topk(2, dim=1).values
-        tb = sim.topk(2, dim=0).values
-        abt = torch.from_numpy(ab).to(sim.device)
-        ok &= ((dist(ta[:, 0]) < ratio * dist(ta[:, 1])) & (dist(tb[0, abt]) < ratio * dist(tb[1, abt]))).cpu().numpy()
+        # unit descriptors: distance^2 = 2 - 2 sim; the two best of each row and of each column
+        dist = lambda v: np.sqrt(np.maximum(2.0 - 2.0 * v, 0.0))  # noqa: E731
+        ta = -np.partition(-s, 1, axis=1)[:, :2]
+        tb = -np.partition(-s, 1, axis=0)[:2]
+        ta.sort(axis=1), tb.sort(axis=0)
+        ok &= (dist(ta[:, 1]) < ratio * dist(ta[:, 0])) & (dist(tb[1, ab]) < ratio * dist(tb[0, ab]))
     ia, ab = ia[ok], ab[ok]
     _, first = np.unique(ab, return_index=True)  # a column that several rows reach at its maximum: the first
     keep = np.sort(first)
     return ia[keep], ab[keep], best[ok][keep]
 
 
-def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> torch.Tensor:
-    """(Na, Nb) symmetric epipolar distances (px) of every keypoint pair: :func:`epipolar_distance`
+def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+    """(Na, Nb) float32 symmetric epipolar distances (px) of every keypoint pair: :func:`epipolar_distance`
     for all pairs at once."""
-    import torch
-
-    Ft = torch.as_tensor(F, dtype=torch.float64)
-    ha = torch.cat([torch.as_tensor(xa, dtype=torch.float64), torch.ones(len(xa), 1, dtype=torch.float64)], 1)
-    hb = torch.cat([torch.as_tensor(xb, dtype=torch.float64), torch.ones(len(xb), 1, dtype=torch.float64)], 1)
-    la = ha @ Ft.T  # (Na, 3) lines in b
-    lb = hb @ Ft  # (Nb, 3) lines in a
-    num = (la @ hb.T).abs()  # (Na, Nb)
-    inv_a = 1.0 / la[:, :2].norm(dim=1).clamp_min(1e-12)
-    inv_b = 1.0 / lb[:, :2].norm(dim=1).clamp_min(1e-12)
-    return (0.5 * num * (inv_a[:, None] + inv_b[None, :])).float()
+    ha = np.concatenate([np.asarray(xa, np.float64), np.ones((len(xa), 1))], 1)
+    hb = np.concatenate([np.asarray(xb, np.float64), np.ones((len(xb), 1))], 1)
+    la = ha @ F.T  # (Na, 3) lines in b
+    lb = hb @ F  # (Nb, 3) lines in a
+    num = np.abs(la @ hb.T)  # (Na, Nb)
+    inv_a = 1.0 / np.maximum(np.linalg.norm(la[:, :2], axis=1), 1e-12)
+    inv_b = 1.0 / np.maximum(np.linalg.norm(lb[:, :2], axis=1), 1e-12)
+    return (0.5 * num * (inv_a[:, None] + inv_b[None, :])).astype(np.float32)
 
 
 def epipolar_mutual_nn(
-    da: torch.Tensor,
-    db: torch.Tensor,
+    da: np.ndarray,
+    db: np.ndarray,
     ka: np.ndarray,
     kb: np.ndarray,
     F: np.ndarray,
@@ -182,7 +173,8 @@ def epipolar_mutual_nn(
     """:func:`mutual_nn` among the pairs that the known poses allow (within ``max_px`` of each
     other's epipolar line, F from a to b): the poses pick the candidates before the descriptors
     choose, so a repeated pattern elsewhere in the image no longer takes a keypoint's match."""
-    sim = (da @ db.T).masked_fill(epipolar_distance_matrix(F, ka, kb) > max_px, -2.0)
+    sim = np.asarray(da) @ np.asarray(db).T
+    sim[epipolar_distance_matrix(F, ka, kb) > max_px] = -2.0
     return _mutual(sim, min_sim, ratio)
 
 
@@ -241,13 +233,15 @@ def track_features(
     epipolar_first: bool = False,
     split_conflicts: bool = False,
     ratio: float = 1.0,
+    workers: int | None = None,
 ) -> Tracks:
     """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras.
+    ``workers``: threads matching frame pairs (None: favormap.threads' count); the tracks are the
+    same whatever the count.
 
     ``features`` is read frame by frame (at most ``window + 1`` frames at a time), so it may be a
     :class:`favormap.features.cache.CachedFrames` of a sequence that does not fit in memory; only the
     matched keypoints are kept."""
-    import torch
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -255,13 +249,12 @@ def track_features(
     counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])
     gid = np.int32 if base[-1] < np.iinfo(np.int32).max else np.int64  # global keypoint ids of the edges
-    held: dict[int, tuple[np.ndarray, torch.Tensor]] = {}  # frame -> (keypoints, descriptors)
+    held: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (keypoints, descriptors)
 
     def frame(i):
         if i not in held:
             f = features[i]
-            d = f.descriptors if f.descriptors.flags.writeable else f.descriptors.copy()  # Ray's store: read-only
-            held[i] = (np.asarray(f.keypoints, np.float32), torch.from_numpy(d))
+            held[i] = (np.asarray(f.keypoints, np.float32), np.ascontiguousarray(f.descriptors, np.float32))
         return held[i]
 
     def match(a, b):
@@ -276,11 +269,13 @@ def track_features(
 
     rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
     n_mutual = n_kept = n_kept3 = 0
-    # the pairs of one frame on a pool of threads, one torch thread each (favormap.threads.serial_pools):
-    # the matrix products are the same (each similarity is one 128-term dot product whatever the thread
-    # count) and the NumPy reductions after each, which run on one core, overlap another pair's product
-    # (fox, 345 pairs on two cores: 3.6 -> 2.9-3.1 s, docs/benchmarks/s26-prototypes/mm.py)
-    workers = torch.get_num_threads()
+    # the pairs of one frame on a pool of threads, one BLAS thread each (favormap.threads.serial_pools):
+    # each similarity is one 128-term dot product whatever the thread count, and the NumPy reductions
+    # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS, not
+    # torch's MKL: 1,740 x 1,740 x 128 on one core of this AMD EPYC, 12.7 against 18.1 ms. Fox, 345
+    # pairs on two cores: 3.6 s (torch, one pair after the other) -> 2.9-3.1 s (torch, two threads)
+    # -> 2.2-2.3 s (docs/benchmarks/s26-prototypes/mm.py, mm2.py)
+    workers = configure_threads() if workers is None else int(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
         with serial_pools() if pool else nullcontext():

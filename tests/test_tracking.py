@@ -186,7 +186,7 @@ def test_the_epipolar_distance_matrix_is_the_pairwise_distance():
     F = fundamental(T[0], CAM.K, T[3], CAM.K)
     xa = project(CAM.K, T[0], X) + rng.normal(0, 3.0, (len(X), 2))
     xb = project(CAM.K, T[3], X[:9]) + rng.normal(0, 3.0, (9, 2))
-    M = epipolar_distance_matrix(F, xa, xb).numpy()
+    M = epipolar_distance_matrix(F, xa, xb)
     ia, ib = np.meshgrid(np.arange(len(xa)), np.arange(len(xb)), indexing="ij")
     want = epipolar_distance(F, xa[ia.ravel()], xb[ib.ravel()]).reshape(M.shape)
     np.testing.assert_allclose(M, want, rtol=1e-5, atol=1e-4)
@@ -196,14 +196,12 @@ def test_the_epipolar_distance_matrix_is_the_pairwise_distance():
 def test_the_ratio_test_drops_matches_with_a_close_second_candidate():
     """Point 5 appears twice in frame 1 (its keypoint and a near-copy 40 px away): mutual nearest
     neighbours keep one of the two; with Lowe's ratio both ways the ambiguous match goes."""
-    import torch
-
     from favormap.tracking import mutual_nn
 
     X, T, D, rng = _rig(n_points=20)
     twin = D[5] + 0.01 * rng.normal(size=D.shape[1])
     feats, owners = _features(X, T[:2], D, rng, extra={1: (np.array([[40.0, 40.0]]), twin[None].astype(np.float32))})
-    da, db = (torch.from_numpy(f.descriptors) for f in feats)
+    da, db = (f.descriptors for f in feats)
     ia, ib, s = mutual_nn(da, db, 0.7)
     assert 5 in owners[0][ia] and len(ia) == 20 and np.all(s >= 0.7)
     ja, jb, _ = mutual_nn(da, db, 0.7, ratio=0.8)
@@ -277,28 +275,21 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
 
 @pytest.mark.parametrize("epipolar_first", [False, True])
 def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks(epipolar_first):
-    """With more than one torch thread, a frame's pairs are matched on a pool of threads (one torch
-    thread each): the tracks and match counts are those of the serial run, and torch's thread count
-    is restored afterwards."""
-    import torch
-
+    """With more than one worker, a frame's pairs are matched on a pool of threads (one BLAS thread
+    each): the tracks and match counts are those of the serial run."""
     X, T, D, rng = _rig(n_frames=10, n_points=300)
     feats, _ = _features(X, T, D, rng, noise_px=0.6)
-    before = torch.get_num_threads()
-    got = {}
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            got[n] = track_features(feats, T, [CAM] * len(T), min_track=3, window=4, epipolar_first=epipolar_first)
-            assert torch.get_num_threads() == n
-    finally:
-        torch.set_num_threads(before)
-    a, b = got[1], got[2]
+    got = {
+        n: track_features(feats, T, [CAM] * len(T), min_track=3, window=4, epipolar_first=epipolar_first, workers=n)
+        for n in (1, 2, 3)
+    }
+    a = got[1]
     assert len(a) > 200
-    for k in ("frame_idx", "keypoint_idx", "xy", "offsets"):
-        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
-    assert (a.matches, a.epipolar_matches, a.epipolar_matches_3x) == (
-        b.matches,
-        b.epipolar_matches,
-        b.epipolar_matches_3x,
-    )
+    for b in (got[2], got[3]):
+        for k in ("frame_idx", "keypoint_idx", "xy", "offsets"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+        assert (a.matches, a.epipolar_matches, a.epipolar_matches_3x) == (
+            b.matches,
+            b.epipolar_matches,
+            b.epipolar_matches_3x,
+        )
