@@ -301,13 +301,16 @@ def serial_pools():
         with _lock:
             _serial -= 1
             if not _serial:
-                if _blas_limits is not None:  # first: restoring MKL's limit may set OpenMP's (torch's) too
+                if _blas_limits is not None:  # first: threadpoolctl restores OpenMP's count of this thread too
                     _blas_limits.restore_original_limits()
                     _blas_limits = None
                 n = _applied if _applied is not None else resolve_threads()
                 cv2.setNumThreads(n)
                 torch = sys.modules.get("torch")
-                if torch is not None and torch.get_num_threads() != n:
+                if torch is not None:
+                    # always: torch.get_num_threads() reads OpenMP's count, which threadpoolctl may have
+                    # restored behind torch's back, while torch's MKL stayed at one thread (the build's
+                    # training then ran its products on one core: 2.0 -> 2.5 s)
                     torch.set_num_threads(n)
 
 
