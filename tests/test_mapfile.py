@@ -204,6 +204,12 @@ def test_writer_refuses_invalid_maps_before_creating_a_file(tmp_path):
         "not in 'cameras/ids'": lambda m: m.frame_camera_ids.__setitem__(0, 7),
         "along 'L'": lambda m: setattr(m, "quality", m.quality[:-1]),
         "not JSON serialisable": lambda m: m.provenance.__setitem__("x", object()),
+        # the float16 datasets are checked in their own dtype, the compared ones in float64
+        "'voxels/descriptors': 1 value not finite": lambda m: m.descriptors.__setitem__((1, 0, 1, 2, 3), np.inf),
+        "'landmarks/mean_descriptor': 1 value not finite": lambda m: m.mean_descriptor.__setitem__((0, 2), np.nan),
+        "above 180": lambda m: m.view_angle.__setitem__(0, 180.5),
+        "'landmarks/reproj_error': 1 value below 0": lambda m: m.reproj_error.__setitem__(1, -0.25),
+        "rows not in increasing order": lambda m: m.depth_range.__setitem__(0, [2.0, 1.0]),
     }
     for expect, corrupt in cases.items():
         m = random_map(2)

@@ -313,19 +313,21 @@ def check_values(
     if not spec or a.size == 0:
         return problems, warnings
     num = a.dtype.kind in "fiu"
+    af = cmp = a
     if a.dtype.kind == "f":
-        af = a.astype(np.float64, copy=False)
+        # finiteness in the array's own dtype (as in float64: a cast keeps it), the float64 copy only
+        # for the constraints that compare values (a map's 20 MB of voxel descriptors are only finite)
         if spec.get("finite"):
-            bad = ~np.isfinite(af)
+            bad = ~np.isfinite(a)
             if bad.any():
                 problems.append(f"{path!r}: {_count(bad)} not finite (NaN or inf)")
         if spec.get("not_nan"):
-            bad = np.isnan(af)
+            bad = np.isnan(a)
             if bad.any():
                 problems.append(f"{path!r}: {_count(bad)} NaN")
-        cmp = np.where(np.isnan(af), 0.0, af)  # NaN counted above, not again
-    else:
-        cmp = a
+        if any(k in spec for k in ("min", "max", "exclusive_min", "unit_norm", "ordered", "rigid")):
+            af = a.astype(np.float64, copy=False)
+            cmp = np.where(np.isnan(af), 0.0, af)  # NaN counted above, not again
     if num:
         if "min" in spec and (cmp < spec["min"]).any():
             problems.append(f"{path!r}: {_count(cmp < spec['min'])} below {spec['min']}")

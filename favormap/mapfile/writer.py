@@ -196,8 +196,11 @@ class MapWriter:
 
     HEADER_KEYS = ("extractor", "channels", "grid_resolution", "patch_size", "render_samples", "max_side")
 
-    def __init__(self, path, header: dict, num_landmarks: int, num_frames: int):
+    def __init__(self, path, header: dict, num_landmarks: int, num_frames: int, values_checked: bool = False):
         self.path = check_output_path(path)
+        # the whole datasets put() gets were checked against the schema's value constraints already
+        # (write_map's check_arrays, before any file exists): not again on leaving
+        self._values_checked = bool(values_checked)
         missing = [k for k in self.HEADER_KEYS if k not in header]
         if missing:
             raise ValueError(f"MapWriter header lacks {missing}")
@@ -331,7 +334,7 @@ class MapWriter:
             if self._filled[name] != f[name].shape[0]:
                 raise FavormapError(f"internal error: {name!r} got {self._filled[name]} of {f[name].shape[0]} rows")
         problems = []
-        for name, arr in self._arrays.items():
+        for name, arr in ({} if self._values_checked else self._arrays).items():
             problems += check_values(name, arr, self.dims, self._arrays)[0]
         attrs = header_attributes(self.header, self.L, self.M)
         self._refuse(problems + check_attributes(attrs))
@@ -410,6 +413,6 @@ def write_map(m: MapData, path) -> Path:
             f"refusing to write an invalid map to {path}: {problems[0]}"
             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else "")
         )
-    with MapWriter(path, header, m.num_landmarks, m.num_frames) as w:
+    with MapWriter(path, header, m.num_landmarks, m.num_frames, values_checked=True) as w:
         _write_contents(w, stored)
     return path
