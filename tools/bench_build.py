@@ -2,6 +2,10 @@
 """Per-stage build times on a sequence (default: ../shared/data/fox, else a synthetic room).
 
 python tools/bench_build.py [SEQ] [--max-landmarks 1500] [--workers N] [--device cuda [--patches-on cpu]]
+python tools/bench_build.py [SEQ] --repeat 5    # five builds, each in a fresh process: every run and the median
+
+This machine's speed moves by 10-15 % within minutes: compare medians of several runs, or alternate
+two versions run by run (``PYTHONPATH=WORKTREE python WORKTREE/tools/bench_build.py SEQ``).
 """
 
 from __future__ import annotations
@@ -50,7 +54,16 @@ def main():
         help="auto: SIFT's patch descriptors on the GPU when --device is one (favormap.features.sift_torch); "
         "cpu: OpenCV on the CPU threads whatever the device (the build before sift_torch, for comparison)",
     )
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="run the benchmark N times, each in a fresh process (as a `favormap build` would), and print "
+        "every run's stages and their medians",
+    )
     args = ap.parse_args()
+    if args.repeat > 1:
+        return repeat(args.repeat)
 
     from favormap.build import BuildConfig, build_map
     from favormap.executor import LocalExecutor
@@ -118,6 +131,46 @@ def main():
         f"median reproj {st['median_reproj_error_px']:.3f} px, median PSNR {st['median_psnr']:.2f} dB, "
         f"file {out.stat().st_size / 1e6:.1f} MB"
     )
+
+
+def repeat(n: int) -> int:
+    """This script ``n`` times in fresh processes (its other arguments unchanged): each run's stage
+    seconds, then the median of each stage."""
+    import statistics
+    import subprocess
+
+    argv = [a for i, a in enumerate(sys.argv[1:]) if a != "--repeat" and sys.argv[i] != "--repeat"]
+    argv = [a for a in argv if not a.startswith("--repeat=")]
+    runs: list[dict[str, float]] = []
+    for k in range(n):
+        out = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True)
+        if out.returncode:
+            sys.stderr.write(out.stdout + out.stderr)
+            return out.returncode
+        lines = out.stdout.splitlines()
+        if k == 0:
+            print(lines[0])
+        stages = {}
+        for ln in lines:
+            parts = ln.split()
+            if len(parts) >= 2 and parts[0] != "stage" and _number(parts[1]):
+                stages[parts[0]] = float(parts[1])
+        runs.append(stages)
+        print(f"run {k + 1}: " + "  ".join(f"{s} {v:.2f}" for s, v in stages.items()), flush=True)
+    names = list(runs[0])
+    print(f"{'stage':<12} {'median':>8} {'min':>8} {'max':>8}   ({n} runs)")
+    for s in names:
+        v = [r[s] for r in runs if s in r]
+        print(f"{s:<12} {statistics.median(v):>8.2f} {min(v):>8.2f} {max(v):>8.2f}")
+    return 0
+
+
+def _number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
 
 
 if __name__ == "__main__":
