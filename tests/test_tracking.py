@@ -293,3 +293,24 @@ def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks(epipolar_first):
             b.epipolar_matches,
             b.epipolar_matches_3x,
         )
+
+
+def test_connected_components_number_components_as_scipy_does():
+    """The union-find in NumPy gives scipy's labels (components numbered by their smallest node) on
+    random graphs, long chains and isolated nodes."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    from favormap.tracking import connected_components
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        n = int(rng.integers(1, 300))
+        e = int(rng.integers(0, 2 * n))
+        a, b = rng.integers(0, n, e), rng.integers(0, n, e)
+        if trial % 3 == 0:  # one long chain in random order
+            p = rng.permutation(n)
+            a, b = np.r_[a, p[:-1]], np.r_[b, p[1:]]
+        want = scipy_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)), directed=False)[1]
+        np.testing.assert_array_equal(connected_components(n, a, b), want)
+    assert connected_components(0, [], []).shape == (0,)
