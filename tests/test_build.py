@@ -261,3 +261,32 @@ def test_plane_aligned_observations_move_landmarks_onto_the_true_surface(small_s
     assert not moved[mid].any() and np.array_equal(tracks.xy[mid], plain.tracks.xy[mid])
     assert moved.mean() > 0.5
     assert np.linalg.norm(tracks.xy - plain.tracks.xy, axis=1).max() <= 1.5 + 1e-9
+
+
+def test_a_patch_layout_rounds_unit_float32_patches_and_takes_means_before_rounding():
+    """PatchLayout.assemble (a patch task's last step): the described pixels copy their sample, the
+    others are the bilinear blend of the samples normalised to unit length, and the float16 targets are
+    that patch rounded (at most half a float16 step off); the means are the float32 patch's, before
+    the rounding (to 1e-6 of the exact patch's)."""
+    from favormap.build import PatchLayout
+    from favormap.features.base import patch_interpolation
+
+    _, w = patch_interpolation(7)
+    layout = PatchLayout.interpolated(w)
+    rng = np.random.default_rng(5)
+    o, C = 40, 128
+    samples = np.abs(rng.normal(size=(o * w.shape[1], C))).astype(np.float32)
+    samples /= np.linalg.norm(samples, axis=1, keepdims=True)
+    targets, means = layout.assemble(samples)
+    assert targets.dtype == np.float16 and targets.shape == (o, 49, C) and means.dtype == np.float32
+    d = samples.reshape(o, w.shape[1], C).astype(np.float64)
+    ref = np.einsum("pd,odc->opc", w.astype(np.float64), d)
+    ref /= np.linalg.norm(ref, axis=-1, keepdims=True)
+    got = targets.astype(np.float64)
+    assert np.abs(got - ref).max() <= 2.0**-12 + 1e-6  # float16 rounding of values in [0, 1]
+    copied = np.flatnonzero(w.max(1) == 1.0)
+    np.testing.assert_array_equal(
+        targets[:, copied], samples.reshape(o, -1, C)[:, w[copied].argmax(1)].astype(np.float16)
+    )
+    # the means come from the float32 patch, each pixel unit length: they match the exact patch's to 1e-6
+    np.testing.assert_allclose(means, ref.mean(1), atol=1e-6)
