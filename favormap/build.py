@@ -63,7 +63,7 @@ class BuildConfig:
     match_ratio: float = 1.0
     # align each landmark's observations to its middle one through its local plane, then triangulate again
     # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off). Lost on the
-    # fox (three seeds, docs/benchmarks/accuracy-2026-11-27-s18-plane-lk.json): extrapolation 0.0079 / 0.0081 /
+    # fox (three seeds, docs/benchmarks/accuracy-2026-11-27-s18-plane-lk.json.gz): extrapolation 0.0079 / 0.0081 /
     # 0.0081 against 0.0063 / 0.0060 / 0.0060, hold-out p90 0.0098-0.0121 against 0.0055-0.0060, though on the
     # synthetic room with exact poses it halves the landmarks' distance to the surface (tests/test_build.py)
     refine_window: int = 0

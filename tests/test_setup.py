@@ -204,6 +204,25 @@ def test_accuracy_benchmark_reuses_a_map_built_before_a_config_field_existed():
     assert not bench.same_build(stamp, key(now, ("a", "c")))
 
 
+def test_accuracy_benchmark_rows_round_trip_plain_and_gzipped(tmp_path):
+    """tools/bench_accuracy.py --json NAME.json.gz writes gzip-compressed rows (docs/benchmarks keeps them
+    so), NAME.json plain JSON; --compare reads both, and the committed runs it points to."""
+    import gzip
+    import json
+
+    bench = _bench_accuracy()
+    rows = [{"split": "orbit", "method": "rendered", "median_translation": 0.0005, "per_query": [{"t_err": 1e-4}]}]
+    bench.write_rows(tmp_path / "a.json.gz", rows)
+    bench.write_rows(tmp_path / "a.json", rows)
+    assert json.loads(gzip.decompress((tmp_path / "a.json.gz").read_bytes())) == rows
+    assert json.loads((tmp_path / "a.json").read_text()) == rows
+    assert bench.read_rows(tmp_path / "a.json.gz") == bench.read_rows(tmp_path / "a.json") == rows
+    assert (tmp_path / "a.json.gz").stat().st_size < (tmp_path / "a.json").stat().st_size
+    runs = sorted((REPO / "docs" / "benchmarks").glob("accuracy-*.json.gz"))
+    assert runs and not list((REPO / "docs" / "benchmarks").glob("*.json"))  # every committed run compressed
+    assert all(isinstance(bench.read_rows(p), list) for p in runs[-2:])
+
+
 def test_accuracy_benchmark_groups_rows_across_training_seeds():
     """tools/bench_accuracy.py --train-seeds: the rows of a map's seed copies (NAME-sK, or sK for the
     default map) are grouped with that map's rows, per split, prior and method."""

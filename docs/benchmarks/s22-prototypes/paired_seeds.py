@@ -3,14 +3,16 @@
 geometric mean of error / the default's error over the queries both localized, and the seed-pooled
 figure (per query the log ratio averaged over the seeds; geometric mean, 95 % bootstrap interval).
 
-    python docs/benchmarks/s22-prototypes/paired_seeds.py docs/benchmarks/accuracy-2026-11-28-s22-closed-l7seeds.json l7r03
+    python docs/benchmarks/s22-prototypes/paired_seeds.py docs/benchmarks/accuracy-2026-11-28-s22-closed-l7seeds.json.gz l7r03
 """
+import gzip
 import json
 import sys
 
 import numpy as np
 
-rows = json.load(open(sys.argv[1]))
+raw = open(sys.argv[1], "rb").read()  # a run's --json rows, plain or .gz (docs/benchmarks keeps them gzipped)
+rows = json.loads(gzip.decompress(raw) if sys.argv[1].endswith(".gz") else raw)
 variant, solver = sys.argv[2], (sys.argv[3] if len(sys.argv) > 3 else "lstsq")
 by = {(r["split"], r["method"]): r for r in rows if r["prior"] == "noise"}
 seeds = (("", ""), ("-s1", " s1"), ("-s2", " s2"))

@@ -7,12 +7,14 @@ A and B are method labels without the seed suffix: ``pi rendered`` (build varian
     python docs/benchmarks/s24-prototypes/paired.py RUN.json "pi rendered" "rendered"
 """
 
+import gzip
 import json
 import sys
 
 import numpy as np
 
-rows = json.load(open(sys.argv[1]))
+raw = open(sys.argv[1], "rb").read()  # a run's --json rows, plain or .gz (docs/benchmarks keeps them gzipped)
+rows = json.loads(gzip.decompress(raw) if sys.argv[1].endswith(".gz") else raw)
 A_label, B_label = sys.argv[2], sys.argv[3]
 PRIOR = sys.argv[4] if len(sys.argv) > 4 else "noise"
 by = {(r["split"], r["method"]): r for r in rows if r["prior"] == PRIOR}
