@@ -38,6 +38,11 @@ write_sequence(".gpu/small", depth=False, **SMALL)  # tests/test_cuda.py needs n
 PY
     if [ -d ../shared/data/fox ]; then cp -r ../shared/data/fox .gpu/fox; fi
     du -sh .gpu
+    # what a device call sends: tracked and untracked-not-ignored files, plus the carried .gpu/ (64 MiB at most)
+    tree=$( { git ls-files -z; git ls-files -z --others --exclude-standard; } | xargs -0 stat -c %s 2>/dev/null | awk '{s += $1} END {print s + 0}')
+    gpu=$(du -sb .gpu | cut -f1)
+    echo "working tree ${tree} + .gpu ${gpu} = $((tree + gpu)) bytes (the device takes 67108864)"
+    if [ $((tree + gpu)) -gt 67108864 ]; then echo "warning: over the device's 64 MiB: carry less (e.g. no fox)" >&2; fi
     echo "prepared .gpu/: carry it to the GPU machine and run 'bash tools/gpu_check.sh run' there"
     ;;
 run)
