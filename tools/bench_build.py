@@ -139,8 +139,7 @@ def repeat(n: int) -> int:
     import statistics
     import subprocess
 
-    argv = [a for i, a in enumerate(sys.argv[1:]) if a != "--repeat" and sys.argv[i] != "--repeat"]
-    argv = [a for a in argv if not a.startswith("--repeat=")]
+    argv = [*sys.argv[1:], "--repeat", "1"]  # the other arguments unchanged; argparse takes the last --repeat
     runs: list[dict[str, float]] = []
     for k in range(n):
         out = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True)
