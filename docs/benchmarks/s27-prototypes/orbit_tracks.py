@@ -14,6 +14,7 @@ cfg = BuildConfig()
 ff = extract_sequence(seq, ExtractorSpec(cfg.extractor, cfg.max_keypoints), cfg.max_side)
 for kw in [
     dict(),
+    dict(match_window=20),
     dict(match_window=24),
     dict(split_conflicts=True),
     dict(match_window=24, split_conflicts=True),
