@@ -89,3 +89,70 @@ def test_bad_sources_are_one_clear_error(tmp_path, kind, source, name, msg):
         source = str(tmp_path / source)
     with pytest.raises(InputError, match=msg):
         convert_pose(kind, source, name)
+
+
+def test_a_sequence_folder_names_its_pose_file(tmp_path):
+    """A folder (what `favormap build` reads) stands for its pose file: transforms.json, groundtruth.txt,
+    FRAME.pose.txt, or the COLMAP model (read by pycolmap)."""
+    _sources(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 500 500 320 240\n")
+    for kind, name in (
+        ("nerf", "b.png"),
+        ("nerf", "images/b"),
+        ("colmap", "b.png"),
+        ("tum", "1305031102.2"),
+        ("7scenes", "frame-000000.color.png"),
+    ):
+        got = convert_pose(kind, str(tmp_path), name)
+        assert np.allclose(got, T, atol=1e-7), (kind, name)
+    # Blender-style splits: the split file that lists the frame
+    split = tmp_path / "splits"
+    split.mkdir()
+    frames = json.loads((tmp_path / "transforms.json").read_text())["frames"]
+    (split / "transforms_train.json").write_text(json.dumps({"frames": frames[:1]}))
+    (split / "transforms_test.json").write_text(json.dumps({"frames": frames[1:]}))
+    assert np.allclose(convert_pose("nerf", str(split), "b.png"), T, atol=1e-7)
+    # a binary COLMAP model in sparse/0 (pycolmap reads it)
+    import pycolmap
+
+    (tmp_path / "points3D.txt").write_text("")
+    binary = tmp_path / "bin" / "sparse" / "0"
+    binary.mkdir(parents=True)
+    pycolmap.Reconstruction(str(tmp_path)).write_binary(str(binary))
+    assert np.allclose(convert_pose("colmap", str(tmp_path / "bin"), "b.png"), T, atol=1e-7)
+    with pytest.raises(InputError, match="no image named 'zzz.png'"):
+        convert_pose("colmap", str(tmp_path / "bin"), "zzz.png")
+
+
+@pytest.mark.parametrize(
+    "kind, name, msg",
+    [
+        ("opengl", None, "is a folder: --from opengl takes a file"),
+        ("nerf", None, "--name is needed"),
+        ("nerf", "zzz.png", "no frame with file_path"),
+        ("colmap", "zzz.png", "no COLMAP model"),
+        ("tum", "1", "no groundtruth.txt"),
+        ("7scenes", "frame-000009", "no frame-000009.pose.txt"),
+    ],
+)
+def test_a_folder_without_the_pose_is_one_clear_error(tmp_path, kind, name, msg):
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": []}))
+    with pytest.raises(InputError, match=msg):
+        convert_pose(kind, str(tmp_path), name)
+    assert main(["pose", "--from", kind, str(tmp_path)] + (["--name", name] if name else [])) != 0
+
+
+@pytest.mark.parametrize(
+    "frames, msg",
+    [
+        ([{"file_path": "a.png"}], "no 4x4 transform_matrix"),
+        ([{"file_path": "a.png", "transform_matrix": [[1, 2], [3, 4]]}], "is 2x2, not 4x4"),
+        ([{"file_path": "a.png", "transform_matrix": "abc"}], "no 4x4 transform_matrix"),
+        (["a.png"], "no frame with file_path"),
+        ({"a.png": 1}, "no frame with file_path"),
+    ],
+)
+def test_a_damaged_transforms_json_is_one_clear_error(tmp_path, frames, msg):
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": frames}))
+    with pytest.raises(InputError, match=msg):
+        convert_pose("nerf", str(tmp_path / "transforms.json"), "a.png")

@@ -31,7 +31,11 @@ def register(sub):
         description="Write the prior that `localize --prior` reads (a 4x4 world_from_cam matrix, OpenCV "
         "axes) from a pose in another tool's form. Sources: " + kinds,
     )
-    p.add_argument("source", help="a file, or the pose text itself (quote it)")
+    p.add_argument(
+        "source",
+        help="a file, the pose text itself (quote it), or a sequence folder with --name (nerf: its transforms.json, "
+        "colmap: its model, binary too, tum: its groundtruth.txt, 7scenes: the frame's NAME.pose.txt)",
+    )
     p.add_argument("--from", dest="kind", required=True, choices=list(SOURCES), help="the form of SOURCE")
     p.add_argument("--name", help="which pose of a file: a NeRF file_path, a COLMAP image name, a TUM timestamp")
     p.add_argument("-o", "--output", help="prior file to write (default: print it)")

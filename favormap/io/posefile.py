@@ -248,6 +248,76 @@ def _text_of(source: str) -> tuple[str, str]:
     return source, "<argument>"
 
 
+def _file_in_folder(kind: str, folder: Path, name: str | None) -> Path | np.ndarray:
+    """The file of a sequence folder that holds the pose ``name`` in the form ``kind`` (what ``favormap
+    build`` reads from such a folder), or, for a COLMAP model, the pose itself (cam_from_world, read
+    with pycolmap: binary models too)."""
+    if kind not in ("nerf", "colmap", "tum", "7scenes"):
+        raise InputError(f"{folder} is a folder: --from {kind} takes a file or the pose text itself")
+    if not name:
+        what = {"nerf": "a frame's file_path", "colmap": "an image name", "tum": "a timestamp", "7scenes": "a frame"}
+        raise InputError(f"{folder} is a folder: --name is needed ({what[kind]})")
+    if kind == "nerf":  # as the reader: transforms.json alone where it exists, else the split files
+        from .readers import nerf
+
+        if (folder / nerf.FILENAME).is_file():
+            return folder / nerf.FILENAME
+        files = [f for _, f in nerf._split_files(folder)]
+        if not files:
+            raise InputError(f"{folder}: no {nerf.FILENAME} (or transforms_train/val/test.json) in this folder")
+        for f in files:  # the one that lists the frame; convert_pose reports a damaged one
+            try:
+                if _nerf_frame(json.loads(_text_of(str(f))[0]).get("frames", ()), name) is not None:
+                    return f
+            except (json.JSONDecodeError, AttributeError, TypeError):
+                return f
+        return files[0]
+    if kind == "tum":
+        f = folder / "groundtruth.txt"
+        if not f.is_file():
+            raise InputError(f"{folder}: no groundtruth.txt in this folder")
+        return f
+    if kind == "7scenes":
+        stem = name.split(".")[0]  # frame-000000, frame-000000.color.png, frame-000000.pose.txt
+        f = folder / f"{stem}.pose.txt"
+        if not f.is_file():
+            raise InputError(f"{folder}: no {f.name} in this folder")
+        return f
+    from .readers.colmap import MODEL_DIRS, find_model
+
+    model = find_model(folder)
+    if model is None:
+        raise InputError(f"{folder}: no COLMAP model (cameras + images .bin/.txt) in {', '.join(MODEL_DIRS)}")
+    if (model / "images.txt").is_file():
+        return model / "images.txt"
+    import pycolmap  # a binary model
+
+    try:
+        rec = pycolmap.Reconstruction(str(model))
+    except Exception as e:  # noqa: BLE001 - pycolmap reports parse failures as ValueError/RuntimeError
+        raise InputError(f"cannot read the COLMAP model in {model}: {e}") from None
+    for im in rec.images.values():
+        if name in (im.name, Path(im.name).name, f"images/{im.name}"):
+            if not im.has_pose:
+                raise InputError(f"{model}: image {im.name!r} is not registered (it has no pose)")
+            from ..geometry import from_rigid3d
+
+            return from_rigid3d(im.cam_from_world())
+    raise InputError(f"{model}: no image named {name!r}")
+
+
+def _nerf_frame(frames, name: str):
+    """The frame of a transforms.json frame list whose file_path matches ``name`` (the path, its file
+    name, or either without the extension); None when there is none."""
+    for fr in frames if isinstance(frames, list) else ():
+        if not isinstance(fr, dict):
+            continue
+        fp = str(fr.get("file_path", ""))
+        if name in (fp, Path(fp).name, Path(fp).stem, Path(fp).with_suffix("").as_posix()):
+            return fr
+    return None
+
+
 def _rigid(R, t, label) -> np.ndarray:
     dev = geometry.rotation_deviation(R)
     if not dev <= _ROT_TOL:
@@ -279,6 +349,11 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
     ``source`` is a file or the text itself. Write it as a prior with :func:`write_pose`."""
     if kind not in POSE_SOURCES:
         raise InputError(f"unknown pose source {kind!r} (known: {', '.join(POSE_SOURCES)})")
+    if len(source) < 4096 and "\n" not in source and Path(source).is_dir():  # a sequence folder
+        found = _file_in_folder(kind, Path(source), name)
+        if isinstance(found, np.ndarray):
+            return found
+        source = str(found)
     text, label = _text_of(source)
     if kind in ("world_from_cam", "7scenes"):
         vals = _numbers(text, label)
@@ -299,15 +374,20 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
             frames = json.loads(text)["frames"]
         except (json.JSONDecodeError, KeyError, TypeError) as e:
             raise InputError(f"{label}: not a transforms.json ({type(e).__name__}: {e})") from None
-        for fr in frames:
-            fp = str(fr.get("file_path", ""))
-            if name in (fp, Path(fp).name, Path(fp).stem, Path(fp).with_suffix("").as_posix()):
-                M = np.asarray(fr["transform_matrix"], np.float64)
-                M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
-                return geometry.inverse(
-                    geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}"))
-                )
-        raise InputError(f"{label}: no frame with file_path {name!r}")
+        fr = _nerf_frame(frames, name)
+        if fr is None:
+            raise InputError(f"{label}: no frame with file_path {name!r}")
+        fp = fr.get("file_path", "")
+        try:
+            M = np.asarray(fr["transform_matrix"], np.float64)
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"{label}: {fp}: no 4x4 transform_matrix ({type(e).__name__}: {e})") from None
+        M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
+        if M.shape != (4, 4):
+            raise InputError(
+                f"{label}: {fp}: transform_matrix is {M.shape[0]}x{M.shape[1] if M.ndim > 1 else 1}, not 4x4"
+            )
+        return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}")))
     if kind == "colmap":
         lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
         if name:  # images.txt: the first line of each image pair names the image last
