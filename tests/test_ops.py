@@ -136,14 +136,32 @@ def test_merging_a_map_with_itself_keeps_its_landmarks(small_map, tmp_path):
     assert res.num_landmarks == d.num_landmarks == m.num_landmarks
     np.testing.assert_array_equal(d.ids, m.ids)
     assert res.sources[1]["dropped_duplicates"] == m.num_landmarks
-    assert d.num_frames == 2 * m.num_frames and len(d.cameras) == 2
+    assert d.num_frames == 2 * m.num_frames and len(d.cameras) == 1  # one camera, shared
     assert len(set(d.frame_names)) == d.num_frames  # colliding names were prefixed
-    np.testing.assert_array_equal(d.frame_camera_ids[m.num_frames :], 1)
+    np.testing.assert_array_equal(d.frame_camera_ids, 0)
     np.testing.assert_array_equal(d.track_landmark, m.track_landmark)
     np.testing.assert_allclose(d.descriptors, m.descriptors, atol=2e-3)
     np.testing.assert_array_equal(d.density, m.density)
     prov = json.loads(h5py.File(out, "r").attrs["provenance"])
     assert [s["path"] for s in prov["merge"]["sources"]] == [str(path), str(path)]
+
+
+def test_merge_shares_equal_cameras_and_keeps_different_ones(small_map, tmp_path):
+    from favormap.io.types import Camera
+    from favormap.ops.merge import merge_maps
+
+    m, path = small_map
+    assert len(m.cameras) == 1
+    cam = m.cameras[0]
+    zoomed = Camera(cam.model, cam.width, cam.height, cam.params * np.r_[1.01, np.ones(len(cam.params) - 1)])
+    write_streaming(dataclasses.replace(m, cameras={0: zoomed}), tmp_path / "b.h5")
+    merge_maps([path, path, tmp_path / "b.h5"], tmp_path / "m.h5", chunk=64)
+    d = check_written_map(tmp_path / "m.h5")
+    assert len(d.cameras) == 2 and d.num_frames == 3 * m.num_frames
+    F = m.num_frames
+    np.testing.assert_array_equal(d.frame_camera_ids, np.r_[np.zeros(2 * F), np.ones(F)])
+    assert d.cameras[0].params.tolist() == cam.params.tolist()
+    assert d.cameras[1].params.tolist() == zoomed.params.tolist()
 
 
 def test_merge_keeps_the_better_duplicate_and_unique_ids(small_map, tmp_path):

@@ -87,8 +87,9 @@ def run(args) -> int:
                 else ""
             )
         )
+    cams = f"{res.num_cameras} camera" + ("s" if res.num_cameras != 1 else "")
     print(
-        f"merged              {res.num_landmarks} landmarks, {res.num_frames} frames, {res.num_cameras} cameras"
+        f"merged              {res.num_landmarks} landmarks, {res.num_frames} frames, {cams}"
         + (f", {res.ids_regenerated} colliding ids regenerated" if res.ids_regenerated else "")
     )
     print(f"file                {args.output}  ({human_size(d['file_size'])})")

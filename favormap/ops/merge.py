@@ -20,7 +20,8 @@ Merge rules
   cosine similarity > ``min_cosine`` with it, is a duplicate. The one with the higher quality (PSNR)
   is kept, the other dropped with its observations. Ties keep the existing landmark, so merging a
   map with itself gives the same landmarks.
-- Frames and cameras are concatenated (camera ids renumbered 0..K-1 in source order; frame names
+- Frames and cameras are concatenated (camera ids renumbered 0..K-1 in source order, cameras equal in
+  model, size and parameters shared: maps of one camera give a map of one camera; frame names
   that collide get a ``<source index>/`` prefix); track rows are remapped; landmark ids stay
   unique (ids of later maps that collide are regenerated with ``new_landmark_ids``).
 - Provenance lists the sources (path, counts, their provenance) and the merge parameters.
@@ -329,6 +330,16 @@ def _landmark_arrays(meta, segs) -> tuple[dict, int]:
     return lm, n_regen
 
 
+def _camera_id(cameras: dict, cam) -> int:
+    """The id of a camera equal to ``cam`` (model, size and parameters) in ``cameras``, or the next id,
+    ``cam`` added under it."""
+    for cid, c in cameras.items():
+        if (c.model, c.width, c.height) == (cam.model, cam.width, cam.height) and np.array_equal(c.params, cam.params):
+            return cid
+    cameras[len(cameras)] = cam
+    return len(cameras) - 1
+
+
 def _frames(maps, sim: _Similarity | None):
     """Concatenated cameras (renumbered), frame names (collisions prefixed), frame cameras, poses
     (later maps moved by ``sim``) and the first frame row of each source."""
@@ -336,11 +347,9 @@ def _frames(maps, sim: _Similarity | None):
     seen_names: set = set()
     for k, m in enumerate(maps):
         old_ids = sorted(m.cameras)
-        base = len(cameras)
-        for j, cid in enumerate(old_ids):
-            cameras[base + j] = m.cameras[cid]
+        new_ids = np.array([_camera_id(cameras, m.cameras[cid]) for cid in old_ids], np.int32)
         fc = np.asarray(m.frame_camera_ids, np.int64)
-        frame_cam.append((base + np.searchsorted(old_ids, fc)).astype(np.int32))
+        frame_cam.append(new_ids[np.searchsorted(old_ids, fc)] if len(fc) else np.zeros(0, np.int32))
         T_k = np.asarray(m.cam_from_world, np.float64)
         if k > 0 and sim is not None:
             T_k = T_k @ np.linalg.inv(sim.T)
