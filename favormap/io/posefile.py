@@ -262,7 +262,7 @@ def _file_in_folder(kind: str, folder: Path, name: str | None) -> Path | np.ndar
 
         if (folder / nerf.FILENAME).is_file():
             return folder / nerf.FILENAME
-        files = [f for _, f in nerf._split_files(folder)]
+        files = [f for _, f in nerf.split_files(folder)]
         if not files:
             raise InputError(f"{folder}: no {nerf.FILENAME} (or transforms_train/val/test.json) in this folder")
         for f in files:  # the one that lists the frame; convert_pose reports a damaged one
@@ -346,7 +346,8 @@ def _numbers(text: str, label: str) -> np.ndarray:
 def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
     """cam_from_world (4x4, OpenCV axes) of a pose given in another tool's form (``POSE_SOURCES``,
     described in :mod:`favormap.cli.pose`);
-    ``source`` is a file or the text itself. Write it as a prior with :func:`write_pose`."""
+    ``source`` is a file, the text itself, or a sequence folder (with ``name``: the file it holds for
+    ``kind``, :func:`_file_in_folder`). Write it as a prior with :func:`write_pose`."""
     if kind not in POSE_SOURCES:
         raise InputError(f"unknown pose source {kind!r} (known: {', '.join(POSE_SOURCES)})")
     if len(source) < 4096 and "\n" not in source and Path(source).is_dir():  # a sequence folder

@@ -64,13 +64,14 @@ _INTRINSIC_KEYS = (
 )
 
 
-def _split_files(root: Path) -> list[tuple[str, Path]]:
+def split_files(root: Path) -> list[tuple[str, Path]]:
+    """The Blender-style split files (split name, path) present in ``root``, in SPLITS order."""
     return [(s, root / f"transforms_{s}.json") for s in SPLITS if (root / f"transforms_{s}.json").is_file()]
 
 
 def detect(root: Path) -> bool:
     root = Path(root)
-    return (root / FILENAME).is_file() or bool(_split_files(root))
+    return (root / FILENAME).is_file() or bool(split_files(root))
 
 
 def _load_json(path: Path) -> dict:
@@ -199,7 +200,7 @@ def read(root: Path) -> Sequence:
     if (root / FILENAME).is_file():
         files = [(None, root / FILENAME)]
     else:
-        files = _split_files(root)
+        files = split_files(root)
         if not files:
             raise SequenceError(f"no {FILENAME} (or transforms_train/val/test.json) in {root}")
     cameras: dict[int, Camera] = {}
