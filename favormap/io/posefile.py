@@ -237,10 +237,15 @@ POSE_SOURCES = (
 )  # see `favormap pose --help`
 
 
+def _as_path(source: str) -> Path | None:
+    """``source`` as a path when it can name one (short, one line), else None (pose text)."""
+    return Path(source) if len(source) < 4096 and "\n" not in source else None
+
+
 def _text_of(source: str) -> tuple[str, str]:
     """(text, label): the file's text when ``source`` names a file, else ``source`` itself."""
-    p = Path(source)
-    if len(source) < 4096 and "\n" not in source and p.is_file():
+    p = _as_path(source)
+    if p is not None and p.is_file():
         try:
             return p.read_text(), str(p)
         except (OSError, UnicodeDecodeError) as e:
@@ -350,8 +355,9 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
     ``kind``, :func:`_file_in_folder`). Write it as a prior with :func:`write_pose`."""
     if kind not in POSE_SOURCES:
         raise InputError(f"unknown pose source {kind!r} (known: {', '.join(POSE_SOURCES)})")
-    if len(source) < 4096 and "\n" not in source and Path(source).is_dir():  # a sequence folder
-        found = _file_in_folder(kind, Path(source), name)
+    folder = _as_path(source)
+    if folder is not None and folder.is_dir():  # a sequence folder
+        found = _file_in_folder(kind, folder, name)
         if isinstance(found, np.ndarray):
             return found
         source = str(found)
