@@ -202,6 +202,21 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     return T
 
 
+def plane_points(
+    K: np.ndarray, cam_from_world: np.ndarray, pix: np.ndarray, X: np.ndarray, n: np.ndarray
+) -> np.ndarray:
+    """Where the rays of pixels ``pix`` (N, G, 2) of the pinhole camera (K, cam_from_world) meet the
+    planes through the points X (N, 3) with normals n (N, 3): (N, G, 3), world. A landmark's local
+    plane carries a neighbourhood of pixels from one view into another (favormap.triangulation,
+    favormap.localize.align)."""
+    T = np.asarray(cam_from_world, np.float64)
+    R, C = T[:3, :3], camera_centers(T)
+    h = np.concatenate([pix, np.ones(pix.shape[:-1] + (1,))], -1)
+    rays = np.einsum("ij,ngj->ngi", R.T @ np.linalg.inv(K), h)
+    lam = np.einsum("ni,ni->n", n, X - C)[:, None] / np.einsum("ni,ngi->ng", n, rays)
+    return C + lam[..., None] * rays
+
+
 def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray, with_depth: bool = False):
     """Pixel positions (N, 2) of world points (N, 3) in a pinhole camera with intrinsics ``K`` (COLMAP
     pixel convention when K is a COLMAP/favormap camera's): the one pinhole projection of favormap.

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, direction_cones, inverse, project, sum_by_group
+from .geometry import camera_centers, direction_cones, inverse, plane_points, project, sum_by_group
+from .io.images import sample_bilinear
 from .tracking import Tracks
 
 
@@ -205,27 +206,6 @@ def landmark_normals(positions: np.ndarray, toward: np.ndarray, k: int = 12) -> 
     return normal * np.where(np.einsum("ni,ni->n", normal, toward - positions) < 0, -1.0, 1.0)[:, None]
 
 
-def _plane_points(K, T, pix, X, n):
-    """Where the rays of pixels ``pix`` (N, G, 2) of camera (K, T) meet the planes through X (N, 3)
-    with normals n (N, 3)."""
-    R, C = T[:3, :3], camera_centers(T)
-    h = np.concatenate([pix, np.ones(pix.shape[:-1] + (1,))], -1)
-    rays = np.einsum("ij,ngj->ngi", R.T @ np.linalg.inv(K), h)
-    lam = np.einsum("ni,ni->n", n, X - C)[:, None] / np.einsum("ni,ngi->ng", n, rays)
-    return C + lam[..., None] * rays
-
-
-def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a float32 image at points ``xy`` (..., 2), COLMAP pixel convention."""
-    import cv2
-
-    m = (xy.reshape(-1, 2) - 0.5).astype(np.float32)
-    n, width = len(m), 4096  # cv2.remap's maps: fewer than 32,767 rows and columns
-    m = np.concatenate([m, np.zeros((-n % width, 2), np.float32)]).reshape(-1, width, 2)
-    out = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(-1)[:n].reshape(xy.shape[:-1])
-
-
 def refine_observations(
     lms: Landmarks,
     grays,
@@ -293,19 +273,19 @@ def refine_observations(
         pa = tracks.xy[ref[o]]
         grid = pa[:, None] + g[None]
         ia, gx, gy = image(a)
-        A = _sample(ia, grid)
+        A = sample_bilinear(ia, grid)
         A -= A.mean(1, keepdims=True)
-        J = np.stack([_sample(gx, grid), _sample(gy, grid)], -1)
+        J = np.stack([sample_bilinear(gx, grid), sample_bilinear(gy, grid)], -1)
         J -= J.mean(1, keepdims=True)
         hess = np.einsum("ngi,ngj->nij", J, J) + 1e-6 * np.eye(2)
         ib = image(b)[0]
         s = np.zeros((len(o), 2))
         for _ in range(iterations):
-            P = _plane_points(K[a], cam_from_world[a], grid + s[:, None], X, n)
-            W = _sample(ib, project(K[b], cam_from_world[b], P.reshape(-1, 3)).reshape(P.shape[:-1] + (2,)))
+            P = plane_points(K[a], cam_from_world[a], grid + s[:, None], X, n)
+            W = sample_bilinear(ib, project(K[b], cam_from_world[b], P.reshape(-1, 3)).reshape(P.shape[:-1] + (2,)))
             e = W - W.mean(1, keepdims=True) - A
             s -= np.linalg.solve(hess, np.einsum("ngi,ng->ni", J, e)[..., None])[..., 0]
-        pb = project(K[b], cam_from_world[b], _plane_points(K[a], cam_from_world[a], (pa + s)[:, None], X, n)[:, 0])
+        pb = project(K[b], cam_from_world[b], plane_points(K[a], cam_from_world[a], (pa + s)[:, None], X, n)[:, 0])
         ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[o], axis=1) <= max_move_px)
         xy[o[ok]] = pb[ok]
         moved[o[ok]] = True

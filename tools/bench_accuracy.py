@@ -68,6 +68,11 @@ VARIANTS = {
     "nearest-view": ("nearest", {}),
     # each landmark matched through two descriptors (favormap.localize.descriptors.StackedDescriptors)
     "rendered+mean": ("rendered+mean", {}),
+    # the inliers' keypoints aligned to the mapping images through the landmark's plane before the final
+    # refinement (LocalizeConfig.align, favormap.localize.align; twenty-ninth session)
+    "rendered align": ("rendered", {"align": True}),
+    "mean align": ("mean", {"align": True}),
+    "nearest-view align": ("nearest", {"align": True}),
     "rendered+nearest-view": ("rendered+nearest", {}),
     "rendered 8px no-mutual (old default)": (
         "rendered",
@@ -158,6 +163,7 @@ DEFAULT_VARIANTS = (
     "rendered",
     "mean",
     "nearest-view",
+    "rendered align",
     "rendered no-guided",
     "mean no-guided",
     "nearest-view no-guided",

@@ -161,6 +161,14 @@ class LocalizeConfig:
     # 5.1-5.8. Gating the guided step with the fitted model lost (extrapolation 0.0068 / 0.0073 /
     # 0.0075), and so did a Cauchy scale of 2 with it (0.0065 / 0.0065 / 0.0069; orbit 0.00059)
     refine_noise: str = "estimated"
+    # before that refinement, each inlier's keypoint is replaced by where its landmark's appearance in
+    # the mapping frame nearest in direction, carried through the landmark's local plane, lies in the
+    # query (favormap.localize.align; needs the mapping images: align_images, or None for the folder
+    # the map was built from). tools/bench_accuracy.py (twenty-ninth session, noise priors, paired with
+    # the detected keypoints): synthetic orbit 0.54x (0.22x on a map built with refine_window=9), fox
+    # hold-out 1.14x, fox extrapolation 1.07-1.29x: off
+    align: bool = False
+    align_images: str | None = None
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
@@ -512,6 +520,11 @@ class Localizer:
             self.config = dataclasses.replace(self.config, match_threshold=self.extractor.match_threshold)
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
+        self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
+        if self.config.align:
+            from .align import PlaneAligner
+
+            self._aligner = PlaneAligner(self.map, self.config.align_images)
 
     def close(self):
         self.map.close()
@@ -613,6 +626,8 @@ class Localizer:
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
         q = _Query(feats, qdesc, cam, self.keypoint_groups(feats), matching_n=matching_n, guided_n=guided_n)
+        if cfg.align:
+            q.image = img
 
         if prior is not None:
             res = self._refine(q, prior, [], t)
@@ -888,6 +903,8 @@ class Localizer:
         s = time.perf_counter()
         inl = last["matches"][last["inliers"]]
         X, kp = self.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
+        if cfg.align:
+            kp = self._aligned(q, it.cam_from_world, inl, kp, t)
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
         ksig, scale = cfg.keypoint_sigma_px, None
         if cfg.refine_noise == "estimated" and len(inl) >= 6:
@@ -924,6 +941,17 @@ class Localizer:
             cov.landmark_scale, cov.keypoint_sigma_px = float(scale), float(ksig)
         t["pnp"] += time.perf_counter() - s
         return cov
+
+    def _aligned(self, q: _Query, pose: np.ndarray, inl: np.ndarray, kp: np.ndarray, t: dict) -> np.ndarray:
+        """The inliers' keypoints aligned to the mapping images (LocalizeConfig.align)."""
+        from .align import blurred_gray
+
+        s = time.perf_counter()
+        if q.gray is None:
+            q.gray = blurred_gray(q.image, self._aligner.config.sigma)
+        out, ok = self._aligner.align(q.gray, q.cam.K, pose, self.positions, inl[:, 0], kp)
+        t["align"] = t.get("align", 0.0) + time.perf_counter() - s
+        return out
 
     def _noise_model(self, q: _Query, pose: np.ndarray, rows: np.ndarray):
         """Predicted projections (N, 2) of landmarks ``rows`` from ``pose`` and the inverse
@@ -1096,6 +1124,8 @@ class _Query:
     # guided_sift_contrast)
     matching_n: int | None = None
     guided_n: int | None = None
+    image: np.ndarray | None = None  # the working image (LocalizeConfig.align)
+    gray: np.ndarray | None = None  # its blurred grey version, once aligned
 
     @property
     def match_desc(self) -> np.ndarray:
