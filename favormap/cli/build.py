@@ -66,7 +66,7 @@ def register(sub):
         metavar="N",
         help="SIFT maps: align each track's keypoints to its middle observation through the landmark's local "
         "plane (an N x N window, e.g. 9) and triangulate again (default 0: off). With exact poses the landmarks "
-        "lie closer to the surface and `localize --align` gains most (synthetic orbit 0.22x the error); on the "
+        "lie closer to the surface and `localize --align` gains most (synthetic orbit 0.20x the error); on the "
         "real fox sequence it lost: README, Accuracy",
     )
     p.add_argument(

@@ -15,9 +15,9 @@ cross-correlation >= ``min_ncc``) within ``max_shift_px`` of the detected keypoi
 It needs the mapping images (the map does not store them): the folder the map was built from (its
 provenance), or another folder of the same sequence. Measured with tools/bench_accuracy.py (see
 docs/accuracy.md, twenty-ninth session): on the synthetic orbit with exact poses 0.54x the error of
-the detected keypoints, 0.22x on a map whose tracks were aligned the same way
-(``BuildConfig.refine_window``), 3x below the pycolmap baseline; on the real fox sequence, whose poses
-come from COLMAP, 1.07-1.3x worse: an option, off by default.
+the detected keypoints, 0.20x on a map whose tracks were aligned the same way
+(``BuildConfig.refine_window``), 0.35x the pycolmap baseline's; on the real fox sequence, whose poses
+come from COLMAP, 1.1-1.3x worse: an option, off by default.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ class PlaneAligner:
         self.folder = Path(images) if images is not None else None
         self._frames = None  # frame name -> (image path, camera), from the sequence, on first use
         self._images: dict[int, np.ndarray] = {}
-        tl, tf, txy = map_.tracks()
+        tl, tf, _ = map_.tracks()
         self.track_frame = np.asarray(tf, np.int64)
         order = np.argsort(tl, kind="stable")
         self.obs = order

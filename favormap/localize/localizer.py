@@ -165,8 +165,8 @@ class LocalizeConfig:
     # the mapping frame nearest in direction, carried through the landmark's local plane, lies in the
     # query (favormap.localize.align; needs the mapping images: align_images, or None for the folder
     # the map was built from). tools/bench_accuracy.py (twenty-ninth session, noise priors, paired with
-    # the detected keypoints): synthetic orbit 0.54x (0.22x on a map built with refine_window=9), fox
-    # hold-out 1.14x, fox extrapolation 1.07-1.29x: off
+    # the detected keypoints): synthetic orbit 0.54x (0.20x on a map built with refine_window=9), fox
+    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off
     align: bool = False
     align_images: str | None = None
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
@@ -900,11 +900,11 @@ class Localizer:
         """Refine the pose of the final iteration ``it`` (in place) on its inliers, each weighted by
         its landmark's position uncertainty (favormap.localize.refine); returns its covariance."""
         cfg = self.config
-        s = time.perf_counter()
         inl = last["matches"][last["inliers"]]
         X, kp = self.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
         if cfg.align:
             kp = self._aligned(q, it.cam_from_world, inl, kp, t)
+        s = time.perf_counter()
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
         ksig, scale = cfg.keypoint_sigma_px, None
         if cfg.refine_noise == "estimated" and len(inl) >= 6:
