@@ -69,6 +69,10 @@ def test_aligned_keypoints_localize_views_off_the_mapping_path_more_precisely(
     assert np.median(aligned) < 0.6 * np.median(plain), (aligned, plain)
     assert np.sum(aligned < plain) >= 5, (aligned, plain)
     assert res.timings["align"] > 0
+    # the result keeps, by match, the keypoints the final refinement used: inliers only
+    assert res.aligned.shape == res.matches.shape
+    assert not np.isfinite(res.aligned[~res.inlier_mask]).any()
+    assert np.isfinite(res.aligned[res.inlier_mask, 0]).mean() > 0.5
 
 
 def test_alignment_moves_keypoints_to_the_surface_point_of_the_reference_view(small_map, off_path_queries):
@@ -169,7 +173,7 @@ def test_the_cli_aligns_on_request_and_refuses_a_too_small_refine_window(small_m
     p = subprocess.run([*cmd, "--align", "--json"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
-    assert out["success"] and out["timings"]["align"] > 0
+    assert out["success"] and out["timings"]["align"] > 0 and out["num_aligned"] > 0
     out_map = tmp_path / "never.h5"
     p = subprocess.run(
         [

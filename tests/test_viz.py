@@ -265,6 +265,7 @@ def test_similarity_merge_and_prune_logging(built):
             inlier_mask=np.arange(len(rows)) >= 3,
         )
         res.match_similarity = np.linspace(0.7, 1.0, len(rows))
+        res.aligned = np.where((np.arange(len(rows)) % 2 == 0)[:, None], uv + 0.3, np.nan)  # LocalizeConfig.align
         with Recording("favormap test", kind="localize", save=rrd, map_=m, strict=True) as rec:
             rec.log_localization(0, read_rgb(seq_dir / "images" / "000002.png"), res, T, gt=T)
             rec.log_merge([mp, mp], mp)
@@ -273,6 +274,7 @@ def test_similarity_merge_and_prune_logging(built):
     paths = _entities(rrd)
     for p in (
         "/world/query/rendered/estimate/image/similarity",
+        "/world/query/rendered/estimate/image/aligned",
         "/metrics/similarity/rendered",
         "/world/map/sources",
         "/map/sources",

@@ -245,6 +245,9 @@ class LocalizationResult:
     # weighted refinement is off)
     covariance: PoseCovariance | None = None
     camera: Camera | None = None  # the working pinhole camera of ``keypoints`` (undistorted, resized)
+    # (K, 2) with LocalizeConfig.align: each match's keypoint as the final refinement used it, moved to
+    # the mapping images (NaN where not an inlier or not aligned); None when alignment is off
+    aligned: np.ndarray | None = None
     prior: np.ndarray | None = None  # the cam_from_world prior localization started from (None: without one)
 
     def to_json(self) -> dict:
@@ -272,6 +275,7 @@ class LocalizationResult:
                 for it in self.iterations
             ],
             "timings": {k: round(v, 5) for k, v in self.timings.items()},
+            **({} if self.aligned is None else {"num_aligned": int(np.isfinite(self.aligned[:, 0]).sum())}),
         }
 
 
@@ -903,7 +907,7 @@ class Localizer:
         inl = last["matches"][last["inliers"]]
         X, kp = self.positions[inl[:, 0]], q.feats.keypoints[inl[:, 1]]
         if cfg.align:
-            kp = self._aligned(q, it.cam_from_world, inl, kp, t)
+            kp = self._aligned(q, it.cam_from_world, last, kp, t)
         s = time.perf_counter()
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
         ksig, scale = cfg.keypoint_sigma_px, None
@@ -942,14 +946,18 @@ class Localizer:
         t["pnp"] += time.perf_counter() - s
         return cov
 
-    def _aligned(self, q: _Query, pose: np.ndarray, inl: np.ndarray, kp: np.ndarray, t: dict) -> np.ndarray:
-        """The inliers' keypoints aligned to the mapping images (LocalizeConfig.align)."""
+    def _aligned(self, q: _Query, pose: np.ndarray, last: dict, kp: np.ndarray, t: dict) -> np.ndarray:
+        """The keypoints ``kp`` of the inliers of ``last`` aligned to the mapping images
+        (LocalizeConfig.align); ``q.aligned`` keeps them by match for the result."""
         from .align import blurred_gray
 
         s = time.perf_counter()
         if q.gray is None:
             q.gray = blurred_gray(q.image, self._aligner.config.sigma)
-        out, ok = self._aligner.align(q.gray, q.cam.K, pose, self.positions, inl[:, 0], kp)
+        idx = np.flatnonzero(last["inliers"])
+        out, ok = self._aligner.align(q.gray, q.cam.K, pose, self.positions, last["matches"][idx, 0], kp)
+        q.aligned = np.full((len(last["matches"]), 2), np.nan)
+        q.aligned[idx[ok]] = out[ok]
         t["align"] = t.get("align", 0.0) + time.perf_counter() - s
         return out
 
@@ -1051,6 +1059,7 @@ class Localizer:
                 checks, reason = self._checks(q, last, iters)
         success = not reason
         est = ok_iters[-1].cam_from_world if ok_iters else None
+        aligned = q.aligned if last is not None and q.aligned is not None else None
         return LocalizationResult(
             success=success,
             cam_from_world=est if success else start,
@@ -1067,6 +1076,7 @@ class Localizer:
             estimate=est,
             by_projection=None if last is None or "by_descriptor" not in last else ~last["by_descriptor"],
             camera=q.cam,
+            aligned=aligned if aligned is not None and len(aligned) == len(last["matches"]) else None,
         )
 
     def _checks(self, q: _Query, last: dict, iters: list[IterationResult]) -> tuple[dict, str]:
@@ -1126,6 +1136,7 @@ class _Query:
     guided_n: int | None = None
     image: np.ndarray | None = None  # the working image (LocalizeConfig.align)
     gray: np.ndarray | None = None  # its blurred grey version, once aligned
+    aligned: np.ndarray | None = None  # (K, 2) the last final refinement's aligned keypoints by match
 
     @property
     def match_desc(self) -> np.ndarray:

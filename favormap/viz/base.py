@@ -34,6 +34,7 @@ GREY = (150, 150, 150)
 INLIER = (40, 220, 80)
 OUTLIER = (240, 60, 50)
 GUIDED = (200, 90, 255)  # inliers that only the guided step found (by projection)
+ALIGNED = (255, 80, 200)  # inlier keypoints moved to the mapping images (LocalizeConfig.align)
 PRIOR = (255, 160, 0)
 GT = (60, 200, 255)
 SERIES = {"rendered": (70, 130, 255), "mean": (255, 140, 0), "prior": (150, 150, 150)}

@@ -10,6 +10,7 @@ import rerun as rr
 
 from .. import geometry
 from .base import (
+    ALIGNED,
     GREY,
     GT,
     GUIDED,
@@ -142,6 +143,15 @@ class LocalizeLog(RecordingBase):
             f"{base}/estimate/image/outliers",
             rr.LineStrips2D(strips[False], colors=[OUTLIER], radii=rr.Radius.ui_points(1.0)),
         )
+        aligned = getattr(result, "aligned", None)
+        if aligned is not None and len(aligned) == len(matches):
+            moved = np.isfinite(aligned).all(1)
+            self.rec.log(
+                f"{base}/estimate/image/aligned",
+                rr.Points2D(
+                    np.asarray(aligned, np.float64)[moved] * s, colors=[ALIGNED], radii=rr.Radius.ui_points(2.0)
+                ),
+            )
         if sim is not None:
             self.rec.log(
                 f"{base}/estimate/image/similarity",
