@@ -174,6 +174,8 @@ def test_the_cli_aligns_on_request_and_refuses_a_too_small_refine_window(small_m
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["success"] and out["timings"]["align"] > 0 and out["num_aligned"] > 0
+    p = subprocess.run([*cmd, "--align"], capture_output=True, text=True)
+    assert p.returncode == 0 and f"{out['num_aligned']} of {out['num_inliers']} inlier keypoints aligned" in p.stdout
     out_map = tmp_path / "never.h5"
     p = subprocess.run(
         [

@@ -353,6 +353,8 @@ def run(args) -> int:
 
 
 def print_result(name: str, res) -> None:
+    import numpy as np
+
     from ..geometry import camera_centers, inverse, rotmat_to_quat
 
     T = res.cam_from_world
@@ -387,4 +389,9 @@ def print_result(name: str, res) -> None:
                     f"  noise model fitted to the inliers: landmark position errors {cov.landmark_scale:.2f}x "
                     f"the map's variance, keypoint noise {cov.keypoint_sigma_px:.2f} px"
                 )
+    if res.aligned is not None:
+        print(
+            f"  {int(np.isfinite(res.aligned[:, 0]).sum())} of {res.num_inliers} inlier keypoints aligned to the "
+            "mapping images (--align)"
+        )
     print("  timings (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in res.timings.items()))
