@@ -29,7 +29,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import camera_centers, plane_points, project
-from ..io.images import sample_bilinear
+from ..io.images import sample_bilinear, working_camera
+from .observations import ObservationIndex
 
 
 @dataclass(frozen=True)
@@ -65,19 +66,11 @@ class PlaneAligner:
         self.folder = Path(images) if images is not None else None
         self._frames = None  # frame name -> (image path, camera), from the sequence, on first use
         self._images: dict[int, np.ndarray] = {}
-        tl, tf, _ = map_.tracks()
-        self.track_frame = np.asarray(tf, np.int64)
-        order = np.argsort(tl, kind="stable")
-        self.obs = order
-        self.start = np.searchsorted(np.asarray(tl)[order], np.arange(len(map_) + 1))
-        self.centers = camera_centers(np.asarray(map_.cam_from_world))
+        self.index = ObservationIndex(map_)
         positions = np.asarray(map_.positions, np.float64)
-        toward = np.zeros_like(positions)
-        np.add.at(toward, np.asarray(tl, np.int64), self.centers[self.track_frame])
-        counts = np.maximum(np.bincount(tl, minlength=len(map_)), 1)[:, None]
-        self.normals = landmark_normals(positions, toward / counts)
-        from ..io.images import working_camera
-
+        # the plane through a landmark is the same for either sign of its normal: turned towards the
+        # training cameras (the map's view_dir) only to be definite
+        self.normals = landmark_normals(positions, positions + np.asarray(map_.view_dir, np.float64))
         ids = np.asarray(map_.frame_camera_ids)
         self.K = np.array([working_camera(map_.cameras[int(c)], map_.max_side).K for c in ids]).reshape(-1, 3, 3)
         # a missing or unreadable folder, or one without the map's frames, fails here, not at the first query
@@ -122,20 +115,15 @@ class PlaneAligner:
     def reference_frames(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
         """For each landmark of ``rows``, the mapping frame whose camera saw it from the direction
         nearest to the query camera's (``center``); -1 for a landmark without observations."""
-        s, e = self.start[rows], self.start[rows + 1]
-        lens = e - s
-        seg = np.repeat(np.arange(len(rows)), lens)
-        obs = self.obs[np.repeat(s - np.cumsum(np.r_[0, lens[:-1]]), lens) + np.arange(lens.sum())]
-        frames = self.track_frame[obs]
-        X = positions[rows][seg]
-        u = self.centers[frames] - X
-        q = center - X
-        cos = np.einsum("ij,ij->i", u, q) / (np.linalg.norm(u, axis=1) * np.linalg.norm(q, axis=1) + 1e-12)
-        best = np.lexsort((-cos, seg))  # per landmark, its most aligned observation first
-        out = np.full(len(rows), -1, np.int64)
-        has = lens > 0
-        out[has] = frames[best[np.r_[0, np.cumsum(lens[:-1])][has]]]
-        return out
+        ix = self.index
+        X = np.asarray(positions, np.float64)[np.asarray(rows, np.int64)]
+
+        def cost(obs, group):  # minus the cosine of the angle at the landmark
+            u, q = ix.centers[ix.frame[obs]] - X[group], center - X[group]
+            return -np.einsum("ij,ij->i", u, q) / (np.linalg.norm(u, axis=1) * np.linalg.norm(q, axis=1) + 1e-12)
+
+        best = ix.best(rows, cost)
+        return np.where(best >= 0, ix.frame[np.maximum(best, 0)], -1)
 
     def align(self, gray: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, positions, rows, keypoints):
         """Aligned positions (N, 2) of the query keypoints ``keypoints`` matched to landmarks ``rows``

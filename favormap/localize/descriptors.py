@@ -100,26 +100,19 @@ class NearestViewDescriptors:
     name = "nearest"
 
     def __init__(self, map_: Map, obs_descriptors: np.ndarray):
-        lm, fr, _ = map_.tracks()
-        if len(obs_descriptors) != len(lm):
-            raise ValueError(f"{len(obs_descriptors)} observation descriptors for {len(lm)} observations")
-        order = np.lexsort((fr, lm))
-        self.obs_lm, self.obs_fr = lm[order], fr[order]
-        self.obs_desc = np.ascontiguousarray(obs_descriptors[order], np.float32)
-        self.first = np.searchsorted(self.obs_lm, np.arange(len(map_) + 1))
-        self.centers = camera_centers(map_.cam_from_world)
+        from .observations import ObservationIndex
+
+        self.index = ObservationIndex(map_)
+        if len(obs_descriptors) != len(self.index.order):
+            raise ValueError(f"{len(obs_descriptors)} observation descriptors for {len(self.index.order)} observations")
+        self.obs_desc = np.ascontiguousarray(obs_descriptors[self.index.order], np.float32)
 
     def __call__(self, rows, cam_from_world, timings):
         s = time.perf_counter()
-        rows = np.asarray(rows, np.int64)
-        n = self.first[rows + 1] - self.first[rows]
-        obs = np.repeat(self.first[rows] - np.cumsum(n) + n, n) + np.arange(n.sum())  # observations of rows, grouped
-        group = np.repeat(np.arange(len(rows)), n)
-        dist = np.linalg.norm(self.centers[self.obs_fr[obs]] - camera_centers(cam_from_world), axis=1)
-        best = np.lexsort((dist, group))
-        keep = best[np.r_[True, group[best][1:] != group[best][:-1]]] if len(best) else best
-        out = np.zeros((len(rows), self.obs_desc.shape[1]), np.float32)
-        out[group[keep]] = self.obs_desc[obs[keep]]
+        ix, center = self.index, camera_centers(cam_from_world)
+        best = ix.best(rows, lambda obs, _: np.linalg.norm(ix.centers[ix.frame[obs]] - center, axis=1))
+        out = np.zeros((len(best), self.obs_desc.shape[1]), np.float32)
+        out[best >= 0] = self.obs_desc[best[best >= 0]]
         _tick(timings, "loading", s)
         return unit_rows(out)
 

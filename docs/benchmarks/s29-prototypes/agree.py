@@ -28,11 +28,12 @@ def reference_frames(self, positions, rows, center):
     """The mapping frame of rank _rank[0] by direction (0: the nearest), the nearest where fewer."""
     if _rank[0] == 0:
         return orig_refs(self, positions, rows, center)
-    s, e = self.start[rows], self.start[rows + 1]
+    ix = self.index
+    s, e = ix.first[rows], ix.first[rows + 1]
     out = np.full(len(rows), -1, np.int64)
     for i, j in enumerate(rows):
-        f = self.track_frame[self.obs[s[i] : e[i]]]
-        u = self.centers[f] - positions[j]
+        f = ix.frame[s[i] : e[i]]
+        u = ix.centers[f] - positions[j]
         q = center - positions[j]
         cos = u @ q / (np.linalg.norm(u, axis=1) * np.linalg.norm(q) + 1e-12)
         order = np.argsort(-cos)
