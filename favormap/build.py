@@ -28,7 +28,7 @@ from .features.cache import FeatureCache, source_stamp
 from .geometry import camera_centers, project, sum_by_group, unproject, view_geometry
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Camera, Sequence
-from .io.images import decode_and_prepare, read_image_bytes
+from .io.images import decode_and_prepare, patches_around, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
@@ -67,6 +67,9 @@ class BuildConfig:
     # 0.0081 against 0.0063 / 0.0060 / 0.0060, hold-out p90 0.0098-0.0121 against 0.0055-0.0060, though on the
     # synthetic room with exact poses it halves the landmarks' distance to the surface (tests/test_build.py)
     refine_window: int = 0
+    # store each observation's (2r+1)^2 grey pixels in the map (optional dataset tracks/patch; 0: none), so
+    # that localize --align needs no mapping images (favormap.localize.align)
+    align_patches: int = 0
     max_reproj_px: float = 5.0
     min_angle_deg: float = 1.0
     max_landmarks: int = 3000
@@ -315,22 +318,39 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
     )
 
 
-def refine_landmarks(lms: Landmarks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
+def refine_landmarks(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
     """The build's keypoint refinement (``config.refine_window``): each landmark's observations
-    aligned through its local plane (triangulation.refine_observations, on the frames' grey images,
-    which SIFT's sampling state holds), then triangulated again."""
-    grays = []
-    for f in range(len(ff.features)):
-        gray = getattr(ff.features[f].dense, "gray", None)
-        if gray is None:
-            raise FavormapError(
-                f"refine_window needs the frames' grey images, which {config.extractor!r} features do not hold"
-            )
-        grays.append(gray)
+    aligned through its local plane (triangulation.refine_observations, on the frames' grey images),
+    then triangulated again."""
+    grays = [frame_gray(seq, ff, f, config) for f in range(len(ff.features))]
     tracks = refine_observations(
         lms, grays, np.stack([c.K for c in ff.cameras]), ff.cam_from_world, config.refine_window
     )[0]
     return triangulate_tracks(tracks, ff, config)
+
+
+def frame_gray(seq: Sequence, ff: FrameFeatures, f: int, config: BuildConfig) -> np.ndarray:
+    """Frame ``f``'s grey working image (uint8): the one SIFT's sampling state holds, or the frame
+    decoded again for the extractors whose features hold none."""
+    import cv2
+
+    gray = getattr(ff.features[f].dense, "gray", None)
+    if gray is None:
+        fr = seq.frames[f]
+        img = decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], config.max_side)[0]
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    return gray
+
+
+def observation_patches(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: BuildConfig) -> np.ndarray:
+    """The (O, P, P) grey pixels around every observation of ``lms`` (``config.align_patches``), frame by frame."""
+    r = int(config.align_patches)
+    tr = lms.tracks
+    out = np.empty((len(tr.xy), 2 * r + 1, 2 * r + 1), np.uint8)
+    for f in np.unique(tr.frame_idx):
+        sel = np.flatnonzero(tr.frame_idx == f)
+        out[sel] = patches_around(frame_gray(seq, ff, int(f), config), tr.xy[sel], r)
+    return out
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
@@ -607,6 +627,8 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
             f"BuildConfig: match_window must be >= 1 and max_epipolar_px > 0 "
             f"(got {config.match_window}, {config.max_epipolar_px})"
         )
+    if config.align_patches < 0 or config.align_patches > 64:
+        raise InputError(f"BuildConfig: align_patches must be 0 (off) to 64 px, not {config.align_patches}")
     problems = check_frames(
         seq.cameras,
         [f.name for f in seq.frames],
@@ -714,7 +736,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     with pr.stage("triangulate"):
         all_lms = triangulate_tracks(tracks, ff, config)
         if config.refine_window:
-            all_lms = refine_landmarks(all_lms, ff, config)
+            all_lms = refine_landmarks(all_lms, seq, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks)
         n_tracks, n_triangulated = len(tracks), len(all_lms)
         epipolar_kept = tracks.epipolar_matches / max(tracks.matches, 1)
@@ -793,6 +815,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         track_landmark=lms.tracks.track_of_obs.astype(np.int32),
         track_frame=lms.tracks.frame_idx.astype(np.int32),
         track_xy=lms.tracks.xy.astype(np.float32),
+        track_patch=observation_patches(lms, seq, ff, config) if config.align_patches else None,
         provenance={
             "source": str(seq.root),
             "source_format": seq.format,

@@ -194,3 +194,123 @@ def test_the_cli_aligns_on_request_and_refuses_a_too_small_refine_window(small_m
     )
     assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert "--refine-window" in p.stderr and not out_map.exists()
+
+
+@pytest.fixture(scope="module")
+def patch_map(small_sequence, tmp_path_factory):
+    """(map path, sequence copy) of a map built with the observation patches (BuildConfig.align_patches)
+    from a copy of the small sequence, which the tests may remove."""
+    from favormap.build import build_map
+    from favormap.io import read_sequence
+    from favormap.mapfile import write_map
+
+    root = tmp_path_factory.mktemp("patch_map")
+    shutil.copytree(small_sequence.root, root / "seq")
+    seq = read_sequence(root / "seq")
+    path = root / "patches.h5"
+    write_map(build_map(seq, small_build_config(align_patches=20)), path)
+    return path, root / "seq"
+
+
+def test_stored_patches_align_as_the_mapping_images_do(patch_map, off_path_queries):
+    """A map that stores its observations' pixels (`build --align-patches 20`) aligns the inliers'
+    keypoints without the mapping images, to the same positions as the images give (measured when
+    written: every alignment of the images also converged from the patches, largest difference
+    4e-5 px, the same poses)."""
+    from favormap.geometry import perturb_pose, pose_error
+    from favormap.localize import LocalizeConfig, Localizer
+    from favormap.mapfile import Map
+
+    path, seq = patch_map
+    with Map(path) as m:
+        assert m.has_track_patches and m.track_patch_radius == 20
+        lm, fr, xy = m.tracks()
+        p = m.track_patches(np.arange(0, len(lm), 97))
+    assert p.shape[1:] == (41, 41) and p.dtype == np.uint8
+    a = Localizer(path, LocalizeConfig(align=True))
+    b = Localizer(path, LocalizeConfig(align=True, align_images=str(seq)))
+    assert a._aligner.from_patches and not b._aligner.from_patches
+    rng = np.random.default_rng(0)
+    for q in off_path_queries.frames[::2]:
+        T = perturb_pose(q.cam_from_world, 0.1, 5.0, rng)
+        ra, rb = a.localize(q.image_path, T), b.localize(q.image_path, T)
+        assert ra.success and rb.success
+        fa, fb = np.isfinite(ra.aligned[:, 0]), np.isfinite(rb.aligned[:, 0])
+        assert fb.sum() > 0.5 * ra.inlier_mask.sum()
+        assert (fa & fb).sum() >= 0.95 * fb.sum(), (fa.sum(), fb.sum())
+        np.testing.assert_allclose(ra.aligned[fa & fb], rb.aligned[fa & fb], atol=1e-3)
+        ea, eb = (pose_error(r.cam_from_world, q.cam_from_world)[0] for r in (ra, rb))
+        assert abs(ea - eb) <= 0.05 * eb + 1e-6, (ea, eb)
+    assert a._aligner._images == {}  # no mapping image was read
+
+
+def test_a_map_with_patches_aligns_after_its_images_are_gone(patch_map, small_map, small_sequence, tmp_path):
+    """`favormap localize --align` on a map with patches needs no folder (the one it was built from
+    removed); prune keeps the kept observations' patches, merge keeps them where every map has them
+    and drops them, with a warning, where one does not; `info` names them; a bad size is one line."""
+    import json
+
+    from favormap.mapfile import Map
+    from favormap.ops.merge import merge_maps
+    from favormap.ops.prune import prune_map
+
+    path, seq = patch_map
+    fr = read_frames(seq)[3]
+    prior = tmp_path / "prior.txt"
+    np.savetxt(prior, np.linalg.inv(fr.cam_from_world))
+    image = tmp_path / "query.png"
+    shutil.copy(fr.image_path, image)
+    pruned, merged, mixed = tmp_path / "pruned.h5", tmp_path / "merged.h5", tmp_path / "mixed.h5"
+    prune_map(path, pruned, max_landmarks=200)
+    shutil.rmtree(seq)
+    cmd = [sys.executable, "-m", "favormap", "localize", str(pruned), str(image), "--prior", str(prior)]
+    p = subprocess.run([*cmd, "--align", "--json"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["success"] and out["num_aligned"] > 0.5 * out["num_inliers"]
+    with Map(path) as a, Map(pruned) as b:
+        ids_a = {int(i): r for r, i in enumerate(a.ids)}
+        la, fa, xa = a.tracks()
+        lb, fb, xb = b.tracks()
+        key_a = {(int(a.ids[l]), int(f)): o for o, (l, f) in enumerate(zip(la, fa))}
+        rows = [key_a[(int(b.ids[l]), int(f))] for l, f in zip(lb, fb)]
+        assert len(ids_a) == len(a) and len(lb) < len(la)
+        np.testing.assert_array_equal(b.track_patches(), a.track_patches(np.array(rows)))
+    res = merge_maps([path, pruned], merged)
+    assert not any("patches" in w for w in res.warnings)
+    res = merge_maps([path, small_map[1]], mixed)
+    assert any("tracks/patch" in w for w in res.warnings)
+    with Map(merged) as m, Map(mixed) as n:
+        assert m.has_track_patches and len(m.track_patches()) == len(m.tracks()[0])
+        assert not n.has_track_patches
+    p = subprocess.run([sys.executable, "-m", "favormap", "info", str(pruned)], capture_output=True, text=True)
+    assert p.returncode == 0 and "observation patches 41 x 41 px" in p.stdout
+    bad = tmp_path / "never.h5"
+    p = subprocess.run(
+        [sys.executable, "-m", "favormap", "build", str(small_sequence.root), "-o", str(bad), "--align-patches", "65"],
+        capture_output=True,
+        text=True,
+    )
+    assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1 and "--align-patches" in p.stderr
+    assert not bad.exists()
+
+
+def test_the_writer_refuses_patches_that_do_not_match_the_observations(small_map, tmp_path):
+    import dataclasses
+
+    from favormap.errors import MapFormatError
+    from favormap.mapfile import write_map
+
+    m, _ = small_map
+    n = len(m.track_xy)
+    with pytest.raises(MapFormatError, match="tracks/patch"):
+        write_map(dataclasses.replace(m, track_patch=np.zeros((n - 1, 5, 5), np.uint8)), tmp_path / "a.h5")
+    with pytest.raises(MapFormatError, match="tracks/patch"):
+        write_map(dataclasses.replace(m, track_patch=np.zeros((n, 5, 7), np.uint8)), tmp_path / "b.h5")
+    assert not (tmp_path / "a.h5").exists() and not (tmp_path / "b.h5").exists()
+
+
+def read_frames(root):
+    from favormap.io import read_sequence
+
+    return read_sequence(root).frames

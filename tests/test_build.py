@@ -244,7 +244,14 @@ def test_plane_aligned_observations_move_landmarks_onto_the_true_surface(small_s
     cfg = BuildConfig(max_keypoints=1024, max_side=0, refine_window=9)
     ff = extract_sequence(small_sequence, ExtractorSpec("sift", 1024), 0)
     plain = triangulate_tracks(track_frames(ff, cfg), ff, cfg)
-    refined = refine_landmarks(plain, ff, cfg)
+    refined = refine_landmarks(plain, small_sequence, ff, cfg)
+    # features without SIFT's grey image (XFeat, DISK): the frame decoded again, the same pixels
+    from types import SimpleNamespace
+
+    from favormap.build import FrameFeatures, frame_gray
+
+    bare = FrameFeatures([SimpleNamespace(dense=None)] * len(ff.features), ff.cameras, ff.cam_from_world)
+    np.testing.assert_array_equal(frame_gray(small_sequence, bare, 3, cfg), ff.features[3].dense.gray)
     assert len(refined) >= 0.99 * len(plain)
     scene = make_room(0)
     d_plain = np.median(np.abs(surface_distance(scene, plain.positions)))

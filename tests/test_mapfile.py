@@ -85,6 +85,7 @@ def random_map(seed: int = 0, L: int = 20, C: int = 8, R: int = 3, M: int = 5, o
         track_landmark=tl,
         track_frame=tf,
         track_xy=rng.uniform(0, 300, (len(tl), 2)).astype(np.float32),
+        track_patch=rng.integers(0, 256, (len(tl), 5, 5), dtype=np.uint8),
         provenance={"source": "random", "seed": seed, "stats": {"landmarks": L}},
     )
 
@@ -136,7 +137,10 @@ def test_schema_is_consistent_with_the_code():
         "tracks/landmark_index",
         "tracks/frame_index",
         "tracks/xy",
+        "tracks/patch",
     }
+    # the one dataset a map may lack: the observation patches of `build --align-patches`
+    assert {p for p, d in s["datasets"].items() if d.get("optional")} == {"tracks/patch"}
     known = {
         "finite",
         "not_nan",

@@ -64,10 +64,18 @@ def register(sub):
         type=int,
         default=None,
         metavar="N",
-        help="SIFT maps: align each track's keypoints to its middle observation through the landmark's local "
+        help="align each track's keypoints to its middle observation through the landmark's local "
         "plane (an N x N window, e.g. 9) and triangulate again (default 0: off). With exact poses the landmarks "
         "lie closer to the surface and `localize --align` gains most (synthetic orbit 0.20x the error); on the "
         "real fox sequence it lost: README, Accuracy",
+    )
+    p.add_argument(
+        "--align-patches",
+        type=int,
+        default=None,
+        metavar="R",
+        help="store each observation's (2R+1) x (2R+1) grey pixels in the map (e.g. 20: ~1.7 kB an "
+        "observation), so that `localize --align` needs no mapping images (default 0: none)",
     )
     p.add_argument(
         "--quality",
@@ -164,6 +172,8 @@ def config_from_args(args):
         raise InputError("--resize must be >= 0")
     if args.refine_window is not None and args.refine_window != 0 and args.refine_window < 3:
         raise InputError(f"--refine-window must be 0 (off) or at least 3 px, not {args.refine_window}")
+    if args.align_patches is not None and not 0 <= args.align_patches <= 64:
+        raise InputError(f"--align-patches must be 0 (off) to 64 px, not {args.align_patches}")
     if args.max_epipolar is not None and not args.max_epipolar > 0:
         raise InputError(f"--max-epipolar must be > 0 px, not {args.max_epipolar}")
     over = _given(
@@ -186,6 +196,7 @@ def config_from_args(args):
         match_window=args.match_window,
         max_epipolar_px=args.max_epipolar,
         refine_window=args.refine_window,
+        align_patches=args.align_patches,
     )
     return BuildConfig(
         extractor=args.extractor,

@@ -37,5 +37,8 @@ def run(args) -> int:
         print(f"median PSNR         {info['median_psnr']:.2f} dB")
         lo, hi = info["bbox"]
         print("bounding box        " + " .. ".join("(" + ", ".join(f"{v:.3f}" for v in c) + ")" for c in (lo, hi)))
+    if info["align_patches"]:
+        r = info["align_patches"]
+        print(f"observation patches {2 * r + 1} x {2 * r + 1} px (localize --align needs no mapping images)")
     print(f"file size           {human_size(info['file_size'])}")
     return 0

@@ -89,12 +89,14 @@ def add_localize_options(p):
         "--align",
         action="store_true",
         help="before the final refinement, align each inlier's keypoint to the mapping image that saw its landmark "
-        "from the nearest direction, through the landmark's local plane (needs the mapping images; measured on a "
+        "from the nearest direction, through the landmark's local plane (needs the mapping images, or a map built "
+        "with --align-patches; measured on a "
         "synthetic scene with exact poses 0.2-0.5x the error, on the real fox sequence 1.1-1.3x: docs/accuracy.md)",
     )
     p.add_argument(
         "--mapping-images",
-        help="--align: the folder of the map's mapping sequence (default: the folder the map was built from)",
+        help="--align: the folder of the map's mapping sequence (default: the observation patches the map stores, "
+        "else the folder the map was built from)",
     )
     p.add_argument(
         "--no-global",

@@ -130,3 +130,17 @@ def sample_bilinear(img: np.ndarray, xy: np.ndarray, outside: float | None = Non
     )
     out = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, **border)
     return out.reshape(-1)[:n].reshape(xy.shape[:-1])
+
+
+def patches_around(img: np.ndarray, xy: np.ndarray, radius: int) -> np.ndarray:
+    """The (n, 2r+1, 2r+1) pixels of ``img`` around the points ``xy`` (n, 2; COLMAP convention), each
+    centred on the pixel that holds its point (``floor(xy)``), mirrored beyond the image's edge as
+    OpenCV's default border does (BORDER_REFLECT_101), so that a blur of a patch agrees with the blur
+    of the whole image inside it."""
+    r = int(radius)
+    pad = np.pad(img, [(r, r), (r, r)] + [(0, 0)] * (img.ndim - 2), mode="reflect")
+    c = np.floor(np.asarray(xy, np.float64)).astype(np.int64)
+    h, w = img.shape[:2]
+    c = np.clip(c, 0, [w - 1, h - 1])  # a keypoint on the very edge (x == w) is in the last pixel
+    g = np.arange(2 * r + 1)
+    return pad[c[:, 1, None, None] + g[None, :, None], c[:, 0, None, None] + g[None, None, :]]

@@ -12,12 +12,16 @@ alignment (2D shift, gain and offset; PTAM / SVO-style feature alignment) finds 
 query that matches that template best. The alignment is kept where it converged (normalised
 cross-correlation >= ``min_ncc``) within ``max_shift_px`` of the detected keypoint.
 
-It needs the mapping images (the map does not store them): the folder the map was built from (its
-provenance), or another folder of the same sequence. Measured with tools/bench_accuracy.py (see
-docs/accuracy.md, twenty-ninth session): on the synthetic orbit with exact poses 0.54x the error of
-the detected keypoints, 0.20x on a map whose tracks were aligned the same way
-(``BuildConfig.refine_window``), 0.35x the pycolmap baseline's; on the real fox sequence, whose poses
-come from COLMAP, 1.1-1.3x worse: an option, off by default.
+It needs the mapping images: the grey pixels around each observation that a map built with
+``favormap build --align-patches R`` stores (``tracks/patch``), or else the folder the map was built
+from (its provenance), or another folder of the same sequence. Both give the same alignment (the
+stored pixels are the image's, blurred alike) wherever the template's footprint in the mapping frame
+lies inside the stored patch less the blur's reach; where it does not, the detected keypoint stays.
+
+Measured with tools/bench_accuracy.py (see docs/accuracy.md, twenty-ninth session): on the synthetic
+orbit with exact poses 0.54x the error of the detected keypoints, 0.20x on a map whose tracks were
+aligned the same way (``BuildConfig.refine_window``), 0.35x the pycolmap baseline's; on the real
+fox sequence, whose poses come from COLMAP, 1.1-1.3x worse: an option, off by default.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from ..errors import InputError
 from ..geometry import camera_centers, plane_points, project
 from ..io.images import sample_bilinear, working_camera
 from .observations import ObservationIndex
+
+PATCH_BLOCK = 1024  # observations whose stored patches are read together (~1.7 MB at 41 x 41)
 
 
 @dataclass(frozen=True)
@@ -54,9 +60,10 @@ def blurred_gray(img: np.ndarray, sigma: float) -> np.ndarray:
 class PlaneAligner:
     """Aligns a query's inlier keypoints to the mapping images of ``map_`` (a favormap Map).
 
-    ``images``: the folder of the mapping sequence (any format favormap build reads; None: the folder
-    recorded in the map's provenance). Frames are read on first use and kept, blurred grey, at the
-    map's working resolution."""
+    ``images``: the folder of the mapping sequence (any format favormap build reads); None: the
+    observation patches the map stores (``Map.has_track_patches``), else the folder recorded in the
+    map's provenance. Frames are read on first use and kept, blurred grey, at the map's working
+    resolution; stored patches are read for the landmarks of each query."""
 
     def __init__(self, map_, images: str | Path | None = None, config: AlignConfig | None = None):
         from ..triangulation import landmark_normals
@@ -64,6 +71,8 @@ class PlaneAligner:
         self.map = map_
         self.config = config or AlignConfig()
         self.folder = Path(images) if images is not None else None
+        # the map's own patches unless a folder is given
+        self.from_patches = images is None and bool(getattr(map_, "has_track_patches", False))
         self._frames = None  # frame name -> (image path, camera), from the sequence, on first use
         self._images: dict[int, np.ndarray] = {}
         self.index = ObservationIndex(map_)
@@ -72,7 +81,17 @@ class PlaneAligner:
         # training cameras (the map's view_dir) only to be definite
         self.normals = landmark_normals(positions, positions + np.asarray(map_.view_dir, np.float64))
         ids = np.asarray(map_.frame_camera_ids)
-        self.K = np.array([working_camera(map_.cameras[int(c)], map_.max_side).K for c in ids]).reshape(-1, 3, 3)
+        cams = [working_camera(map_.cameras[int(c)], map_.max_side) for c in ids]
+        self.K = np.array([c.K for c in cams]).reshape(-1, 3, 3)
+        self.sizes = np.array([(c.width, c.height) for c in cams], np.int64).reshape(-1, 2)
+        _, self.obs_frame, self.xy = map_.tracks()  # each observation's frame, and its patch's centre
+        if self.from_patches:
+            # the stored patches, read block by block as the queries need them (pages of the array
+            # never written cost no memory)
+            side = 2 * map_.track_patch_radius + 1
+            self._patches = np.empty((len(self.xy), side, side), np.uint8)
+            self._read = np.zeros(-(-len(self.xy) // PATCH_BLOCK), bool)
+            return
         # a missing or unreadable folder, or one without the map's frames, fails here, not at the first query
         missing = [n for n in map_.frame_names if n not in self._sequence_frames()]
         if missing:
@@ -112,9 +131,9 @@ class PlaneAligner:
         return self._images[frame]
 
     # -- alignment -----------------------------------------------------------------------------------
-    def reference_frames(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
-        """For each landmark of ``rows``, the mapping frame whose camera saw it from the direction
-        nearest to the query camera's (``center``); -1 for a landmark without observations."""
+    def reference_observations(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """For each landmark of ``rows``, the map's observation row whose camera saw it from the
+        direction nearest to the query camera's (``center``); -1 for a landmark without observations."""
         ix = self.index
         X = np.asarray(positions, np.float64)[np.asarray(rows, np.int64)]
 
@@ -123,7 +142,69 @@ class PlaneAligner:
             return -np.einsum("ij,ij->i", u, q) / (np.linalg.norm(u, axis=1) * np.linalg.norm(q, axis=1) + 1e-12)
 
         best = ix.best(rows, cost)
-        return np.where(best >= 0, ix.frame[np.maximum(best, 0)], -1)
+        return np.where(best >= 0, ix.order[np.maximum(best, 0)], -1)
+
+    def reference_frames(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """For each landmark of ``rows``, the mapping frame of :meth:`reference_observations` (or -1)."""
+        obs = self.reference_observations(positions, rows, center)
+        return np.where(obs >= 0, self.obs_frame[np.maximum(obs, 0)], -1)
+
+    def templates(self, P: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """The blurred grey values (N, n) of the mapping images at the 3D points ``P`` (N, n, 3), each
+        row seen in the frame of its observation ``obs`` (N,; -1: NaN): from the frames' images, or
+        from the stored patches (NaN where a point falls outside the part of its patch the blur
+        reaches exactly)."""
+        out = np.full(P.shape[:2], np.nan, np.float32)
+        frames = np.where(obs >= 0, self.obs_frame[np.maximum(obs, 0)], -1)
+        has = np.flatnonzero(obs >= 0)
+        if not len(has):
+            return out
+        uv = np.empty(P.shape[:2] + (2,))
+        for f in np.unique(frames[has]):  # one mapping frame at a time
+            sel = np.flatnonzero(frames == f)
+            uv[sel] = project(self.K[f], np.asarray(self.map.cam_from_world[f]), P[sel].reshape(-1, 3)).reshape(
+                len(sel), -1, 2
+            )
+            if not self.from_patches:
+                out[sel] = sample(self.image(int(f)), uv[sel])
+        if self.from_patches:
+            out[has] = self._patch_samples(obs[has], frames[has], uv[has])
+        return out
+
+    def patches(self, obs: np.ndarray) -> np.ndarray:
+        """The stored grey patches (n, P, P) of observation rows ``obs``."""
+        for b in np.unique(np.asarray(obs, np.int64) // PATCH_BLOCK):
+            if not self._read[b]:
+                a = b * PATCH_BLOCK
+                self._patches[a : a + PATCH_BLOCK] = self.map.track_patches(slice(a, a + PATCH_BLOCK))
+                self._read[b] = True
+        return self._patches[obs]
+
+    def _patch_samples(self, obs: np.ndarray, frames: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Samples at frame pixels ``uv`` (N, n, 2) of the stored patches of observations ``obs``: the
+        patches tiled into one image and blurred together; the tiles' rims the blur mixes, and the
+        pixels beyond the frame's edge (NaN in the image path), masked."""
+        import cv2
+
+        patches = self.patches(obs).astype(np.float32)
+        n, S = len(obs), patches.shape[1]
+        R = (S - 1) // 2
+        corner = np.floor(self.xy[obs].astype(np.float64)) - R  # frame pixel of each patch's (0, 0)
+        g = np.arange(S)
+        col, row = corner[:, 0, None] + g, corner[:, 1, None] + g  # frame pixel coordinates of the tiles
+        w, h = self.sizes[frames, 0, None], self.sizes[frames, 1, None]
+        sigma = self.config.sigma
+        rim = (int(round(sigma * 8 + 1)) | 1) // 2 if sigma > 0 else 0  # cv2.GaussianBlur's kernel radius (float)
+        inner = (g >= rim) & (g < S - rim)
+        ok_c, ok_r = inner & (col >= 0) & (col < w), inner & (row >= 0) & (row < h)
+        cols = int(np.ceil(np.sqrt(n)))
+        mosaic = _mosaic(patches, cols)
+        if sigma > 0:
+            mosaic = cv2.GaussianBlur(mosaic, (0, 0), sigma)
+        tiles = _tiles(mosaic, n, S, cols)
+        tiles[~(ok_r[:, :, None] & ok_c[:, None, :])] = np.nan
+        at = uv - corner[:, None, :] + S * np.stack([np.arange(n) % cols, np.arange(n) // cols], -1)[:, None, :]
+        return sample(_mosaic(tiles, cols), at)
 
     def align(self, gray: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, positions, rows, keypoints):
         """Aligned positions (N, 2) of the query keypoints ``keypoints`` matched to landmarks ``rows``
@@ -137,7 +218,7 @@ class PlaneAligner:
         T = np.asarray(cam_from_world, np.float64)
         X = np.asarray(positions, np.float64)[rows]
         C = camera_centers(T)
-        ref = self.reference_frames(np.asarray(positions, np.float64), rows, C)
+        ref = self.reference_observations(np.asarray(positions, np.float64), rows, C)
         n = self.normals[rows]
         u0 = project(K, T, X)
         g = np.arange(-cfg.half, cfg.half + 1, dtype=np.float64)
@@ -145,11 +226,7 @@ class PlaneAligner:
         u = u0[:, None, :] + off[None]  # (N, P, 2) query pixels of the template
         P = plane_points(K, T, u, X, n)  # where the template's rays meet the landmark's plane
         depth = P @ T[2, :3] + T[2, 3]
-        tmpl = np.full(u.shape[:2], np.nan, np.float32)
-        for f in np.unique(ref[ref >= 0]):  # one mapping frame at a time
-            sel = ref == f
-            uv = project(self.K[f], np.asarray(self.map.cam_from_world[f]), P[sel].reshape(-1, 3))
-            tmpl[sel] = sample(self.image(int(f)), uv.reshape(-1, len(off), 2))
+        tmpl = self.templates(P, ref)
         ok = np.isfinite(tmpl).all(1) & (depth > 0).all(1)  # (a ray parallel to the plane: NaN)
         tmpl = np.nan_to_num(tmpl)
         gy, gx = np.gradient(gray)
@@ -176,6 +253,21 @@ class PlaneAligner:
         ok &= np.isfinite(moved).all(1) & (ncc >= cfg.min_ncc)
         ok &= np.linalg.norm(moved - kp, axis=1) <= cfg.max_shift_px
         return np.where(ok[:, None], moved, kp), ok
+
+
+def _mosaic(tiles: np.ndarray, cols: int) -> np.ndarray:
+    """Tiles (n, S, S) laid out as one image, ``cols`` tiles a row, tile i at row i // cols (zeros after the last)."""
+    n, S = len(tiles), tiles.shape[1]
+    rows = -(-n // cols)
+    grid = np.zeros((rows * cols, S, S), np.float32)
+    grid[:n] = tiles
+    return grid.reshape(rows, cols, S, S).transpose(0, 2, 1, 3).reshape(rows * S, cols * S)
+
+
+def _tiles(mosaic: np.ndarray, n: int, S: int, cols: int) -> np.ndarray:
+    """The first ``n`` tiles of a :func:`_mosaic` (a copy)."""
+    rows = mosaic.shape[0] // S
+    return mosaic.reshape(rows, S, cols, S).transpose(0, 2, 1, 3).reshape(rows * cols, S, S)[:n].copy()
 
 
 def sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:

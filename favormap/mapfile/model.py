@@ -82,6 +82,9 @@ class MapData(MapCounts):
     track_xy: np.ndarray  # (O,2) float32 keypoint pixels (working resolution)
     provenance: dict = field(default_factory=dict)
     extra: dict[str, np.ndarray] = field(default_factory=dict)  # schema landmark arrays without a field above
+    # (O,P,P) uint8 or None: each observation's grey pixels around its keypoint (optional dataset
+    # tracks/patch, BuildConfig.align_patches), for the keypoint alignment without the mapping images
+    track_patch: np.ndarray | None = None
 
     def __getattr__(self, name: str):
         extra = self.__dict__.get("extra") or {}
@@ -115,6 +118,7 @@ class MapData(MapCounts):
             track_landmark=remap[self.track_landmark[keep]].astype(np.int32),
             track_frame=self.track_frame[keep],
             track_xy=self.track_xy[keep],
+            track_patch=None if self.track_patch is None else self.track_patch[keep],
             extra=extra,
             **kw,
         )

@@ -47,6 +47,15 @@ def _guard(path: Path, what: str):
         raise MapFormatError(f"{path}: {what} is corrupted ({type(e).__name__}: {first_line(e)})") from None
 
 
+def _read_rows(ds, rows: np.ndarray) -> np.ndarray:
+    """Rows ``rows`` (any order, repeats allowed) of an h5py dataset, which reads increasing unique indices."""
+    out = np.empty((len(rows),) + ds.shape[1:], ds.dtype)
+    if len(rows):
+        uniq, inv = np.unique(rows, return_inverse=True)
+        out[:] = ds[uniq][inv.ravel()]
+    return out
+
+
 def _strings(a) -> list[str]:
     return [s.decode("utf-8", "replace") if isinstance(s, bytes) else str(s) for s in np.asarray(a).ravel().tolist()]
 
@@ -181,6 +190,7 @@ class Map(MapCounts):
             "render_samples": self.render_samples,
             "max_side": self.max_side,
             "file_size": self.file_size,
+            "align_patches": self.track_patch_radius,  # R of the stored observation patches (0: none)
             "mean_track_length": float(np.mean(self.track_length)) if len(self) else 0.0,
             "median_reproj_error_px": median_landmark_reproj_error(self.reproj_error),
             "median_psnr": float(np.median(self.quality)) if len(self) else None,
@@ -257,13 +267,8 @@ class Map(MapCounts):
         rows = np.asarray(rows, np.int64).ravel()
         if len(rows) and (rows.min() < 0 or rows.max() >= len(self)):
             raise IndexError("landmark row out of range")
-        ds = self._ds(path)
-        out = np.empty((len(rows),) + ds.shape[1:], ds.dtype)
-        if len(rows):
-            uniq, inv = np.unique(rows, return_inverse=True)  # h5py wants increasing, unique indices
-            with _guard(self.path, repr(path)):
-                out[:] = ds[uniq][inv.ravel()]
-        return out
+        with _guard(self.path, repr(path)):
+            return _read_rows(self._ds(path), rows)
 
     def tracks(self):
         """(landmark_index, frame_index, xy) of all observations, checked against the schema."""
@@ -273,6 +278,30 @@ class Map(MapCounts):
                 arrays[p] = self._ds(p)[()]
         self._check_values(arrays)
         return arrays["tracks/landmark_index"], arrays["tracks/frame_index"], arrays["tracks/xy"]
+
+    @property
+    def has_track_patches(self) -> bool:
+        """Whether the map stores each observation's grey pixels (optional dataset ``tracks/patch``)."""
+        return self._ds("tracks/patch") is not None
+
+    @property
+    def track_patch_radius(self) -> int:
+        """R of the stored (2R+1) x (2R+1) observation patches (0: none stored)."""
+        return (int(self._ds("tracks/patch").shape[1]) - 1) // 2 if self.has_track_patches else 0
+
+    def track_patches(self, obs=None) -> np.ndarray:
+        """The stored grey patches (n, P, P) uint8 of observation rows ``obs`` (None: all; a slice: that
+        range, read as one block, far faster than the same rows as an index array)."""
+        if not self.has_track_patches:
+            raise MapFormatError(f"{self.path} stores no observation patches (build it with --align-patches)")
+        ds = self._ds("tracks/patch")
+        with _guard(self.path, "'tracks/patch'"):
+            if obs is None or isinstance(obs, slice):
+                return ds[()] if obs is None else ds[obs]
+            obs = np.asarray(obs, np.int64).ravel()
+            if len(obs) and (obs.min() < 0 or obs.max() >= ds.shape[0]):
+                raise IndexError("observation row out of range")
+            return _read_rows(ds, obs)
 
     def load(self) -> MapData:
         """Everything in memory (for merge/prune/export of small maps)."""
@@ -300,5 +329,6 @@ class Map(MapCounts):
             track_xy=txy,
             provenance=dict(self.provenance),
             extra=extra,
+            track_patch=self.track_patches() if self.has_track_patches else None,
             **kw,
         )

@@ -230,6 +230,8 @@ def check_datasets(
     for path, spec in load_schema(version)["datasets"].items():
         n_before = len(problems)
         obj = view.datasets.get(path)
+        if obj is None and spec.get("optional"):
+            continue
         if obj is None:
             problems.append(f"missing dataset {path!r}")
             broken.add(path)

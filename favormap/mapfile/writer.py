@@ -278,15 +278,19 @@ class MapWriter:
         self.f.create_dataset(name, data=arr, dtype=arr.dtype, **self._kw(spec, arr.shape))
         self._arrays[name] = arr
 
-    def _shape_of(self, name: str, spec: dict, rows: int | None) -> tuple:
+    def _shape_of(self, name: str, spec: dict, rows: int | None, given: tuple | None = None) -> tuple:
+        """The shape ``name`` must have; symbols the map does not fix yet (O, P) are taken from
+        ``rows`` (the first) or the ``given`` shape and fixed for the datasets after it."""
         out = []
-        for s in spec["shape"]:
+        for i, s in enumerate(spec["shape"]):
             if isinstance(s, int):
                 out.append(s)
             elif s in self.dims:
                 out.append(self.dims[s])
             elif rows is not None and not out:
                 out.append(int(rows))
+            elif given is not None and i < len(given):
+                out.append(int(given[i]))
             else:
                 raise ValueError(f"{name}: give the number of rows along {s!r}")
         if rows is not None and out[0] != rows:
@@ -294,9 +298,12 @@ class MapWriter:
         return tuple(out)
 
     def _check_shape(self, name: str, spec: dict, shape: tuple) -> None:
-        want = self._shape_of(name, spec, shape[0] if len(shape) else None)
+        want = self._shape_of(name, spec, shape[0] if len(shape) else None, tuple(shape))
         if tuple(shape) != want:
             raise ValueError(f"{name}: shape {tuple(shape)} does not match the map's {want}")
+        for s, n in zip(spec["shape"], shape):
+            if isinstance(s, str) and s not in ("L", "M", "C", "R"):
+                self.dims.setdefault(s, int(n))
 
     def create(self, name: str, rows: int | None = None) -> None:
         """Create a dataset to be filled with :meth:`write_rows` (not for string datasets)."""
@@ -327,8 +334,8 @@ class MapWriter:
     # -- finish -----------------------------------------------------------------------------------
     def _finish(self) -> None:
         f = self.f
-        for name in self.schema["datasets"]:
-            if name not in f:
+        for name, spec in self.schema["datasets"].items():
+            if name not in f and not spec.get("optional"):
                 raise FavormapError(f"internal error: map dataset {name!r} was not written")
         for name in self._streamed:
             if self._filled[name] != f[name].shape[0]:
@@ -381,6 +388,7 @@ def map_arrays(m: MapData) -> dict:
         "tracks/landmark_index": m.track_landmark,
         "tracks/frame_index": m.track_frame,
         "tracks/xy": m.track_xy,
+        **({} if m.track_patch is None else {"tracks/patch": m.track_patch}),
     }
 
 
@@ -401,7 +409,9 @@ def write_map(m: MapData, path) -> Path:
         header = map_header(m)
         arrays = map_arrays(m)
         stored = {
-            k: _stored(v, spec) for k, spec in load_schema(FORMAT_VERSION)["datasets"].items() for v in [arrays[k]]
+            k: _stored(arrays[k], spec)
+            for k, spec in load_schema(FORMAT_VERSION)["datasets"].items()
+            if k in arrays or not spec.get("optional")
         }
         problems = check_arrays(stored, header_attributes(header, m.num_landmarks, m.num_frames))
     except (TypeError, ValueError, AttributeError, KeyError) as e:

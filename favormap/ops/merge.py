@@ -55,9 +55,17 @@ def write_landmark_metadata(w: MapWriter, arrays: dict) -> None:
 
 
 def write_frames_and_tracks(
-    w: MapWriter, cameras: dict, names, camera_ids, cam_from_world, track_landmark, track_frame, track_xy
+    w: MapWriter,
+    cameras: dict,
+    names,
+    camera_ids,
+    cam_from_world,
+    track_landmark,
+    track_frame,
+    track_xy,
+    track_patch=None,
 ) -> None:
-    """The cameras/*, frames/* and tracks/* datasets."""
+    """The cameras/*, frames/* and tracks/* datasets (``track_patch``: the optional tracks/patch)."""
     for name, arr in camera_arrays(cameras).items():
         w.put(name, arr)
     w.put("frames/names", names)
@@ -66,6 +74,8 @@ def write_frames_and_tracks(
     w.put("tracks/landmark_index", track_landmark)
     w.put("tracks/frame_index", track_frame)
     w.put("tracks/xy", track_xy)
+    if track_patch is not None:
+        w.put("tracks/patch", track_patch)
 
 
 def copy_voxels(w: MapWriter, sources, chunk: int = 4096, resample: dict | None = None, progress=None) -> None:
@@ -364,9 +374,18 @@ def _frames(maps, sim: _Similarity | None):
     return cameras, all_names, frame_cam, np.concatenate(cfw).reshape(-1, 4, 4), frame_off
 
 
-def _tracks(maps, s_all, r_all, frame_off, max_side: int):
-    """Observations of the kept landmarks, rows remapped, pixels scaled to ``max_side``."""
-    tl_out, tf_out, txy_out = [], [], []
+def _tracks(maps, s_all, r_all, frame_off, max_side: int, warnings: list):
+    """Observations of the kept landmarks, rows remapped, pixels scaled to ``max_side``; their stored
+    patches (tracks/patch) where every map holds them at one size and no pixel is rescaled, else None."""
+    tl_out, tf_out, txy_out, patch_out = [], [], [], []
+    scaled = [_frame_scale(m.cameras, np.asarray(m.frame_camera_ids), m.max_side, max_side) for m in maps]
+    with_patches = [m.has_track_patches for m in maps]
+    keep_patches = all(with_patches) and len({m.track_patch_radius for m in maps}) == 1
+    keep_patches &= all(fs is None for fs in scaled)
+    if any(with_patches) and not keep_patches:
+        warnings.append(
+            "the observation patches (tracks/patch) are dropped: not every map stores them at one size and resolution"
+        )
     for k, m in enumerate(maps):
         remap = np.full(len(m), -1, np.int64)
         out_rows = np.flatnonzero(s_all == k)
@@ -376,11 +395,14 @@ def _tracks(maps, s_all, r_all, frame_off, max_side: int):
         tl_out.append(remap[tl[keep]].astype(np.int32))
         tf_out.append((tf[keep].astype(np.int64) + frame_off[k]).astype(np.int32))
         xy = txy[keep].astype(np.float32)
-        fs = _frame_scale(m.cameras, np.asarray(m.frame_camera_ids), m.max_side, max_side)
+        fs = scaled[k]
         if fs is not None:
             xy = (xy * fs[tf[keep]]).astype(np.float32)
         txy_out.append(xy)
-    return np.concatenate(tl_out), np.concatenate(tf_out), np.concatenate(txy_out).reshape(-1, 2)
+        if keep_patches:
+            patch_out.append(m.track_patches(np.flatnonzero(keep)))
+    patches = np.concatenate(patch_out) if keep_patches else None
+    return np.concatenate(tl_out), np.concatenate(tf_out), np.concatenate(txy_out).reshape(-1, 2), patches
 
 
 def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progress) -> MergeResult:
@@ -394,7 +416,7 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
     segs = [(k, r_all[s_all == k]) for k in range(len(maps))]
     lm, n_regen = _landmark_arrays(meta, segs)
     cameras, names, frame_cam, cfw, frame_off = _frames(maps, sim)
-    tracks = _tracks(maps, s_all, r_all, frame_off, first.max_side)
+    tracks = _tracks(maps, s_all, r_all, frame_off, first.max_side, warnings)
 
     provenance = {
         "operation": "merge",

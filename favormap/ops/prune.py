@@ -234,6 +234,7 @@ def prune_map(
                 remap[tl[obs]].astype(np.int32),
                 tf[obs],
                 txy[obs],
+                m.track_patches(np.flatnonzero(obs)) if m.has_track_patches else None,
             )
             copy_voxels(w, [(m, rows)], chunk=chunk, progress=progress)
     res.path = Path(out)
