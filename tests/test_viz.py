@@ -312,6 +312,31 @@ def test_connect_streams_to_a_running_server(built):
         srv.wait(10)
 
 
+def test_a_viewer_that_goes_away_while_closing_is_a_warning_not_an_error(tmp_path, capsys):
+    """rerun raises from ``disconnect`` when the viewer it streamed to went away (seen with a spawned
+    viewer that opened its port, then failed for want of a display, on a loaded machine): the
+    recording reports that it was not delivered, and the command does not fail with a traceback."""
+    from favormap.viz.recording import Recording
+
+    rec = Recording("favormap test", save=tmp_path / "x.rrd", strict=False)
+
+    def severed(*a, **kw):
+        raise RuntimeError("gRPC connection severed: Failed to send messages")
+
+    real = rec.rec.disconnect
+    rec.rec.disconnect = severed
+    assert rec.close() is False
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not fully delivered (gRPC connection severed" in err, err
+    real()
+    strict = Recording("favormap test", save=tmp_path / "y.rrd", strict=True)
+    real = strict.rec.disconnect
+    strict.rec.disconnect = severed
+    with pytest.raises(RuntimeError, match="severed"):
+        strict.close()
+    real()
+
+
 def test_spawned_viewer_collects_no_analytics(built, tmp_path):
     """Spawn a viewer with a fresh HOME and no display: it fails cleanly (one line, exit 1) and
     leaves no analytics config or queued events (without our CI=1 it would leave both)."""

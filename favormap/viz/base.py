@@ -215,8 +215,9 @@ class RecordingBase:
         if connect:
             _check_url(connect)
             sinks.append(rr.GrpcSink(connect))
+        self._viewer = None  # the viewer process this recording started
         if spawn:
-            spawn_viewer(port)
+            self._viewer = spawn_viewer(port)
             url = f"rerun+http://127.0.0.1:{port}/proxy"
             if url != connect:
                 sinks.append(rr.GrpcSink(url))
@@ -232,20 +233,26 @@ class RecordingBase:
             return True
         self._closed = True
         ok = not self._failed
-        try:
-            self.rec.flush(timeout_sec=10.0)
-        except Exception as e:  # noqa: BLE001 - the command itself succeeded
-            if self.strict:
-                raise
-            ok = False
-            print(
-                f"favormap: warning: the rerun recording was not fully delivered "
-                f"({str(e).splitlines()[0] if str(e) else type(e).__name__})",
-                file=sys.stderr,
-            )
-        finally:
-            self.rec.disconnect()
+        for step in (lambda: self.rec.flush(timeout_sec=10.0), self.rec.disconnect):  # both, whatever happens
+            try:
+                step()
+            except Exception as e:  # noqa: BLE001 - the command itself succeeded
+                if self.strict:
+                    raise
+                if ok:
+                    print(f"favormap: warning: {self._undelivered(e)}", file=sys.stderr)
+                ok = False
         return ok
+
+    def _undelivered(self, e: Exception) -> str:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        viewer = getattr(self, "_viewer", None)
+        if viewer is not None and viewer.poll() is not None:
+            return (
+                f"the rerun viewer could not start or exited (exit code {viewer.returncode}; {why}); "
+                "use --rerun-save FILE.rrd"
+            )
+        return f"the rerun recording was not fully delivered ({why})"
 
     def __enter__(self):
         return self

@@ -72,16 +72,18 @@ def _check_url(url: str) -> None:
         )
 
 
-def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: float = 30.0) -> None:
+def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: float = 30.0, settle_s: float = 1.0):
     """Start a detached local rerun viewer listening on ``port`` (unless one already listens there)
-    and wait until it accepts connections. Raises :class:`InputError` when it cannot start (no
-    display, no executable)."""
+    and wait until it accepts connections, and ``settle_s`` more in which it must not exit (a viewer
+    without a display may open its port before it fails). Returns the viewer's process (None when
+    one was listening already). Raises :class:`InputError` when it cannot start (no display, no
+    executable)."""
     import subprocess
     import tempfile
     import time
 
     if _port_open(port):
-        return  # a viewer (or another rerun server) is already listening: reuse it
+        return None  # a viewer (or another rerun server) is already listening: reuse it
     exe = rerun_executable()
     if exe is None:
         raise InputError(
@@ -98,7 +100,7 @@ def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: fl
             stderr=err,
             start_new_session=True,
         )
-        t_end = time.monotonic() + wait_s
+        t_end, listening = time.monotonic() + wait_s, None
         while time.monotonic() < t_end:
             if proc.poll() is not None:
                 err.seek(0)
@@ -108,8 +110,10 @@ def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: fl
                     f"the rerun viewer could not start ({why}); use --rerun-save FILE.rrd "
                     "(or --rerun-connect URL of a viewer running elsewhere)"
                 )
-            if _port_open(port):
-                return
+            if listening is None and _port_open(port):
+                listening = time.monotonic()
+            if listening is not None and time.monotonic() >= listening + settle_s:
+                return proc
             time.sleep(0.1)
         # neither listening nor exited (e.g. a loaded machine without a display): do not stream into nothing
         proc.kill()
