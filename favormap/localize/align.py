@@ -189,10 +189,11 @@ class PlaneAligner:
         patches = self.patches(obs).astype(np.float32)
         n, S = len(obs), patches.shape[1]
         R = (S - 1) // 2
-        corner = np.floor(self.xy[obs].astype(np.float64)) - R  # frame pixel of each patch's (0, 0)
+        w, h = self.sizes[frames, 0, None], self.sizes[frames, 1, None]
+        # frame pixel of each patch's (0, 0): as io.images.patches_around cut it
+        corner = np.clip(np.floor(self.xy[obs].astype(np.float64)), 0, np.concatenate([w, h], 1) - 1) - R
         g = np.arange(S)
         col, row = corner[:, 0, None] + g, corner[:, 1, None] + g  # frame pixel coordinates of the tiles
-        w, h = self.sizes[frames, 0, None], self.sizes[frames, 1, None]
         sigma = self.config.sigma
         rim = (int(round(sigma * 8 + 1)) | 1) // 2 if sigma > 0 else 0  # cv2.GaussianBlur's kernel radius (float)
         inner = (g >= rim) & (g < S - rim)
