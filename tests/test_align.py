@@ -336,6 +336,15 @@ def test_the_writer_refuses_patches_that_do_not_match_the_observations(small_map
     with pytest.raises(MapFormatError, match="tracks/patch"):
         write_map(dataclasses.replace(m, track_patch=np.zeros((n, 5, 7), np.uint8)), tmp_path / "b.h5")
     assert not (tmp_path / "a.h5").exists() and not (tmp_path / "b.h5").exists()
+    # the streaming writer (merge, prune) refuses a non-square patch at put(), before the file exists
+    from favormap.mapfile.writer import MapWriter, map_arrays, map_header
+
+    arrays = {**map_arrays(m), "tracks/patch": np.zeros((n, 5, 7), np.uint8)}
+    with pytest.raises(ValueError, match="does not match"):
+        with MapWriter(tmp_path / "c.h5", map_header(m), m.num_landmarks, m.num_frames) as w:
+            for name, a in arrays.items():
+                w.put(name, a)
+    assert not (tmp_path / "c.h5").exists()
 
 
 def read_frames(root):

@@ -281,16 +281,16 @@ class MapWriter:
     def _shape_of(self, name: str, spec: dict, rows: int | None, given: tuple | None = None) -> tuple:
         """The shape ``name`` must have; symbols the map does not fix yet (O, P) are taken from
         ``rows`` (the first) or the ``given`` shape and fixed for the datasets after it."""
-        out = []
+        out, seen = [], {}
         for i, s in enumerate(spec["shape"]):
             if isinstance(s, int):
                 out.append(s)
-            elif s in self.dims:
-                out.append(self.dims[s])
+            elif s in self.dims or s in seen:
+                out.append(self.dims.get(s, seen.get(s)))
             elif rows is not None and not out:
                 out.append(int(rows))
             elif given is not None and i < len(given):
-                out.append(int(given[i]))
+                out.append(seen.setdefault(s, int(given[i])))  # a symbol twice in one shape: equal
             else:
                 raise ValueError(f"{name}: give the number of rows along {s!r}")
         if rows is not None and out[0] != rows:
