@@ -101,7 +101,7 @@ def spawn_viewer(port: int = DEFAULT_PORT, memory_limit: str = "75%", wait_s: fl
             start_new_session=True,
         )
         t_end, listening = time.monotonic() + wait_s, None
-        while time.monotonic() < t_end:
+        while listening is not None or time.monotonic() < t_end:  # a listening viewer gets its settle_s
             if proc.poll() is not None:
                 err.seek(0)
                 lines = [ln for ln in err.read().decode(errors="replace").splitlines() if "rror" in ln]
