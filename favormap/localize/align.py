@@ -84,7 +84,7 @@ class PlaneAligner:
         cams = [working_camera(map_.cameras[int(c)], map_.max_side) for c in ids]
         self.K = np.array([c.K for c in cams]).reshape(-1, 3, 3)
         self.sizes = np.array([(c.width, c.height) for c in cams], np.int64).reshape(-1, 2)
-        _, self.obs_frame, self.xy = map_.tracks()  # each observation's frame, and its patch's centre
+        self.obs_frame, self.xy = self.index.row_frame, self.index.row_xy  # by observation row: frame, patch centre
         if self.from_patches:
             # the stored patches, read block by block as the queries need them (pages of the array
             # never written cost no memory)
@@ -202,10 +202,9 @@ class PlaneAligner:
         mosaic = _mosaic(patches, cols)
         if sigma > 0:
             mosaic = cv2.GaussianBlur(mosaic, (0, 0), sigma)
-        tiles = _tiles(mosaic, n, S, cols)
-        tiles[~(ok_r[:, :, None] & ok_c[:, None, :])] = np.nan
+        mosaic[_mosaic(ok_r[:, :, None] & ok_c[:, None, :], cols) == 0] = np.nan
         at = uv - corner[:, None, :] + S * np.stack([np.arange(n) % cols, np.arange(n) // cols], -1)[:, None, :]
-        return sample(_mosaic(tiles, cols), at)
+        return sample(mosaic, at)
 
     def align(self, gray: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, positions, rows, keypoints):
         """Aligned positions (N, 2) of the query keypoints ``keypoints`` matched to landmarks ``rows``
@@ -263,12 +262,6 @@ def _mosaic(tiles: np.ndarray, cols: int) -> np.ndarray:
     grid = np.zeros((rows * cols, S, S), np.float32)
     grid[:n] = tiles
     return grid.reshape(rows, cols, S, S).transpose(0, 2, 1, 3).reshape(rows * S, cols * S)
-
-
-def _tiles(mosaic: np.ndarray, n: int, S: int, cols: int) -> np.ndarray:
-    """The first ``n`` tiles of a :func:`_mosaic` (a copy)."""
-    rows = mosaic.shape[0] // S
-    return mosaic.reshape(rows, S, cols, S).transpose(0, 2, 1, 3).reshape(rows * cols, S, S)[:n].copy()
 
 
 def sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -12,10 +12,12 @@ from ..geometry import camera_centers
 class ObservationIndex:
     """The observations of ``map_`` (a favormap Map) sorted by landmark, then frame: ``order`` maps a
     sorted position to the map's observation row, ``landmark`` / ``frame`` are the sorted rows,
-    ``first[j]:first[j + 1]`` are landmark j's positions; ``centers`` the mapping cameras' centres."""
+    ``first[j]:first[j + 1]`` are landmark j's positions; ``centers`` the mapping cameras' centres;
+    ``row_frame`` / ``row_xy`` each observation's frame and keypoint by the map's observation row."""
 
     def __init__(self, map_):
-        lm, fr, _ = map_.tracks()
+        lm, fr, xy = map_.tracks()
+        self.row_frame, self.row_xy = fr, xy  # by the map's observation row
         self.order = np.lexsort((fr, lm))
         self.landmark, self.frame = lm[self.order], fr[self.order]
         self.first = np.searchsorted(self.landmark, np.arange(len(map_) + 1))
