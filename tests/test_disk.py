@@ -72,6 +72,63 @@ def test_sampling_at_keypoints_reproduces_their_descriptors(room_image):
 
 
 @needs_disk
+def test_descriptors_computed_where_sampled_equal_the_networks_dense_map(room_image):
+    """extract() runs the U-Net up to its last convolution and evaluates that convolution's
+    descriptor channels only at the sampled pixels: the keypoints, scores and descriptors are those
+    of kornia's full forward pass (its dense map rounded to float16 and interpolated bilinearly)."""
+    import torch
+    import torch.nn.functional as F
+
+    ex = features.create("disk", max_keypoints=600)
+    img = room_image[:229, :301]  # padded to 240 x 304 for the U-Net, cropped back
+    f = ex.extract(img)
+    h, w = img.shape[:2]
+    x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float().div(255.0)
+    with torch.inference_mode():
+        heat, desc = ex.model.heatmap_and_dense_descriptors(F.pad(x, (0, (-w) % 16, 0, (-h) % 16)))
+    heat, dense = heat[0, 0, :h, :w], desc[0, :, :h, :w].permute(1, 2, 0).half().float().numpy()
+    xy, scores = ex._detect(heat)
+    np.testing.assert_array_equal(f.scores, scores.numpy())
+    assert np.all(np.abs(f.keypoints - 0.5 - xy.numpy()) <= 0.5)  # the same maxima, refined to sub-pixel
+
+    rng = np.random.default_rng(0)
+    pts = np.r_[rng.uniform([-3, -3], [w + 3, h + 3], (500, 2)), f.keypoints].astype(np.float32)
+    p = np.clip(pts - 0.5, 0, [w - 1, h - 1])
+    x0, y0 = np.minimum(np.floor(p).astype(int), [w - 2, h - 2]).T
+    fx, fy = (p - np.c_[x0, y0]).T[..., None]
+    ref = (dense[y0, x0] * (1 - fx) + dense[y0, x0 + 1] * fx) * (1 - fy) + (
+        dense[y0 + 1, x0] * (1 - fx) + dense[y0 + 1, x0 + 1] * fx
+    ) * fy
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    cos = np.sum(ex.sample(f, pts) * ref, axis=1)
+    assert 1 - cos.min() < 1e-5, 1 - cos.min()
+    assert f.dense.hidden.shape == (240 + 4, 304 + 4, 80) and f.dense.hidden.dtype == torch.float16
+
+
+@needs_disk
+def test_the_sampling_state_goes_through_the_feature_cache(room_image, tmp_path):
+    """A frame read back from the on-disk feature cache samples the same descriptors; a cache of the
+    former state (the whole dense map) is one clear error."""
+    from favormap.errors import InputError
+    from favormap.features.cache import FeatureCache
+    from favormap.features.disk import DISKExtractor
+    from favormap.io.types import Camera
+
+    ex = features.create("disk", max_keypoints=300)
+    f = ex.extract(room_image)
+    h, w = room_image.shape[:2]
+    pts = np.random.default_rng(1).uniform([0, 0], [w, h], (200, 2)).astype(np.float32)
+    with FeatureCache(tmp_path / "c.h5", "disk", 300, 0) as cache:
+        cache.put("a.png", f, Camera("PINHOLE", w, h, np.array([300.0, 300.0, w / 2, h / 2])), (1, 1))
+    with FeatureCache(tmp_path / "c.h5", "disk", 300, 0) as cache:
+        g = cache.get("a.png")
+    np.testing.assert_array_equal(g.keypoints, f.keypoints)
+    np.testing.assert_array_equal(ex.sample(g, pts), ex.sample(f, pts))
+    with pytest.raises(InputError, match="earlier favormap"):
+        DISKExtractor.state_from_arrays({"dense": np.zeros((4, 4, 128), np.float16)})
+
+
+@needs_disk
 def test_odd_image_sizes_keep_the_image_frame():
     """The U-Net needs multiples of 16: the image is padded and the maps cropped back, so a
     keypoint of a cropped image is where it was in the full one."""

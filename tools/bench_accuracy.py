@@ -74,6 +74,15 @@ VARIANTS = {
     "mean align": ("mean", {"align": True}),
     "nearest-view align": ("nearest", {"align": True}),
     "rendered+nearest-view": ("rendered+nearest", {}),
+    # more rendering iterations for view-dependent descriptors (DISK), whose first iteration renders at
+    # the prior's viewpoint (thirty-first session)
+    "rendered 5-iterations": ("rendered", {"iterations": 5}),
+    "rendered align 5-iterations": ("rendered", {"align": True, "iterations": 5}),
+    "mean align 5-iterations": ("mean", {"align": True, "iterations": 5}),
+    "rendered align 5-iterations stop-0.2deg": (
+        "rendered",
+        {"align": True, "iterations": 5, "stop_translation": 2e-3, "stop_rotation_deg": 0.2},
+    ),
     "rendered 8px no-mutual (old default)": (
         "rendered",
         {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0, "landmark_sigma_px": 0, "guided_radius_px": 0},
