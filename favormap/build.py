@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from collections.abc import Sequence as SequenceABC
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, is_dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -179,12 +179,14 @@ def _extractor(ex: Extractor | ExtractorSpec, device: str | None = None) -> Extr
 
 
 def _on_cpu(x):
-    """Torch tensors in a (nested tuple/list of) extractor state moved to the CPU, so that a result
-    computed on a GPU worker can be read on a machine without one."""
+    """Torch tensors in a (nested tuple/list/dataclass of) extractor state moved to the CPU, so that a
+    result computed on a GPU worker can be read on a machine without one."""
     if isinstance(x, torch.Tensor):
         return x.cpu()
     if isinstance(x, (tuple, list)):
         return type(x)(_on_cpu(v) for v in x)
+    if is_dataclass(x) and not isinstance(x, type):
+        return replace(x, **{f.name: _on_cpu(getattr(x, f.name)) for f in fields(x) if f.init})
     return x
 
 

@@ -297,3 +297,27 @@ def test_a_patch_layout_rounds_unit_float32_patches_and_takes_means_before_round
     )
     # the means come from the float32 patch, each pixel unit length: they match the exact patch's to 1e-6
     np.testing.assert_allclose(means, ref.mean(1), atol=1e-6)
+
+
+def test_extractor_state_from_a_gpu_worker_comes_back_on_the_cpu(monkeypatch):
+    """What a worker returns reaches a driver without a GPU: every tensor of an extractor's sampling
+    state, in tuples (XFeat) or dataclasses (DISK), goes through .cpu()."""
+    from dataclasses import dataclass
+
+    from favormap.build import _on_cpu
+
+    moved = []
+
+    def cpu(self):
+        moved.append(self.shape)
+        return self.clone()
+
+    @dataclass
+    class State:
+        hidden: torch.Tensor
+        extra: tuple
+
+    monkeypatch.setattr(torch.Tensor, "cpu", cpu)
+    out = _on_cpu(State(torch.zeros(4, 5), (torch.ones(2), 3)))
+    assert isinstance(out, State) and out.extra[1] == 3 and sorted(moved) == [(2,), (4, 5)]
+    assert _on_cpu((torch.zeros(3), 1.0))[1] == 1.0 and len(moved) == 3

@@ -204,7 +204,9 @@ class DISKExtractor(Extractor):
         if len(pts) == 0:
             return np.zeros((0, self.channels), np.float32)
         W, H = features.image_size
-        p = torch.as_tensor(pts, device=st.hidden.device) - 0.5  # pixel indices (COLMAP convention - 0.5)
+        # on the model's device, wherever the state was computed or read (a feature cache: the CPU)
+        hidden = st.hidden.to(self._head.weight.device)
+        p = torch.as_tensor(pts, device=hidden.device) - 0.5  # pixel indices (COLMAP convention - 0.5)
         px = p[:, 0].clamp(0, W - 1)
         py = p[:, 1].clamp(0, H - 1)
         x0 = px.floor().long().clamp(max=W - 2) if W > 1 else px.floor().long()
@@ -214,6 +216,6 @@ class DISKExtractor(Extractor):
         # each pixel next to a position described once
         corners = torch.cat([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1])
         pixels, which = torch.unique(corners, return_inverse=True)
-        d = self._describe(st.hidden, pixels // W, pixels % W)[which].view(4, len(pts), self.channels)
+        d = self._describe(hidden, pixels // W, pixels % W)[which].view(4, len(pts), self.channels)
         out = (d[0] * (1 - fx) + d[1] * fx) * (1 - fy) + (d[2] * (1 - fx) + d[3] * fx) * fy
         return F.normalize(out, dim=-1).cpu().numpy().astype(np.float32)
