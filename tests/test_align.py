@@ -140,7 +140,12 @@ def test_alignment_without_the_mapping_images_is_one_error_line(small_map, small
     fr = small_sequence.frames[0]
     prior = tmp_path / "prior.txt"
     np.savetxt(prior, np.linalg.inv(fr.cam_from_world))
-    for extra in (["--align", "--mapping-images", str(tmp_path / "nowhere")], ["--mapping-images", str(partial)]):
+    for extra in (
+        ["--align", "--mapping-images", str(tmp_path / "nowhere")],
+        ["--mapping-images", str(partial)],
+        ["--align-references", "3"],
+        ["--align", "--align-references", "0"],
+    ):
         p = subprocess.run(
             [
                 sys.executable,
@@ -351,3 +356,68 @@ def read_frames(root):
     from favormap.io import read_sequence
 
     return read_sequence(root).frames
+
+
+def test_several_references_average_the_alignments_to_each(small_map, off_path_queries, tmp_path):
+    """AlignConfig.references = 3: each inlier is aligned to its landmark's three mapping frames
+    nearest in direction, each alone, and the converged alignments are averaged; the references are
+    each landmark's observations ranked by the angle at the landmark, nearest first."""
+    import dataclasses
+    import json
+
+    from favormap.geometry import camera_centers, inverse
+    from favormap.localize import LocalizeConfig, Localizer
+    from favormap.localize.align import blurred_gray
+
+    _, path = small_map
+    loc = Localizer(path, LocalizeConfig(align=True, align_references=3))
+    al = loc._aligner
+    assert al.config.references == 3
+    fr = off_path_queries.frames[1]
+    T = fr.cam_from_world
+    res = loc.localize(fr.image_path, T)
+    inl = res.matches[res.inlier_mask]
+    rows, kp = inl[:, 0], res.keypoints[inl[:, 1]].astype(np.float64)
+    C = inverse(T)[:3, 3]
+    ref = al.reference_observations(loc.positions, rows, C, 3)
+    assert ref.shape == (len(rows), 3)
+    np.testing.assert_array_equal(ref[:, 0], al.reference_observations(loc.positions, rows, C))
+    # ranked by the angle at the landmark between the observing camera and the query's
+    centers = camera_centers(np.asarray(loc.map.cam_from_world))
+    has3 = (ref >= 0).all(1)
+    assert has3.mean() > 0.9
+    X = loc.positions[rows][has3]
+    u = centers[al.obs_frame[ref[has3]]] - X[:, None]
+    q = (C - X)[:, None]
+    cos = np.sum(u * q, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(q, axis=-1)
+    assert np.all(np.diff(cos, axis=1) <= 1e-12)
+
+    img, cam = loc.prepare(fr.image_path)
+    gray = blurred_gray(img, al.config.sigma)
+    moved, ok = al.align(gray, cam.K, T, loc.positions, rows, kp)
+    each = [al._align_pairs(gray, cam.K, T, loc.positions, rows, ref[:, j], kp) for j in range(3)]
+    conv = np.stack([o for _, o in each], 1)
+    expect = np.stack([m for m, _ in each], 1)
+    expect = np.sum(np.where(conv[..., None], expect, 0), 1) / np.maximum(conv.sum(1), 1)[:, None]
+    np.testing.assert_array_equal(ok, conv.any(1))
+    np.testing.assert_allclose(moved[ok], expect[ok], atol=1e-9)
+    np.testing.assert_array_equal(moved[~ok], kp[~ok])
+    assert (conv.sum(1) >= 2).mean() > 0.5  # most inliers average several alignments
+    # from the command line
+    prior = tmp_path / "prior.txt"
+    np.savetxt(prior, inverse(T))
+    p = subprocess.run(
+        [sys.executable, "-m", "favormap", "localize", str(path), str(fr.image_path), "--prior", str(prior)]
+        + ["--align", "--align-references", "3", "--json"],
+        capture_output=True,
+        text=True,
+    )
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["success"] and out["num_aligned"] > 0.5 * out["num_inliers"], out
+    # one reference: the nearest one alone, as before
+    al1 = dataclasses.replace(al.config, references=1)
+    al.config = al1
+    m1, ok1 = al.align(gray, cam.K, T, loc.positions, rows, kp)
+    np.testing.assert_array_equal(ok1, each[0][1])
+    np.testing.assert_allclose(m1, np.where(ok1[:, None], each[0][0], kp))

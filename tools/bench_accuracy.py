@@ -74,6 +74,12 @@ VARIANTS = {
     "mean align": ("mean", {"align": True}),
     "nearest-view align": ("nearest", {"align": True}),
     "rendered+nearest-view": ("rendered+nearest", {}),
+    # each inlier aligned to its landmark's 3 / 5 mapping frames nearest in direction, averaged
+    # (LocalizeConfig.align_references; thirty-first session)
+    "rendered align refs-3": ("rendered", {"align": True, "align_references": 3}),
+    "mean align refs-3": ("mean", {"align": True, "align_references": 3}),
+    "rendered align refs-5": ("rendered", {"align": True, "align_references": 5}),
+    "mean align refs-5": ("mean", {"align": True, "align_references": 5}),
     # more rendering iterations for view-dependent descriptors (DISK), whose first iteration renders at
     # the prior's viewpoint (thirty-first session)
     "rendered 5-iterations": ("rendered", {"iterations": 5}),

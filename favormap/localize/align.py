@@ -46,6 +46,9 @@ class AlignConfig:
     iterations: int = 15  # Gauss-Newton steps
     min_ncc: float = 0.8  # normalised cross-correlation of an alignment that is kept
     max_shift_px: float = 2.0  # an aligned keypoint moves at most this far from the detected one
+    # mapping frames aligned to per landmark, nearest in direction first; the converged alignments
+    # are averaged, which averages the mapping poses' errors too
+    references: int = 1
 
 
 def blurred_gray(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -131,9 +134,12 @@ class PlaneAligner:
         return self._images[frame]
 
     # -- alignment -----------------------------------------------------------------------------------
-    def reference_observations(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
+    def reference_observations(
+        self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray, k: int | None = None
+    ) -> np.ndarray:
         """For each landmark of ``rows``, the map's observation row whose camera saw it from the
-        direction nearest to the query camera's (``center``); -1 for a landmark without observations."""
+        direction nearest to the query camera's (``center``); -1 for a landmark without observations.
+        With ``k``: its ``k`` nearest in direction (len(rows), k), -1 where it has fewer."""
         ix = self.index
         X = np.asarray(positions, np.float64)[np.asarray(rows, np.int64)]
 
@@ -141,7 +147,7 @@ class PlaneAligner:
             u, q = ix.centers[ix.frame[obs]] - X[group], center - X[group]
             return -np.einsum("ij,ij->i", u, q) / (np.linalg.norm(u, axis=1) * np.linalg.norm(q, axis=1) + 1e-12)
 
-        best = ix.best(rows, cost)
+        best = ix.best(rows, cost, k)
         return np.where(best >= 0, ix.order[np.maximum(best, 0)], -1)
 
     def reference_frames(self, positions: np.ndarray, rows: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -210,15 +216,27 @@ class PlaneAligner:
         """Aligned positions (N, 2) of the query keypoints ``keypoints`` matched to landmarks ``rows``
         (``positions``: the localizer's landmark positions) in the query's blurred grey image ``gray``
         seen with intrinsics ``K`` from ``cam_from_world``, and which of them converged (N,)."""
-        cfg = self.config
         rows = np.asarray(rows, np.int64)
         kp = np.asarray(keypoints, np.float64)
         if len(rows) == 0:
             return kp.copy(), np.zeros(0, bool)
         T = np.asarray(cam_from_world, np.float64)
+        k = max(1, int(self.config.references))
+        ref = self.reference_observations(np.asarray(positions, np.float64), rows, camera_centers(T), k)
+        # every (landmark, reference) pair aligned alone; a landmark's converged ones averaged
+        moved, ok = self._align_pairs(gray, K, T, positions, np.repeat(rows, k), ref.ravel(), np.repeat(kp, k, 0))
+        ok = ok.reshape(-1, k)
+        n_ok = ok.sum(1)
+        mean = np.einsum("nk,nkd->nd", ok, np.where(ok[..., None], moved.reshape(-1, k, 2), 0.0))
+        mean /= np.maximum(n_ok, 1)[:, None]
+        done = n_ok > 0
+        return np.where(done[:, None], mean, kp), done
+
+    def _align_pairs(self, gray, K, T, positions, rows, ref, kp):
+        """:meth:`align` of each landmark of ``rows`` to its reference observation ``ref`` (-1: none):
+        positions (N, 2) and which converged (N,)."""
+        cfg = self.config
         X = np.asarray(positions, np.float64)[rows]
-        C = camera_centers(T)
-        ref = self.reference_observations(np.asarray(positions, np.float64), rows, C)
         n = self.normals[rows]
         u0 = project(K, T, X)
         g = np.arange(-cfg.half, cfg.half + 1, dtype=np.float64)

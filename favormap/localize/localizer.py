@@ -169,6 +169,7 @@ class LocalizeConfig:
     # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off
     align: bool = False
     align_images: str | None = None
+    align_references: int = 1  # mapping frames each inlier is aligned to (AlignConfig.references)
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
     # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
@@ -526,9 +527,11 @@ class Localizer:
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
         if self.config.align:
-            from .align import PlaneAligner
+            from .align import AlignConfig, PlaneAligner
 
-            self._aligner = PlaneAligner(self.map, self.config.align_images)
+            self._aligner = PlaneAligner(
+                self.map, self.config.align_images, AlignConfig(references=self.config.align_references)
+            )
 
     def close(self):
         self.map.close()

@@ -30,13 +30,17 @@ class ObservationIndex:
         obs = np.repeat(self.first[rows] - np.cumsum(n) + n, n) + np.arange(n.sum())
         return obs, np.repeat(np.arange(len(rows)), n)
 
-    def best(self, rows: np.ndarray, cost) -> np.ndarray:
+    def best(self, rows: np.ndarray, cost, k: int | None = None) -> np.ndarray:
         """For each landmark of ``rows`` the sorted position of its observation of least
-        ``cost(obs, group)`` (an array over ``of(rows)``'s observations); -1 for one without any."""
+        ``cost(obs, group)`` (an array over ``of(rows)``'s observations); -1 for one without any.
+        With ``k``: its ``k`` observations of least cost, cheapest first (len(rows), k), -1 where it
+        has fewer."""
         obs, group = self.of(rows)
-        out = np.full(len(np.asarray(rows)), -1, np.int64)
+        out = np.full((len(np.asarray(rows)), k or 1), -1, np.int64)
         if len(obs):
-            best = np.lexsort((cost(obs, group), group))
-            keep = best[np.r_[True, group[best][1:] != group[best][:-1]]]
-            out[group[keep]] = obs[keep]
-        return out
+            order = np.lexsort((cost(obs, group), group))
+            g = group[order]
+            rank = np.arange(len(g)) - np.searchsorted(g, g)  # position within its landmark's observations
+            keep = rank < (k or 1)
+            out[g[keep], rank[keep]] = obs[order][keep]
+        return out if k else out[:, 0]
