@@ -7,7 +7,7 @@ landmark is trained ``--repeat`` times with the build's batching, the first run 
 on a GPU. ``--profile`` prints the torch profiler's table of the last run (top operators by device
 time, or CPU time on a CPU).
 
-    python tools/bench_train.py [SEQ] [--device cuda] [--max-side 640] [--quality fast] [--profile]
+    python tools/bench_train.py [SEQ] [--device cuda] [--extractor disk] [--max-side 640] [--quality fast] [--profile]
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", nargs="?", default=None, help="default: ../shared/data/fox")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--extractor", default=None, help="feature extractor (default: the build's, SIFT)")
     ap.add_argument("--max-side", type=int, default=None, help="working resolution (0: full size)")
     ap.add_argument("--quality", default=None, help="voxel preset (default: the build's)")
     ap.add_argument(
@@ -79,6 +80,8 @@ def main():
 
     configure_threads()
     cfg = BuildConfig()
+    if args.extractor:
+        cfg.extractor = args.extractor
     if args.max_side is not None:
         cfg.max_side = args.max_side
     if args.quality:
