@@ -227,8 +227,14 @@ class PlaneAligner:
         T = np.asarray(cam_from_world, np.float64)
         k = max(1, int(self.config.references))
         ref = self.reference_observations(np.asarray(positions, np.float64), rows, camera_centers(T), k)
-        # every (landmark, reference) pair aligned alone; a landmark's converged ones averaged
-        moved, ok = self._align_pairs(gray, K, T, positions, np.repeat(rows, k), ref.ravel(), np.repeat(kp, k, 0))
+        # every (landmark, reference) pair aligned alone (a landmark with fewer than k observations has
+        # fewer pairs); a landmark's converged ones averaged
+        ref = ref.ravel()
+        pair = ref >= 0
+        moved, ok = np.repeat(kp, k, 0), np.zeros(len(ref), bool)
+        if pair.any():
+            lm = np.repeat(rows, k)[pair]
+            moved[pair], ok[pair] = self._align_pairs(gray, K, T, positions, lm, ref[pair], moved[pair])
         ok = ok.reshape(-1, k)
         n_ok = ok.sum(1)
         mean = np.where(ok[..., None], moved.reshape(-1, k, 2), 0.0).sum(1) / np.maximum(n_ok, 1)[:, None]
