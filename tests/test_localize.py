@@ -240,7 +240,7 @@ def test_landmarks_with_two_descriptors_each_localize(small_map, queries):
 
 
 def test_repeated_landmark_keypoint_pairs_are_dropped():
-    from favormap.localize.localizer import _distinct_pairs
+    from favormap.localize.matching import _distinct_pairs
 
     drows = np.array([4, 9, 4, 9])  # descriptors 0, 2 of landmark 4; 1, 3 of landmark 9
     m = np.array([[0, 10], [2, 10], [1, 11], [3, 12]])
@@ -300,7 +300,7 @@ def test_matching_keeps_best_above_threshold():
 def test_grouped_matching_treats_a_location_as_one_keypoint():
     """KeypointGroups: descriptors at one position compete as one keypoint whose similarity is their
     best; the pair names the member that reaches it (checked against a brute-force reference)."""
-    from favormap.localize.localizer import KeypointGroups
+    from favormap.localize.matching import KeypointGroups
 
     rng = np.random.default_rng(0)
     unit = lambda x: (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)  # noqa: E731
@@ -399,7 +399,7 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     where the keypoint lies near the landmark's projection."""
     import torch
 
-    from favormap.localize.localizer import match_near
+    from favormap.localize.matching import match_near
 
     g = torch.Generator().manual_seed(0)
     L, Q, C = 300, 500, 32
@@ -452,7 +452,7 @@ def test_iterations_stop_once_the_estimate_stops_moving(small_map, queries):
 
 
 def test_radius_pairs_equal_a_brute_force_search():
-    from favormap.localize.localizer import radius_pairs
+    from favormap.localize.matching import radius_pairs
 
     rng = np.random.default_rng(3)
     for r in (0.7, 3.0, 8.0, 50.0):
@@ -472,7 +472,7 @@ def test_the_gate_follows_the_predicted_uncertainty():
     """With a gate, a candidate must lie within the Mahalanobis bound of its landmark's predicted
     projection: a keypoint 4 px away along the long axis of an elongated uncertainty is kept, the
     same distance across it is not, although both are inside the radius."""
-    from favormap.localize.localizer import match_near
+    from favormap.localize.matching import match_near
 
     rend = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
     query = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)

@@ -103,7 +103,7 @@ class SIFTExtractor(Extractor):
         # OpenCV gives a location one keypoint per dominant orientation (peaks within 80 % of the
         # highest): "strongest" keeps the strongest one (maps: one track node per location), "all"
         # keeps them all (queries: the localizer matches such a group as one keypoint through
-        # whichever descriptor fits, favormap.localize.localizer.KeypointGroups)
+        # whichever descriptor fits, favormap.localize.matching.KeypointGroups)
         if orientations not in ("strongest", "all"):
             raise ValueError(f"orientations must be 'strongest' or 'all', not {orientations!r}")
         self.orientations = orientations

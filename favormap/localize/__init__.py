@@ -8,13 +8,14 @@ from .localizer import (
     Localizer,
     SuccessChecks,
     localize,
-    match_descriptors,
 )
+from .matching import KeypointGroups, match_descriptors, match_near
 from .motion import MOTION_MODELS, MotionPrior
 
 __all__ = [
     "DescriptorSource",
     "IterationResult",
+    "KeypointGroups",
     "LocalizationResult",
     "LocalizeConfig",
     "Localizer",
@@ -27,4 +28,5 @@ __all__ = [
     "localize",
     "make_source",
     "match_descriptors",
+    "match_near",
 ]

@@ -19,7 +19,8 @@ from ..geometry import camera_centers, perturb_pose, pose_error, project
 from ..io import Sequence
 from ..visibility import project_inside, visible_rows
 from .descriptors import describe
-from .localizer import Localizer, match_descriptors
+from .localizer import Localizer
+from .matching import match_descriptors
 
 DEFAULT_THRESHOLDS = ((0.01, 1.0), (0.05, 5.0), (0.25, 10.0))
 PRIOR_MODES = ("noise", "nearest", "constant", "none", "sequential", "stream")

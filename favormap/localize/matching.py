@@ -1,0 +1,218 @@
+"""Matching a query's descriptors to landmark descriptors: mutual nearest neighbours over the whole
+set (:func:`match_descriptors`, optionally with Lowe's ratio and keypoints that share a position
+grouped, :class:`KeypointGroups`) or only within a radius of each landmark's projection
+(:func:`match_near`, the guided step, optionally gated by a Mahalanobis distance). NumPy and OpenCV's
+gemm; no torch, no Open3D."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .refine import mahalanobis2
+
+
+@dataclass
+class KeypointGroups:
+    """Query keypoints that share a position: OpenCV's SIFT returns one keypoint per dominant
+    orientation, so a location can carry two or more descriptors. Matching treats a group as one
+    keypoint whose similarity to a landmark is the best of its descriptors, so that the extra
+    orientations add chances to match without competing with each other in the mutual and ratio
+    tests."""
+
+    order: np.ndarray  # (Q,) keypoint indices, sorted by group
+    starts: np.ndarray  # (G,) where each group starts in ``order``
+
+    @classmethod
+    def of(cls, keypoints: np.ndarray, decimals: int = 1) -> KeypointGroups | None:
+        """Groups of keypoints at the same position (rounded); None when every position is unique."""
+        kp = np.round(np.asarray(keypoints, np.float64).reshape(-1, 2), decimals)
+        if len(kp) == 0:
+            return None
+        _, inverse, counts = np.unique(kp, axis=0, return_inverse=True, return_counts=True)
+        if counts.max() == 1:
+            return None
+        inverse = inverse.reshape(-1)
+        return cls(np.argsort(inverse, kind="stable"), np.r_[0, np.cumsum(counts)[:-1]])
+
+
+def match_descriptors(
+    rendered: np.ndarray,
+    query: np.ndarray,
+    threshold: float,
+    mutual: bool = False,
+    ratio: float = 1.0,
+    chunk: int = 8192,
+    groups: KeypointGroups | None = None,
+) -> np.ndarray:
+    """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
+    query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
+    rendered descriptor is also that query descriptor's most similar one, and when the best
+    distance is below ``ratio`` times the second best (Lowe's test on unit vectors).
+
+    With ``groups`` the tests run on groups of query descriptors at one position (a group's
+    similarity: the best of its members) and the pair names the group's most similar member.
+
+    NumPy, ``chunk`` rendered rows at a time: memory stays bounded when matching a query against a
+    whole map (the prior-free step); ties go to the lower index."""
+    rendered = np.asarray(rendered, np.float32)
+    query = np.asarray(query, np.float32)
+    L, Q = len(rendered), len(query)
+    if L == 0 or Q == 0:
+        return np.zeros((0, 2), np.int64)
+    if groups is not None:
+        query = query[groups.order]
+    query = np.ascontiguousarray(query)
+    G = Q if groups is None else len(groups.starts)
+    best = np.empty(L, np.int64)  # best column (group)
+    best_sim = np.empty(L, np.float32)
+    second = np.full(L, -np.inf, np.float32)
+    col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's (group's) best similarity
+    for s in range(0, L, chunk):
+        sim = _gemm_t(np.ascontiguousarray(rendered[s : s + chunk]), query)
+        r = np.arange(len(sim))
+        if groups is not None:
+            sim = np.maximum.reduceat(sim, groups.starts, axis=1)
+        if mutual:  # max along axis 0 is ~20x faster than argmax along it
+            np.maximum(col_best, sim.max(0), out=col_best)
+        b = sim.argmax(1)
+        best[s : s + len(sim)], best_sim[s : s + len(sim)] = b, sim[r, b]
+        if ratio < 1.0 and G >= 2:
+            sim[r, b] = -np.inf
+            second[s : s + len(sim)] = sim.max(1)
+    ok = best_sim >= threshold
+    if ratio < 1.0 and G >= 2:
+        ok &= np.maximum(2 - 2 * best_sim, 0) < ratio**2 * np.maximum(2 - 2 * second, 0)
+    if mutual:  # the rendered row is its query descriptor's best; on a tie the lowest row wins
+        ok &= best_sim >= col_best[best]
+    idx = np.flatnonzero(ok)
+    if mutual:
+        _, first = np.unique(best[idx], return_index=True)
+        idx = idx[np.sort(first)]
+    if groups is None:
+        return np.stack([idx, best[idx]], 1).astype(np.int64)
+    # each kept row's group -> the member that reaches the group's similarity
+    size = np.diff(np.r_[groups.starts, Q])[best[idx]]
+    cols = groups.starts[best[idx]][:, None] + np.arange(size.max(initial=1))[None, :]
+    valid = cols < (groups.starts[best[idx]] + size)[:, None]
+    cols = np.where(valid, cols, cols[:, :1])  # positions in ``query`` (sorted by group)
+    sims = np.where(valid, np.einsum("kc,kwc->kw", rendered[idx], query[cols]), -np.inf)
+    member = groups.order[cols[np.arange(len(idx)), sims.argmax(1)]]
+    return np.stack([idx, member], 1).astype(np.int64)
+
+
+def _gemm_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b.T for float32 matrices through OpenCV's gemm (b is read transposed, not copied), on
+    OpenCV's thread pool. As fast as NumPy's OpenBLAS here, but OpenBLAS's threads keep spinning for
+    a while after a product and took a core from the next query's SIFT extraction
+    (tools/bench_localize.py, 1,500-landmark room: extraction 133 -> ~100 ms per query)."""
+    if a.size == 0 or b.size == 0:
+        return np.zeros((a.shape[0], b.shape[0]), np.float32)
+    return cv2.gemm(a, b, 1.0, None, 0.0, flags=cv2.GEMM_2_T)
+
+
+def _pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(K,) bool: which rows of ``pairs`` (K, 2) also occur in ``known`` (M, 2)."""
+    if len(pairs) == 0 or len(known) == 0:
+        return np.zeros(len(pairs), bool)
+    base = int(max(pairs[:, 1].max(), known[:, 1].max())) + 1
+    return np.isin(pairs[:, 0] * base + pairs[:, 1], known[:, 0] * base + known[:, 1])
+
+
+def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np.ndarray:
+    """Matches (K, 2) [descriptor, query keypoint] without repeated (landmark, keypoint) pairs, which
+    arise when each of the ``n_landmarks`` has several descriptors (``desc_rows``: the landmark of
+    each descriptor; the first of a repeated pair is kept)."""
+    if len(m) < 2 or len(desc_rows) == n_landmarks:
+        return m
+    _, keep = np.unique(np.c_[desc_rows[m[:, 0]], m[:, 1]], axis=0, return_index=True)
+    return m[np.sort(keep)]
+
+
+def radius_pairs(points: np.ndarray, keypoints: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) with ``|points[i] - keypoints[j]| <= radius`` (pixels; rows of ``points``
+    that are not finite pair with nothing). NumPy: the keypoints are binned into square cells of
+    side ``radius``, and each point looks at the 3 x 3 cells around its own."""
+    points = np.asarray(points, np.float64).reshape(-1, 2)
+    keypoints = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    ok = np.flatnonzero(np.all(np.isfinite(points), axis=1))
+    empty = np.zeros(0, np.int64)
+    if len(ok) == 0 or len(keypoints) == 0 or not radius > 0:
+        return empty, empty
+    lo = keypoints.min(0)
+    ck = np.floor((keypoints - lo) / radius).astype(np.int64)
+    cp = np.floor((points[ok] - lo) / radius).astype(np.int64)
+    inside = np.all((cp >= -1) & (cp <= ck.max(0) + 1), axis=1)  # points near the keypoints' extent
+    ok, cp = ok[inside], cp[inside]
+    width = int(ck[:, 1].max()) + 3
+    key = (ck[:, 0] + 1) * width + (ck[:, 1] + 1)
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    ii, jj = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            q = (cp[:, 0] + 1 + dx) * width + (cp[:, 1] + 1 + dy)
+            a, b = np.searchsorted(skey, q, "left"), np.searchsorted(skey, q, "right")
+            n = b - a
+            if not n.any():
+                continue
+            rows = np.repeat(np.arange(len(q)), n)
+            ii.append(ok[rows])
+            jj.append(order[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())])
+    if not ii:
+        return empty, empty
+    i, j = np.concatenate(ii), np.concatenate(jj)
+    near = np.sum((points[i] - keypoints[j]) ** 2, axis=1) <= radius**2
+    return i[near], j[near]
+
+
+def match_near(
+    rendered: np.ndarray,
+    query: np.ndarray,
+    uv: np.ndarray,
+    keypoints: np.ndarray,
+    radius: float,
+    threshold: float,
+    mutual: bool = True,
+    gate: tuple[np.ndarray, float] | None = None,
+) -> np.ndarray:
+    """:func:`match_descriptors` restricted to pairs whose query keypoint (``keypoints`` (Q, 2))
+    lies within ``radius`` pixels of the landmark's projection ``uv`` (L, 2) (:func:`radius_pairs`):
+    the best query keypoint near each landmark, kept when its cosine reaches
+    ``threshold`` and (``mutual``) the landmark is also the best among those near that keypoint.
+    With ``gate`` = (information (L, 2, 2), d2_max), a pair must also have a squared Mahalanobis
+    distance r^T info r <= d2_max from the projection. Only the candidate pairs are compared, not
+    the full similarity matrix."""
+    rendered = np.asarray(rendered, np.float32)
+    query = np.asarray(query, np.float32)
+    keypoints = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    li, kj = radius_pairs(uv, keypoints, radius)
+    if len(rendered) == 0 or len(li) == 0:
+        return np.zeros((0, 2), np.int64)
+    if gate is not None:
+        info, d2_max = gate
+        r = keypoints[kj] - uv[li]
+        inside = mahalanobis2(info[li], r) <= d2_max
+        li, kj = li[inside], kj[inside]
+    sim = np.einsum("ij,ij->i", rendered[li], query[kj])
+    best_l = np.full(len(rendered), -3.0, np.float32)
+    np.maximum.at(best_l, li, sim)
+    keep = (sim == best_l[li]) & (sim >= threshold)
+    if mutual:  # the landmark is also the keypoint's best among all landmarks near it
+        best_k = np.full(len(query), -3.0, np.float32)
+        np.maximum.at(best_k, kj, sim)
+        keep &= sim == best_k[kj]
+    out = np.stack([li[keep], kj[keep]], 1)
+    # ties (equal similarity): one pair per landmark and per keypoint
+    _, first = np.unique(out[:, 0], return_index=True)
+    out = out[np.sort(first)]
+    _, first = np.unique(out[:, 1], return_index=True)
+    out = out[np.sort(first)]
+    return out[np.argsort(out[:, 0], kind="stable")]  # by landmark, as match_descriptors (RANSAC sees the same order)
+
+
+def _pair_similarity(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Cosine of the matched pairs ``m`` (K, 2) of unit rows ``a`` and ``b``."""
+    return np.einsum("ij,ij->i", a[m[:, 0]], b[m[:, 1]]) if len(m) else np.zeros(0, np.float32)
