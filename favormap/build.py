@@ -36,6 +36,19 @@ from .triangulation import Landmarks, TriangulationConfig, refine_observations, 
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
 from .voxels.train import default_quality, voxel_config_for
 
+# Tracking's epipolar limit per extractor (px at the working resolution; others: 1). DISK's keypoints are less
+# precise than SIFT's (the fox-extrapolation DISK map's landmarks reproject 0.46 px from their observations by the
+# median, SIFT's 0.30 px), so 1 px drops right matches: with 2 px, thirty-second session, tools/bench_accuracy.py
+# --extractor disk, localize --align: fox extrapolation 0.0058 / 0.0056 / 0.0055 over three training seeds against
+# 0.0073 / 0.0070 / 0.0067 (paired 0.98x on seed 0), hold-out 0.88x, orbit 1.03x paired; plain rendering hold-out
+# 1.04x, orbit 0.97x (docs/accuracy.md). SIFT's 1.5 / 2 px lose between the mapping views (hold-out 1.10x / 1.32x).
+DEFAULT_MAX_EPIPOLAR_PX: dict[str, float] = {"disk": 2.0}
+
+
+def default_max_epipolar(extractor: str) -> float:
+    """The epipolar limit a build of ``extractor`` uses when none is given (BuildConfig, ``build --max-epipolar``)."""
+    return DEFAULT_MAX_EPIPOLAR_PX.get(extractor, 1.0)
+
 
 @dataclass
 class BuildConfig:
@@ -53,7 +66,8 @@ class BuildConfig:
     # hold-out 0.88x, extrapolation 0.87x (medians 0.0041-0.0046 against 0.0060-0.0063), orbit 1.01x; fox
     # tracking 6.6 s instead of 2.7 s. Poses less accurate than ~1 px at max_side want a looser check (2-3 px)
     match_window: int = 10
-    max_epipolar_px: float = 1.0
+    # None: the extractor's default (default_max_epipolar, set on construction): 1 px, DISK 2 px
+    max_epipolar_px: float | None = None
     min_similarity: float = 0.7
     # tracking variants, each measured and lost (three seeds, docs/benchmarks/accuracy-2026-11-27-s16-tracking.md):
     # the epipolar constraint before the descriptors; conflicting components rebuilt instead of dropped
@@ -85,6 +99,8 @@ class BuildConfig:
     def __post_init__(self):
         if self.voxel is None:
             self.voxel = VoxelConfig.preset(default_quality(self.extractor))
+        if self.max_epipolar_px is None:
+            self.max_epipolar_px = default_max_epipolar(self.extractor)
 
     def to_dict(self) -> dict:
         d = asdict(self)

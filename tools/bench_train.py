@@ -79,9 +79,7 @@ def main():
     from favormap.voxels.train import TrainingRays, voxel_config_for
 
     configure_threads()
-    cfg = BuildConfig()
-    if args.extractor:
-        cfg.extractor = args.extractor
+    cfg = BuildConfig(**({"extractor": args.extractor} if args.extractor else {}))  # the extractor's defaults
     if args.max_side is not None:
         cfg.max_side = args.max_side
     if args.quality:

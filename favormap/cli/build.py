@@ -57,7 +57,7 @@ def register(sub):
         default=None,
         metavar="PX",
         help="tracking: largest distance of a match from its epipolar line, in px at the working resolution "
-        "(default 1; raise it to 2-3 for poses less accurate than that, e.g. from a SLAM system)",
+        "(default 1, DISK 2; raise it to 2-3 for poses less accurate than that, e.g. from a SLAM system)",
     )
     p.add_argument(
         "--refine-window",
