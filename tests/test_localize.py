@@ -240,12 +240,12 @@ def test_landmarks_with_two_descriptors_each_localize(small_map, queries):
 
 
 def test_repeated_landmark_keypoint_pairs_are_dropped():
-    from favormap.localize.matching import _distinct_pairs
+    from favormap.localize.matching import distinct_pairs
 
     drows = np.array([4, 9, 4, 9])  # descriptors 0, 2 of landmark 4; 1, 3 of landmark 9
     m = np.array([[0, 10], [2, 10], [1, 11], [3, 12]])
-    np.testing.assert_array_equal(_distinct_pairs(m, drows, 2), [[0, 10], [1, 11], [3, 12]])
-    np.testing.assert_array_equal(_distinct_pairs(m, np.arange(4), 4), m)  # one descriptor per landmark
+    np.testing.assert_array_equal(distinct_pairs(m, drows, 2), [[0, 10], [1, 11], [3, 12]])
+    np.testing.assert_array_equal(distinct_pairs(m, np.arange(4), 4), m)  # one descriptor per landmark
 
 
 def test_an_image_of_another_scene_is_never_a_success(small_map, small_sequence):

@@ -34,7 +34,7 @@ from ..mapfile import Map
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
-from .matching import KeypointGroups, _distinct_pairs, _pair_in, _pair_similarity, match_descriptors, match_near
+from .matching import KeypointGroups, distinct_pairs, match_descriptors, match_near, pair_in, pair_similarity
 from .refine import (
     PoseCovariance,
     estimate_noise,
@@ -582,8 +582,8 @@ class Localizer:
                 )
             else:
                 m = match_descriptors(rend, q.match_desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
-            m = _distinct_pairs(m, drows, len(rows))
-            sims = _pair_similarity(rend, q.desc, m)
+            m = distinct_pairs(m, drows, len(rows))
+            sims = pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
             points = self.positions[drows[m[:, 0]]]
             ans = self._pnp(q, points, m[:, 1], t)
@@ -814,9 +814,9 @@ class Localizer:
             mutual=True,
             gate=gate,
         )
-        m = _distinct_pairs(m, drows, len(rows))
+        m = distinct_pairs(m, drows, len(rows))
         idx, kidx = m[:, 0], m[:, 1]
-        sims = _pair_similarity(rend, q.desc, m)
+        sims = pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.positions[drows[idx]], kidx, t, cfg.guided_ransac_px or cfg.guided_radius_px)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -832,7 +832,7 @@ class Localizer:
         out = dict(matches=np.c_[drows[idx], kidx], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims)
         if found is not None:  # which pairs the rendering iteration had already matched by descriptor
             known = found["matches"][found["inliers"]]
-            out["by_descriptor"] = _pair_in(out["matches"], known)
+            out["by_descriptor"] = pair_in(out["matches"], known)
         return out
 
     def _result(

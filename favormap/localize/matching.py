@@ -113,7 +113,7 @@ def _gemm_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return cv2.gemm(a, b, 1.0, None, 0.0, flags=cv2.GEMM_2_T)
 
 
-def _pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:
+def pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:
     """(K,) bool: which rows of ``pairs`` (K, 2) also occur in ``known`` (M, 2)."""
     if len(pairs) == 0 or len(known) == 0:
         return np.zeros(len(pairs), bool)
@@ -121,7 +121,7 @@ def _pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.isin(pairs[:, 0] * base + pairs[:, 1], known[:, 0] * base + known[:, 1])
 
 
-def _distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np.ndarray:
+def distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np.ndarray:
     """Matches (K, 2) [descriptor, query keypoint] without repeated (landmark, keypoint) pairs, which
     arise when each of the ``n_landmarks`` has several descriptors (``desc_rows``: the landmark of
     each descriptor; the first of a repeated pair is kept)."""
@@ -213,6 +213,6 @@ def match_near(
     return out[np.argsort(out[:, 0], kind="stable")]  # by landmark, as match_descriptors (RANSAC sees the same order)
 
 
-def _pair_similarity(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
+def pair_similarity(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
     """Cosine of the matched pairs ``m`` (K, 2) of unit rows ``a`` and ``b``."""
     return np.einsum("ij,ij->i", a[m[:, 0]], b[m[:, 1]]) if len(m) else np.zeros(0, np.float32)
