@@ -225,7 +225,7 @@ def config_from_args(args):
     return LocalizeConfig(
         align=align,
         align_images=images,
-        align_references=1 if refs is None else refs,
+        **({} if refs is None else {"align_references": refs}),  # not given: LocalizeConfig's default
         iterations=args.iters,
         match_threshold=args.threshold,
         max_keypoints=args.max_keypoints,
