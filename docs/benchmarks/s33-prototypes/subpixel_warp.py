@@ -1,8 +1,11 @@
+"""DISK keypoint localisation under known homographies: six fox frames warped (rotation, scale, slight
+perspective), mutual nearest detections within 2 px, per sub-pixel method (thirty-third session).
+Run from the repository root with FAVORMAP's DISK installed; reads ../shared/data/fox/images."""
 import numpy as np, torch, torch.nn.functional as F, cv2, os, sys
 from favormap.features.base import create
 from favormap.features.heatmap import subpixel_offsets
 ex = create("disk", max_keypoints=2048)
-D='/work/shared/data/fox/images/'; names=sorted(os.listdir(D))
+D=os.path.join(os.path.dirname(__file__),'../../../../shared/data/fox/images/'); names=sorted(os.listdir(D))
 def heat_of(img):
     h,w=img.shape[:2]
     x=torch.from_numpy(np.ascontiguousarray(img)).permute(2,0,1)[None].float()/255
