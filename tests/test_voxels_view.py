@@ -31,7 +31,7 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
     training view of every (query, landmark) pair."""
     from favormap import features
     from favormap.build import BuildConfig, build_map
-    from favormap.geometry import camera_centers
+    from favormap.geometry import camera_centers, project
     from favormap.ops.spatial import project_inside
     from favormap.synthetic import camera_path, make_room, render, write_sequence
     from favormap.voxels import render_from_camera
@@ -68,10 +68,9 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
         assert scene.camera_is_valid(camera_centers(T))
         img, depth = render(scene, cam, T)
         vis = np.flatnonzero(project_inside(m.positions, cam, T, margin_px=8))
-        Xc = m.positions[vis] @ T[:3, :3].T + T[:3, 3]
-        uv = Xc[:, :2] / Xc[:, 2:] * [cam.K[0, 0], cam.K[1, 1]] + cam.K[:2, 2]
+        uv, z = project(cam.K, T, m.positions[vis], with_depth=True)
         ui = np.clip(uv.astype(int), 0, [cam.width - 1, cam.height - 1])
-        ok = np.abs(depth[ui[:, 1], ui[:, 0]] - Xc[:, 2]) < 0.02 * Xc[:, 2] + 0.005  # not occluded
+        ok = np.abs(depth[ui[:, 1], ui[:, 0]] - z) < 0.02 * z + 0.005  # not occluded
         vis, uv = vis[ok], uv[ok]
         truth = ex.sample(ex.extract(img), uv)
         c = camera_centers(T)
@@ -97,9 +96,7 @@ def _view_pairs(voxel_config, tmp_path, n_train=14, start=8, extractor="xfeat"):
 
                 train_feats[f] = ex.extract(load_image(seq.frames[f].image_path, cam, 0)[0])
             ks = np.flatnonzero(frame_of == f)
-            Tf = m.cam_from_world[f]
-            x = m.positions[vis[ks]] @ Tf[:3, :3].T + Tf[:3, 3]
-            nearest[ks] = ex.sample(train_feats[f], x[:, :2] / x[:, 2:] * [cam.K[0, 0], cam.K[1, 1]] + cam.K[:2, 2])
+            nearest[ks] = ex.sample(train_feats[f], project(cam.K, m.cam_from_world[f], m.positions[vis[ks]]))
         out["rendered"].append(np.sum(rendered * truth, 1))
         out["nearest"].append(np.sum(nearest * truth, 1))
         out["mean"].append(np.sum(m.mean_descriptor[vis] * truth, 1))
