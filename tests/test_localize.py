@@ -170,13 +170,20 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
     (refine_noise="estimated"), or as the map gives it ("fixed"); landmark_sigma_px=0 keeps RANSAC's
     refinement. All converge; the weighted poses are the weighted refinements of the plain one's
     inliers."""
-    from favormap.localize.refine import estimate_noise, landmark_covariances, mapping_pixel_sigma, refine_pose
+    from favormap.localize.refine import (
+        estimate_noise,
+        landmark_covariances,
+        mapping_pixel_sigma,
+        refine_pose,
+        similarity_groups,
+    )
 
     _, path = small_map
     rng = np.random.default_rng(5)
     plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0, guided_radius_px=0))
     weighted = Localizer(path, LocalizeConfig(guided_radius_px=0))
     fixed = Localizer(path, LocalizeConfig(guided_radius_px=0, refine_noise="fixed"))
+    by_sim = Localizer(path, LocalizeConfig(guided_radius_px=0, refine_noise="similarity", similarity_groups=3))
     cfg = weighted.config
     assert cfg.landmark_sigma_px == "landmark" and cfg.refine_noise == "estimated"
     moved = []
@@ -199,6 +206,17 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         noise = b.to_json()["uncertainty"]["noise_model"]  # the fitted factors come with the pose
         assert np.isclose(noise["landmark_scale"], scale) and np.isclose(noise["keypoint_sigma_px"], sigma)
         assert "noise_model" not in c.to_json()["uncertainty"]
+        # "similarity": the keypoint noise fitted per third of the inliers by descriptor similarity
+        d = by_sim.localize(img, prior)
+        assert d.success and pose_error(d.cam_from_world, T)[0] < 0.01
+        groups = similarity_groups(a.match_similarity[a.inlier_mask], 3)
+        assert groups.max() == 2
+        start, scale, sigma = estimate_noise(
+            a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px, groups=groups
+        )
+        assert len(np.unique(sigma)) == 3
+        expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma, cfg.refine_loss_scale)
+        assert pose_error(d.cam_from_world, expect)[0] < 1e-9
         moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
     assert max(moved) > 1e-6  # the weighting did change the pose
     with pytest.raises(InputError, match="landmark_sigma_px"):
@@ -209,6 +227,8 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         LocalizeConfig(keypoint_sigma_px=0)
     with pytest.raises(InputError, match="refine_noise"):
         LocalizeConfig(refine_noise="guessed")
+    with pytest.raises(InputError, match="similarity_groups"):
+        LocalizeConfig(similarity_groups=0)
 
 
 def test_landmarks_with_two_descriptors_each_localize(small_map, queries):

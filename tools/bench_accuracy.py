@@ -173,6 +173,12 @@ VARIANTS = {
     "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
     "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
     "nearest-view noise-fixed": ("nearest", {"refine_noise": "fixed"}),
+    # the keypoint noise fitted per quarter of the inliers by descriptor similarity (refine_noise
+    # "similarity", thirty-fourth session)
+    "rendered sim-noise": ("rendered", {"refine_noise": "similarity"}),
+    "mean sim-noise": ("mean", {"refine_noise": "similarity"}),
+    "rendered align sim-noise": ("rendered", {"align": True, "refine_noise": "similarity"}),
+    "mean align sim-noise": ("mean", {"align": True, "refine_noise": "similarity"}),
 }
 DEFAULT_VARIANTS = (
     "rendered",

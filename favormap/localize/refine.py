@@ -95,6 +95,19 @@ def reprojection_pixel_sigma(mean_error, track_length) -> np.ndarray:
     return e * np.sqrt(2 / np.pi) * np.sqrt(2 * n / (2 * n - 3))
 
 
+def keypoint_noise(keypoint_sigma_px, n: int) -> np.ndarray:
+    """The keypoint term of the noise model: ``sigma^2 I`` (2, 2) for one sigma (px), or (n, 2, 2)
+    for one sigma per correspondence. Sigmas must be > 0."""
+    sig = np.asarray(keypoint_sigma_px, np.float64)
+    if not (np.all(sig > 0) and np.all(np.isfinite(sig))):
+        raise ValueError("keypoint_sigma_px must be > 0")
+    if sig.ndim == 0:
+        return float(sig) ** 2 * np.eye(2)
+    if sig.shape != (n,):
+        raise ValueError(f"keypoint_sigma_px must be one number or one per correspondence ({n}), not {sig.shape}")
+    return sig[:, None, None] ** 2 * np.eye(2)
+
+
 def _projection_jacobians(P: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(n, 2, 3) d(pixel) / d(camera-frame point) of a pinhole ``K`` at camera-frame points ``P``."""
     fx, fy = K[0, 0], K[1, 1]
@@ -152,7 +165,9 @@ def projection_information(
         uv[front] = project(K, T, np.asarray(points, np.float64).reshape(-1, 3)[front])
         Jp = _projection_jacobians(Pf, K)
         cov = None if point_cov is None else np.asarray(point_cov, np.float64)[front]
-        info[front] = _inverse2(_image_covariances(Jp, T[:3, :3], cov, keypoint_sigma_px**2 * np.eye(2)))
+        eye2 = keypoint_noise(keypoint_sigma_px, len(P))
+        eye2 = eye2 if eye2.ndim == 2 else eye2[front]
+        info[front] = _inverse2(_image_covariances(Jp, T[:3, :3], cov, eye2))
     return uv, info
 
 
@@ -180,14 +195,12 @@ def refine_pose(
     points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
     (None when it cannot be computed); ``covariance_mask`` (N,) bool restricts the covariance to
     those correspondences (the evidence independent of the pose; all refine the pose)."""
-    if not keypoint_sigma_px > 0:
-        raise ValueError("keypoint_sigma_px must be > 0")
     T = np.array(cam_from_world, np.float64)
     H = None
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    eye2 = keypoint_sigma_px**2 * np.eye(2)
+    eye2_all = keypoint_noise(keypoint_sigma_px, len(X))
     for _ in range(iterations):
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
@@ -200,6 +213,7 @@ def refine_pose(
         # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
         # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
         J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
+        eye2 = eye2_all if eye2_all.ndim == 2 else eye2_all[front]
         Si = _inverse2(_image_covariances(Jp, T[:3, :3], None if point_cov is None else point_cov[front], eye2))
         if variance_factor is not None:
             Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
@@ -257,38 +271,61 @@ def estimate_noise(
     point_cov: np.ndarray,
     keypoint_sigma_px: float = 0.5,
     rounds: int = 6,
-) -> tuple[np.ndarray, float, float]:
+    groups: np.ndarray | None = None,
+) -> tuple[np.ndarray, float, float | np.ndarray]:
     """The noise model of :func:`refine_pose` fitted to one query's correspondences: the residual
     covariance ``landmark_scale * J point_cov J^T + keypoint_sigma^2 I`` with both factors estimated
     by maximum likelihood (variance-component estimation, Foerstner's fixed point: each factor is
     multiplied by sum r^T C^-1 V C^-1 r / sum tr(C^-1 V) of its component V), alternating with the
     pose's refinement. The landmark factor says how much the map's position covariances understate
     (> 1) or overstate (< 1) the landmarks' errors as this query sees them; the keypoint term is
-    what is left, isotropic. Returns (cam_from_world refined under the fitted model, landmark_scale,
-    keypoint_sigma_px); the inputs are the starting point."""
+    what is left, isotropic. ``groups`` (N,) ints in [0, G) give each group of correspondences its
+    own keypoint term (G components instead of one; e.g. the matches binned by descriptor
+    similarity). Returns (cam_from_world refined under the fitted model, landmark_scale,
+    keypoint_sigma_px: one number, or with ``groups`` one per correspondence); the inputs are the
+    starting point."""
     T = np.array(cam_from_world, np.float64)
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
     cov = np.asarray(point_cov, np.float64)
-    lam, sig2 = 1.0, float(keypoint_sigma_px) ** 2
+    g = np.zeros(len(X), np.int64) if groups is None else np.asarray(groups, np.int64).reshape(-1)
+    if g.shape != (len(X),) or (len(g) and g.min() < 0):
+        raise ValueError("groups must hold one non-negative group index per correspondence")
+    n_groups = int(g.max()) + 1 if len(g) else 1
+    lam, sig2 = 1.0, np.full(n_groups, float(keypoint_sigma_px) ** 2)
     for _ in range(rounds):
-        T = refine_pose(T, X, kp, K, lam * cov, float(np.sqrt(sig2)))
+        T = refine_pose(T, X, kp, K, lam * cov, np.sqrt(sig2[g]))
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
         if front.sum() < 6:
             break
         r = project(K, T, X[front]) - kp[front]
+        gf = g[front]
         V = _image_covariances(_projection_jacobians(P[front], K), T[:3, :3], cov[front], np.zeros((2, 2)))
-        Ci = _inverse2(lam * V + sig2 * np.eye(2))
+        Ci = _inverse2(lam * V + sig2[gf, None, None] * np.eye(2))
         Cir = np.einsum("nij,nj->ni", Ci, r)
         lam_new = lam * np.einsum("ni,nij,nj->", Cir, V, Cir) / max(np.einsum("nij,nji->", Ci, V), 1e-300)
-        sig2_new = sig2 * np.einsum("ni,ni->", Cir, Cir) / max(np.einsum("nii->", Ci), 1e-300)
-        lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), float(np.clip(sig2_new, 1e-4, 100.0))
-        done = abs(np.log(lam_new / lam)) < 0.01 and abs(np.log(sig2_new / sig2)) < 0.01
+        num = np.bincount(gf, np.einsum("ni,ni->n", Cir, Cir), n_groups)
+        den = np.bincount(gf, np.einsum("nii->n", Ci), n_groups)
+        sig2_new = np.where(den > 0, sig2 * num / np.maximum(den, 1e-300), sig2)
+        lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), np.clip(sig2_new, 1e-4, 100.0)
+        done = abs(np.log(lam_new / lam)) < 0.01 and np.all(np.abs(np.log(sig2_new / sig2)) < 0.01)
         lam, sig2 = lam_new, sig2_new
         if done:
             break
-    return T, lam, float(np.sqrt(sig2))
+    sig = np.sqrt(sig2)
+    return T, lam, (float(sig[0]) if groups is None else sig[g])
+
+
+def similarity_groups(similarity: np.ndarray, n_groups: int) -> np.ndarray:
+    """(N,) group of each correspondence: its rank by ``similarity`` in ``n_groups`` equal-count
+    bins (0: the least similar), for :func:`estimate_noise`'s ``groups``. Ties keep their order;
+    fewer than 6 correspondences a group make fewer groups."""
+    s = np.asarray(similarity, np.float64).reshape(-1)
+    k = int(max(1, min(n_groups, len(s) // 6)))
+    rank = np.empty(len(s), np.int64)
+    rank[np.argsort(s, kind="stable")] = np.arange(len(s))
+    return (rank * k) // max(len(s), 1)
 
 
 @dataclass
