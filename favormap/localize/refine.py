@@ -294,7 +294,7 @@ def estimate_noise(
     n_groups = int(g.max()) + 1 if len(g) else 1
     lam, sig2 = 1.0, np.full(n_groups, float(keypoint_sigma_px) ** 2)
     for _ in range(rounds):
-        T = refine_pose(T, X, kp, K, lam * cov, np.sqrt(sig2[g]))
+        T = refine_pose(T, X, kp, K, lam * cov, np.sqrt(sig2[g]) if groups is not None else float(np.sqrt(sig2[0])))
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
         if front.sum() < 6:
@@ -305,8 +305,11 @@ def estimate_noise(
         Ci = _inverse2(lam * V + sig2[gf, None, None] * np.eye(2))
         Cir = np.einsum("nij,nj->ni", Ci, r)
         lam_new = lam * np.einsum("ni,nij,nj->", Cir, V, Cir) / max(np.einsum("nij,nji->", Ci, V), 1e-300)
-        num = np.bincount(gf, np.einsum("ni,ni->n", Cir, Cir), n_groups)
-        den = np.bincount(gf, np.einsum("nii->n", Ci), n_groups)
+        if groups is None:  # one component: the sums as one product each
+            num, den = np.array([np.einsum("ni,ni->", Cir, Cir)]), np.array([np.einsum("nii->", Ci)])
+        else:
+            num = np.bincount(gf, np.einsum("ni,ni->n", Cir, Cir), n_groups)
+            den = np.bincount(gf, np.einsum("nii->n", Ci), n_groups)
         sig2_new = np.where(den > 0, sig2 * num / np.maximum(den, 1e-300), sig2)
         lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), np.clip(sig2_new, 1e-4, 100.0)
         done = abs(np.log(lam_new / lam)) < 0.01 and np.all(np.abs(np.log(sig2_new / sig2)) < 0.01)
