@@ -95,9 +95,9 @@ def reprojection_pixel_sigma(mean_error, track_length) -> np.ndarray:
     return e * np.sqrt(2 / np.pi) * np.sqrt(2 * n / (2 * n - 3))
 
 
-def keypoint_noise(keypoint_sigma_px, n: int) -> np.ndarray:
+def keypoint_noise(keypoint_sigma_px, n: int, keep: np.ndarray | None = None) -> np.ndarray:
     """The keypoint term of the noise model: ``sigma^2 I`` (2, 2) for one sigma (px), or (n, 2, 2)
-    for one sigma per correspondence. Sigmas must be > 0."""
+    for one sigma per correspondence (with ``keep`` (n,) bool: the rows kept). Sigmas must be > 0."""
     sig = np.asarray(keypoint_sigma_px, np.float64)
     if not (np.all(sig > 0) and np.all(np.isfinite(sig))):
         raise ValueError("keypoint_sigma_px must be > 0")
@@ -105,6 +105,7 @@ def keypoint_noise(keypoint_sigma_px, n: int) -> np.ndarray:
         return float(sig) ** 2 * np.eye(2)
     if sig.shape != (n,):
         raise ValueError(f"keypoint_sigma_px must be one number or one per correspondence ({n}), not {sig.shape}")
+    sig = sig if keep is None else sig[keep]
     return sig[:, None, None] ** 2 * np.eye(2)
 
 
@@ -165,8 +166,7 @@ def projection_information(
         uv[front] = project(K, T, np.asarray(points, np.float64).reshape(-1, 3)[front])
         Jp = _projection_jacobians(Pf, K)
         cov = None if point_cov is None else np.asarray(point_cov, np.float64)[front]
-        eye2 = keypoint_noise(keypoint_sigma_px, len(P))
-        eye2 = eye2 if eye2.ndim == 2 else eye2[front]
+        eye2 = keypoint_noise(keypoint_sigma_px, len(P), front)
         info[front] = _inverse2(_image_covariances(Jp, T[:3, :3], cov, eye2))
     return uv, info
 
@@ -200,7 +200,7 @@ def refine_pose(
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    eye2_all = keypoint_noise(keypoint_sigma_px, len(X))
+    keypoint_noise(keypoint_sigma_px, len(X))  # checked once, before the iterations
     for _ in range(iterations):
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
@@ -213,7 +213,7 @@ def refine_pose(
         # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
         # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
         J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
-        eye2 = eye2_all if eye2_all.ndim == 2 else eye2_all[front]
+        eye2 = keypoint_noise(keypoint_sigma_px, len(X), front)
         Si = _inverse2(_image_covariances(Jp, T[:3, :3], None if point_cov is None else point_cov[front], eye2))
         if variance_factor is not None:
             Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
