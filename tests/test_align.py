@@ -219,9 +219,14 @@ def patch_map(small_sequence, tmp_path_factory):
 
 def test_stored_patches_align_as_the_mapping_images_do(patch_map, off_path_queries):
     """A map that stores its observations' pixels (`build --align-patches 20`) aligns the inliers'
-    keypoints without the mapping images, to the same positions as the images give (measured when
-    written: every alignment of the images also converged from the patches, largest difference
-    4e-5 px, the same poses)."""
+    keypoints without the mapping images, to the same positions as the images give, and the same poses
+    where both align the same keypoints. Where a template's footprint in the mapping frame leaves the
+    stored patch, the patches keep the detected keypoint: they align a subset of what the images align,
+    never another position. Measured (thirty-fifth session's scenes): 235 / 157 / 137 keypoints aligned
+    from the patches, 235 / 158 / 137 from the images; on the second query the one more alignment (a
+    correct one: 0.48 px from the landmark's true projection, the detected keypoint 1.50 px) moves the
+    pose from 0.00063 to 0.00144 units, a pose at the scene's noise floor; on the others the poses agree
+    within 1e-6 units (3e-4 relative)."""
     from favormap.geometry import perturb_pose, pose_error
     from favormap.localize import LocalizeConfig, Localizer
     from favormap.mapfile import Map
@@ -236,16 +241,21 @@ def test_stored_patches_align_as_the_mapping_images_do(patch_map, off_path_queri
     b = Localizer(path, LocalizeConfig(align=True, align_images=str(seq)))
     assert a._aligner.from_patches and not b._aligner.from_patches
     rng = np.random.default_rng(0)
+    same_sets = 0
     for q in off_path_queries.frames[::2]:
         T = perturb_pose(q.cam_from_world, 0.1, 5.0, rng)
         ra, rb = a.localize(q.image_path, T), b.localize(q.image_path, T)
         assert ra.success and rb.success
         fa, fb = np.isfinite(ra.aligned[:, 0]), np.isfinite(rb.aligned[:, 0])
         assert fb.sum() > 0.5 * ra.inlier_mask.sum()
-        assert (fa & fb).sum() >= 0.95 * fb.sum(), (fa.sum(), fb.sum())
-        np.testing.assert_allclose(ra.aligned[fa & fb], rb.aligned[fa & fb], atol=1e-3)
-        ea, eb = (pose_error(r.cam_from_world, q.cam_from_world)[0] for r in (ra, rb))
-        assert abs(ea - eb) <= 0.05 * eb + 1e-6, (ea, eb)
+        assert not (fa & ~fb).any(), "the patches aligned a keypoint the images did not"
+        assert fa.sum() >= 0.95 * fb.sum(), (fa.sum(), fb.sum())
+        np.testing.assert_allclose(ra.aligned[fa], rb.aligned[fa], atol=1e-3)
+        if np.array_equal(fa, fb) and np.array_equal(ra.matches, rb.matches):
+            same_sets += 1
+            ea, eb = (pose_error(r.cam_from_world, q.cam_from_world)[0] for r in (ra, rb))
+            assert abs(ea - eb) <= 1e-3 * eb + 1e-9, (ea, eb)
+    assert same_sets >= 2
     assert a._aligner._images == {}  # no mapping image was read
 
 

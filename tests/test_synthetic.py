@@ -71,19 +71,20 @@ def test_room_is_deterministic_per_seed(scene):
 
 
 def test_textures_are_the_ones_the_tests_were_measured_on():
-    """The synthetic textures are those every test's figures were measured on: their text comes from
-    cv2.putText, whose glyphs OpenCV 5.1 places otherwise (tools/setup.sh installs OpenCV 5.0.x from
-    tools/constraints.txt). A different library version fails here with that said, rather than as a few figures
-    elsewhere that drift for no visible reason."""
+    """The synthetic textures are those every test's figures were measured on, pixel for pixel. They are drawn
+    with OpenCV's primitives (the text with the project's own stroke glyphs, not cv2.putText, whose fonts
+    changed in OpenCV 5.1): checked identical with opencv-python-headless 5.0.0.93 and 5.1.0.95. Should a
+    library version draw them otherwise, this fails with that said, rather than a few figures elsewhere that
+    drift for no visible reason."""
     import hashlib
 
     from favormap.synthetic.texture import make_texture
 
     digest = hashlib.sha256(make_texture(320, 200, np.random.default_rng(0)).tobytes()).hexdigest()
-    assert digest == "776b2e675619c55040ef0adbc11e5787ab8f741d237fd059428ba5f2caf185ab", (
+    assert digest == "1984aa6fdd9776a7a2047b54e782b485e9d915b9c02626f48d2585eb61ba4df9", (
         f"the synthetic textures differ from the ones the tests were measured on (OpenCV {cv2.__version__}, "
-        f"NumPy {np.__version__}; measured on OpenCV 5.0.0 and NumPy 2.4): install the versions of "
-        "tools/constraints.txt (tools/setup.sh)"
+        f"NumPy {np.__version__}; measured on OpenCV 5.0.0 and 5.1.0, NumPy 2.4): the versions of "
+        "tools/constraints.txt (tools/setup.sh) draw them as measured"
     )
 
 

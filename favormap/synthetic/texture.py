@@ -11,15 +11,54 @@ import numpy as np
 _ATLAS_WIDTH = 4096
 _ATLAS_PAD = 2
 
-_FONTS = [
-    cv2.FONT_HERSHEY_SIMPLEX,
-    cv2.FONT_HERSHEY_DUPLEX,
-    cv2.FONT_HERSHEY_COMPLEX,
-    cv2.FONT_HERSHEY_TRIPLEX,
-    cv2.FONT_HERSHEY_PLAIN,
-    cv2.FONT_HERSHEY_SCRIPT_SIMPLEX,
-]
+# The texts' glyphs are the project's own strokes, drawn with cv2.polylines: cv2.putText's glyphs are OpenCV's
+# fonts, which changed between releases (OpenCV 5.1 draws them otherwise), and every synthetic scene, test figure
+# and benchmark record would change with them. Each glyph is a set of polylines on a grid of 5 x 9 points, written
+# as digit pairs "xy": x 0..4, y 0 (cap height) .. 6 (baseline) .. 8 (descender); strokes are separated by spaces.
+_GLYPHS = {
+    "A": "062046 1333", "B": "0006 003041423303 3344453606", "C": "4130100105163645",
+    "D": "0006 003041453606", "E": "40000646 0333", "F": "400006 0333", "G": "41301001051636454323",
+    "H": "0006 4046 0343", "I": "1030 2026 1636", "J": "4045361605", "K": "0006 4004 1346", "L": "000646",
+    "M": "0600234046", "N": "06004640", "O": "103041453616050110", "P": "06003041423303",
+    "Q": "103041453616050110 2446", "R": "06003041423303 2346", "S": "413010010213334445361605",
+    "T": "0040 2026", "U": "000516364540", "V": "002640", "W": "0016233640", "X": "0046 4006",
+    "Y": "0023 4023 2326", "Z": "00400646",
+    "a": "12324346 441405163645", "b": "0006 0312324345361605", "c": "4332120305163645",
+    "d": "4046 4332120305163645", "e": "044443321203051636", "f": "41302126 1232",
+    "g": "4332120304153544 4247381807", "h": "0006 0312324346", "i": "2226 2020", "j": "3237281807 3030",
+    "k": "0006 4205 1446", "l": "10202536", "m": "0206 03122326 23324346", "n": "0206 0312324346",
+    "o": "123243453616050312", "p": "0208 0312324345361605", "q": "4248 4332120305163645", "r": "0206 04223243",
+    "s": "43321203143445361605", "t": "10152636 0232", "u": "0205163645 4246", "v": "022642",
+    "w": "0216243642", "x": "0246 4206", "y": "0224 421808", "z": "02420646",
+    "0": "103041453616050110 4105", "1": "112026 1636", "2": "01103041420646", "3": "01103041423313 334445361605",
+    "4": "36300444", "5": "400002324345361605", "6": "413010010516364544331304", "7": "004016",
+    "8": "130201103041423313 1304051636454433", "9": "423313020110304145361605",
+    "#": "1016 3036 0242 0444", "%": "0640 0010110100 3545463635", "&": "4612112031320405162643",
+    "@": "32221314253532 35454130100105163646", "?": "0110304142332324 2626", "+": "2125 0343",
+}  # fmt: skip
 _CHARS = string.ascii_letters + string.digits + "#%&@?+"
+_STROKES = {
+    c: [np.array([int(d) for d in stroke], np.float64).reshape(-1, 2) for stroke in g.split()]
+    for c, g in _GLYPHS.items()
+}
+# text styles (the fonts of the texts): horizontal stretch and slant of the glyphs
+_STYLES = [(1.0, 0.0), (1.15, 0.0), (0.85, 0.0), (1.3, 0.0), (1.0, 0.25), (0.9, 0.4)]
+_ADVANCE = 6  # grid units from one glyph to the next
+_CAP = 3.5  # texels per grid unit at scale 1: 21-texel capitals, the size of OpenCV's Hershey fonts
+
+
+def draw_text(img: np.ndarray, text: str, origin, scale: float, style: int, colour, thickness: int) -> None:
+    """Draw ``text`` into ``img`` in place with the textures' stroke glyphs (``origin`` is the first glyph's
+    bottom-left corner on the baseline, as in cv2.putText; anti-aliased, sub-pixel positions)."""
+    stretch, slant = _STYLES[style]
+    u = _CAP * scale
+    strokes = []
+    for i, c in enumerate(text):
+        for p in _STROKES[c]:
+            x = origin[0] + u * (stretch * (i * _ADVANCE + p[:, 0]) + slant * (6 - p[:, 1]))
+            y = origin[1] + u * (p[:, 1] - 6)
+            strokes.append(np.round(np.stack([x, y], 1) * 16).astype(np.int32))
+    cv2.polylines(img, strokes, False, colour, thickness, cv2.LINE_AA, shift=4)
 
 
 def _smooth_noise(
@@ -124,7 +163,7 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     m = int(35 * area_units) + 3
     lens = rng.integers(2, 7, m)
     chars = rng.integers(0, len(_CHARS), int(lens.sum()))
-    fonts = rng.integers(0, len(_FONTS), m)
+    styles = rng.integers(0, len(_STYLES), m)
     scales = np.exp(rng.uniform(np.log(0.35), np.log(2.2), m)) * tpu / 400.0
     thicks = rng.integers(1, 4, m)
     ox = rng.integers(-20, w, m)
@@ -134,16 +173,7 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     for i in range(m):
         s = "".join(_CHARS[c] for c in chars[pos : pos + lens[i]])
         pos += lens[i]
-        cv2.putText(
-            img,
-            s,
-            (int(ox[i]), int(oy[i])),
-            _FONTS[int(fonts[i])],
-            float(scales[i]),
-            tuple(tcol[i]),
-            int(thicks[i]),
-            aa,
-        )
+        draw_text(img, s, (int(ox[i]), int(oy[i])), float(scales[i]), int(styles[i]), tuple(tcol[i]), int(thicks[i]))
     return img
 
 
