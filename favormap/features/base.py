@@ -74,6 +74,7 @@ class Extractor(ABC):
 # The built-in extractors, by name -> "module:Class". Their modules are imported on first use
 # (create / extractor_class), so that e.g. SIFT never imports torch, which XFeat and DISK need.
 _BUILTIN: dict[str, str] = {
+    "aliked": "favormap.features.aliked:ALIKEDExtractor",
     "disk": "favormap.features.disk:DISKExtractor",
     "sift": "favormap.features.sift:SIFTExtractor",
     "xfeat": "favormap.features.xfeat:XFeatExtractor",
