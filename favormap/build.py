@@ -170,7 +170,7 @@ class ExtractorSpec:
     @property
     def uses_device(self) -> bool:
         """Whether the extractor runs on a torch device (a GPU helps)."""
-        return self.name in ("xfeat", "disk", "aliked")
+        return bool(getattr(feats_mod.extractor_class(self.name), "uses_device", False))
 
     @property
     def samples_on_device(self) -> bool:

@@ -72,6 +72,7 @@ class _AlikedState:
 @register("aliked")
 class ALIKEDExtractor(Extractor):
     channels = 128
+    uses_device = True
     match_ratio = 1.0
     match_threshold = 0.5  # as DISK's; see docs/accuracy.md (thirty-fifth session)
     _models: dict = {}

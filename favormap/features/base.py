@@ -38,6 +38,9 @@ class Extractor(ABC):
     match_ratio: float = 1.0  # default Lowe ratio for matching these descriptors (1: no ratio test)
     # default cosine threshold of the localizer's descriptor matching (LocalizeConfig.match_threshold None)
     match_threshold: float = 0.7
+    # a torch model that runs on the build's device: one instance per device, shared by a build's threads
+    # (inference does not change it); others (OpenCV's) get one instance per thread
+    uses_device: bool = False
 
     def __init__(self, max_keypoints: int = 2048, device: str | None = None):
         self.max_keypoints = int(max_keypoints)

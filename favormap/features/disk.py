@@ -84,6 +84,7 @@ DESCRIBE_BLOCK = 8192
 @register("disk")
 class DISKExtractor(Extractor):
     channels = 128
+    uses_device = True
     match_ratio = 1.0  # Lowe ratio when matching against a whole map; see docs/accuracy.md
     # cosine threshold of the localizer's matching. 0.5 instead of 0.7 (twenty-first session,
     # tools/bench_accuracy.py --extractor disk, noise priors, seed-0 maps): fox extrapolation 20/20

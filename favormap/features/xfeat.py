@@ -32,6 +32,7 @@ def _load_model(device: str):
 @register("xfeat")
 class XFeatExtractor(Extractor):
     channels = 64
+    uses_device = True
     _models: dict = {}
 
     def __init__(
