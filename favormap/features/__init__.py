@@ -12,7 +12,7 @@ from .base import Extractor, Features, available, create, extractor_class, patch
 
 __all__ = ["Extractor", "Features", "available", "create", "extractor_class", "patch_offsets", "register"]
 
-_SUBMODULES = ("aliked", "aliked_net", "base", "disk", "heatmap", "sift", "xfeat")
+_SUBMODULES = ("aliked", "aliked_net", "base", "disk", "heatmap", "packaged", "sift", "xfeat")
 
 
 def __getattr__(name: str):  # PEP 562: load a built-in extractor's module (and torch, if it needs it) on use

