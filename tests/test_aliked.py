@@ -220,3 +220,15 @@ def test_subpixel_refinements_move_the_same_maxima(views):
     assert np.all(np.abs(a.keypoints - 0.5 - peak) <= 2.0 + 1e-6)
     with pytest.raises(ValueError, match="subpixel"):
         features.create("aliked", subpixel="cubic")
+
+
+@needs_weights
+def test_blank_and_tiny_images_give_no_keypoints_and_still_sample():
+    """A uniform image has no maxima above the threshold; images smaller than the network's 32 px stride
+    or the descriptor head's 3 x 3 window still extract and sample (edge pixels repeated)."""
+    ex = features.create("aliked", max_keypoints=100)
+    for shape in [(240, 320, 3), (8, 8, 3), (1, 1, 3)]:
+        f = ex.extract(np.full(shape, 128, np.uint8))
+        assert len(f) == 0 and f.descriptors.shape == (0, 128)
+        d = ex.sample(f, np.array([[0.5, 0.5], [3.0, 2.0]], np.float32))
+        assert d.shape == (2, 128) and np.all(np.isfinite(d))

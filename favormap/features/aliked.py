@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import FavormapError
+from ..errors import FavormapError, InputError
 from .base import Extractor, Features, register
 from .heatmap import subpixel_offsets
 from .packaged import packaged_file
@@ -66,7 +66,7 @@ class ALIKEDExtractor(Extractor):
     channels = 128
     uses_device = True
     match_ratio = 1.0
-    match_threshold = 0.5  # as DISK's; see docs/accuracy.md (thirty-fifth session)
+    match_threshold = 0.5  # DISK's (another learned 128-d descriptor); not tuned for ALIKED
     _models: dict = {}
 
     def __init__(
@@ -126,7 +126,7 @@ class ALIKEDExtractor(Extractor):
             xy = yx.flip(1)
             return xy.float() + subpixel_offsets(s, xy), scores
         d = torch.arange(-r, r + 1, device=s.device)
-        win = s[yx[:, 0, None, None] + d.view(1, k, 1), yx[:, 1, None, None] + d.view(1, 1, k)].reshape(len(yx), -1)
+        win = s[yx[:, 0, None, None] + d.view(1, k, 1), yx[:, 1, None, None] + d.view(1, 1, k)].reshape(len(yx), k * k)
         e = ((win - win.max(1, keepdim=True).values) / 0.1).exp()
         gy, gx = torch.meshgrid(d.float(), d.float(), indexing="ij")
         dx = (e * gx.reshape(1, -1)).sum(1) / e.sum(1)
@@ -139,6 +139,8 @@ class ALIKEDExtractor(Extractor):
 
     @classmethod
     def state_from_arrays(cls, arrays: dict[str, np.ndarray]) -> _AlikedState:
+        if "fmap" not in arrays:
+            raise InputError("this feature cache holds no ALIKED features; delete it or name another file")
         return _AlikedState(torch.from_numpy(np.ascontiguousarray(arrays["fmap"])))
 
     @torch.inference_mode()

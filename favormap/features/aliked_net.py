@@ -118,7 +118,8 @@ class SDDH(nn.Module):
         cx = corner[:, 0].clamp(0, w - 1 - ps)
         cy = corner[:, 1].clamp(0, h - 1 - ps)
         r = torch.arange(ps, device=fmap.device)
-        patch = fmap[(cy[:, None, None] + r.view(1, ps, 1)), (cx[:, None, None] + r.view(1, 1, ps))]
+        rows = (cy[:, None, None] + r.view(1, ps, 1)).clamp(0, h - 1)  # (an image narrower than the patch: edge)
+        patch = fmap[rows, (cx[:, None, None] + r.view(1, 1, ps)).clamp(0, w - 1)]
         m = max(h, w) / 4.0
         off = self.offset_conv(patch.permute(0, 3, 1, 2).float()).clamp(-m, m)[:, :, 0, 0]
         pos = points[:, None, :] + off.view(-1, 2, self.n_pos).transpose(1, 2)  # (N, n_pos, 2)
