@@ -113,36 +113,43 @@ class SDDH(nn.Module):
         integers) of ``fmap`` (H, W, C), any float type (favormap keeps it in float16)."""
         h, w, c = fmap.shape
         ps = self.kernel_size
+        if fmap.dtype != torch.float32 and 4 * self.n_pos * len(points) > h * w:
+            # more corners to gather than pixels: convert the map once, not every gathered corner (exact)
+            fmap = fmap.float()
         # the ps x ps pixels around the point (its nearest pixel in the middle), kept inside the map
         corner = (points - ps / 2 + 1).long()
         cx = corner[:, 0].clamp(0, w - 1 - ps)
         cy = corner[:, 1].clamp(0, h - 1 - ps)
         r = torch.arange(ps, device=fmap.device)
         rows = (cy[:, None, None] + r.view(1, ps, 1)).clamp(0, h - 1)  # (an image narrower than the patch: edge)
-        patch = fmap[rows, (cx[:, None, None] + r.view(1, 1, ps)).clamp(0, w - 1)]
+        cols = (cx[:, None, None] + r.view(1, 1, ps)).clamp(0, w - 1)
+        patch = fmap.reshape(-1, c).index_select(0, (rows * w + cols).reshape(-1)).reshape(-1, ps, ps, c)
         m = max(h, w) / 4.0
         off = self.offset_conv(patch.permute(0, 3, 1, 2).float()).clamp(-m, m)[:, :, 0, 0]
         pos = points[:, None, :] + off.view(-1, 2, self.n_pos).transpose(1, 2)  # (N, n_pos, 2)
         f = _bilinear_zeros(fmap, pos)  # (N, n_pos, C)
         f = torch.selu(f @ self.sf_conv.weight[:, :, 0, 0].T)
-        return F.normalize(torch.einsum("npc,pcd->nd", f, self.agg_weights), dim=1)
+        # sum over the samples p of f[n, p] @ agg_weights[p]: one (N, n_pos * C) x (n_pos * C, C) product
+        return F.normalize(f.reshape(len(f), -1) @ self.agg_weights.reshape(-1, c), dim=1)
 
 
 def _bilinear_zeros(fmap: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     """``grid_sample(..., align_corners=True, padding_mode="zeros")`` of ``fmap`` (H, W, C) at pixel
-    positions ``pos`` (..., 2) (x, y), float32 (..., C); gathers only the pixels it needs."""
+    positions ``pos`` (..., 2) (x, y), float32 (..., C); gathers only the pixels it needs (the four
+    corners of every position in one ``index_select`` of the flattened map, weighed in one batched
+    product: half the time of four advanced-indexing gathers, the same values)."""
     h, w, c = fmap.shape
     x, y = pos[..., 0], pos[..., 1]
     x0, y0 = x.floor(), y.floor()
-    out = torch.zeros((*pos.shape[:-1], c), dtype=torch.float32, device=fmap.device)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            xi, yi = x0 + dx, y0 + dy
-            wgt = (1 - (x - xi).abs()) * (1 - (y - yi).abs())
-            ok = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
-            v = fmap[yi.clamp(0, h - 1).long(), xi.clamp(0, w - 1).long()].float()
-            out += v * (wgt * ok)[..., None]
-    return out
+    fx, fy = x - x0, y - y0
+    gx, gy = 1 - fx, 1 - fy
+    xs = torch.stack([x0, x0 + 1, x0, x0 + 1], -1)
+    ys = torch.stack([y0, y0, y0 + 1, y0 + 1], -1)
+    wgt = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1)
+    wgt = wgt * ((xs >= 0) & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))  # zero outside the map
+    idx = ys.clamp(0, h - 1).long() * w + xs.clamp(0, w - 1).long()
+    v = fmap.reshape(-1, c).index_select(0, idx.reshape(-1)).float().reshape(-1, 4, c)
+    return torch.bmm(wgt.reshape(-1, 1, 4).float(), v).reshape(*pos.shape[:-1], c)
 
 
 class ALIKED(nn.Module):
