@@ -143,9 +143,7 @@ class ALIKEDExtractor(Extractor):
         if len(pts) == 0:
             return np.zeros((0, self.channels), np.float32)
         head = self.model.desc_head
-        fmap = st.fmap.to(head.sf_conv.weight.device)
-        if 4 * head.n_pos * len(pts) > fmap.shape[0] * fmap.shape[1]:
-            fmap = fmap.float()  # once for all blocks (SDDH.forward's rule; exact)
+        fmap = head.working_map(st.fmap.to(head.sf_conv.weight.device), len(pts))  # once for all blocks
         W, H = features.image_size
         p = torch.as_tensor(pts, device=fmap.device) - 0.5
         p = torch.stack([p[:, 0].clamp(0, W - 1), p[:, 1].clamp(0, H - 1)], 1)

@@ -108,14 +108,19 @@ class SDDH(nn.Module):
         self.sf_conv = nn.Conv2d(dims, dims, 1, 1, 0, bias=False)
         self.register_parameter("agg_weights", nn.Parameter(torch.zeros(n_pos, dims, dims)))
 
+    def working_map(self, fmap: torch.Tensor, n_points: int) -> torch.Tensor:
+        """``fmap`` in float32 when describing ``n_points`` gathers more corners than it has pixels (the
+        map converted once instead of every gathered corner; exact), else as it is."""
+        if fmap.dtype != torch.float32 and 4 * self.n_pos * n_points > fmap.shape[0] * fmap.shape[1]:
+            return fmap.float()
+        return fmap
+
     def forward(self, fmap: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Unit descriptors (N, C) float32 at ``points`` (N, 2), (x, y) pixel indices (pixel centres at
         integers) of ``fmap`` (H, W, C), any float type (favormap keeps it in float16)."""
         h, w, c = fmap.shape
         ps = self.kernel_size
-        if fmap.dtype != torch.float32 and 4 * self.n_pos * len(points) > h * w:
-            # more corners to gather than pixels: convert the map once, not every gathered corner (exact)
-            fmap = fmap.float()
+        fmap = self.working_map(fmap, len(points))
         # the ps x ps pixels around the point (its nearest pixel in the middle), kept inside the map
         corner = (points - ps / 2 + 1).long()
         cx = corner[:, 0].clamp(0, w - 1 - ps)
@@ -130,7 +135,7 @@ class SDDH(nn.Module):
         f = _bilinear_zeros(fmap, pos)  # (N, n_pos, C)
         f = torch.selu(f @ self.sf_conv.weight[:, :, 0, 0].T)
         # sum over the samples p of f[n, p] @ agg_weights[p]: one (N, n_pos * C) x (n_pos * C, C) product
-        return F.normalize(f.reshape(len(f), -1) @ self.agg_weights.reshape(-1, c), dim=1)
+        return F.normalize(f.flatten(1) @ self.agg_weights.reshape(-1, c), dim=1)
 
 
 def _bilinear_zeros(fmap: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
