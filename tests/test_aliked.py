@@ -130,6 +130,16 @@ def test_the_descriptor_head_samples_as_grid_sample_does(views):
     ref = F.grid_sample(fmap.float().permute(2, 0, 1)[None], grid, align_corners=True, padding_mode="zeros")
     # (grid_sample computes its weights from normalised coordinates: float32 rounding ~1e-5)
     np.testing.assert_allclose(got.numpy(), ref[0, :, :, 0].T.numpy(), atol=5e-5)
+    # the head gathers from the float16 map for a few points and converts the map first for many
+    # (SDDH.working_map): the same descriptors either way; no points, no rows
+    head = ex.model.desc_head
+    pts = pos[:50].clamp(min=torch.zeros(2), max=torch.tensor([w - 1.0, h - 1.0]))
+    assert head.working_map(fmap, len(pts)).dtype == torch.float16
+    assert head.working_map(fmap, h * w).dtype == torch.float32
+    with torch.inference_mode():
+        a, b = head(fmap, pts), head(fmap.float(), pts)
+        assert head(fmap, pts[:0]).shape == (0, c)
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-6)
 
 
 @needs_weights
