@@ -36,6 +36,29 @@ def small_build_config(**over):
     return cfg
 
 
+def assert_samples_at_full_resolution(ex, f, image, near_min: float, far_max: float) -> None:
+    """What a full-resolution learned extractor (DISK, ALIKED) promises of the features ``f`` it extracted
+    from ``image``: > 200 unit 128-d descriptors, strongest first, sub-pixel keypoints inside the image;
+    sampling at the keypoints gives their descriptors; half a pixel away the median cosine stays above
+    ``near_min``, 3 px away it falls below ``far_max`` (a 1/8-resolution map, e.g. XFeat's, interpolates
+    between cells 8 px apart and barely changes over 3 px); any position, including outside the image
+    (clamped), and none at all can be sampled."""
+    import numpy as np
+
+    h, w = image.shape[:2]
+    assert len(f) > 200 and f.descriptors.shape == (len(f), 128) and f.image_size == (w, h)
+    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+    assert np.all(np.diff(f.scores) <= 0)  # strongest first
+    assert np.all((f.keypoints > 0) & (f.keypoints < [w, h]))
+    assert np.any(np.abs(f.keypoints - np.round(f.keypoints - 0.5) - 0.5) > 0.01)  # sub-pixel positions
+    np.testing.assert_array_equal(ex.sample(f, f.keypoints), f.descriptors)
+    near = np.sum(ex.sample(f, f.keypoints + [0.5, 0.0]) * f.descriptors, 1)
+    far = np.sum(ex.sample(f, f.keypoints + [3.0, 0.0]) * f.descriptors, 1)
+    assert np.median(near) > near_min and np.median(far) < far_max, (np.median(near), np.median(far))
+    assert ex.sample(f, np.array([[-4.0, -4.0], [w + 9.0, h + 9.0]], np.float32)).shape == (2, 128)
+    assert ex.sample(f, np.zeros((0, 2), np.float32)).shape == (0, 128)
+
+
 def localize_perturbed(loc, frames, trans=0.2, deg=8.0, seed=0):
     """(N, 2) translation / rotation errors of ``loc`` on ``frames`` from priors moved by ``trans``
     units and ``deg`` degrees; every query must succeed."""

@@ -41,23 +41,12 @@ def test_weights_load_from_the_package_with_the_network_blocked(no_network, monk
 
 @needs_disk
 def test_sampling_at_keypoints_reproduces_their_descriptors(room_image):
+    from conftest import assert_samples_at_full_resolution
+
     ex = features.create("disk", max_keypoints=800)
     f = ex.extract(room_image)
-    h, w = room_image.shape[:2]
-    assert len(f) > 200 and f.descriptors.shape == (len(f), 128) and f.image_size == (w, h)
-    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
-    assert np.all(np.diff(f.scores) <= 0)  # strongest first
-    assert np.all((f.keypoints > 0) & (f.keypoints < [w, h]))
-    assert np.any(np.abs(f.keypoints - np.round(f.keypoints - 0.5) - 0.5) > 0.01)  # sub-pixel positions
-    np.testing.assert_array_equal(ex.sample(f, f.keypoints), f.descriptors)
-    # full resolution: a descriptor 3 px away is already a different one (a 1/8-resolution map, e.g.
-    # XFeat's, interpolates between cells 8 px apart and barely changes over 3 px)
-    near = np.sum(ex.sample(f, f.keypoints + [0.5, 0.0]) * f.descriptors, 1)
-    far = np.sum(ex.sample(f, f.keypoints + [3.0, 0.0]) * f.descriptors, 1)
-    assert np.median(near) > 0.95 and np.median(far) < 0.85, (np.median(near), np.median(far))
-    # any position, including outside the image (clamped) and none at all
-    assert ex.sample(f, np.array([[-4.0, -4.0], [w + 9.0, h + 9.0]], np.float32)).shape == (2, 128)
-    assert ex.sample(f, np.zeros((0, 2), np.float32)).shape == (0, 128)
+    # full resolution: a descriptor 3 px away is already a different one
+    assert_samples_at_full_resolution(ex, f, room_image, near_min=0.95, far_max=0.85)
 
 
 @needs_disk
