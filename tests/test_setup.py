@@ -77,6 +77,7 @@ def test_tools_test_runs_in_the_project_venv(tmp_path):
     (fake / "tests" / "test_where.py").write_text("import sys\n\ndef test_where():\n    print('PREFIX', sys.prefix)\n")
     venv.create(fake / ".venv", with_pip=False, system_site_packages=True)  # pytest from this Python's site
     env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHON")}
+    env["FAVORMAP_TEST_WORKERS"] = "0"  # in one process: -s shows the test's print
     r = subprocess.run(
         ["bash", str(fake / "tools" / "test"), "-s", "-q", "-p", "no:cacheprovider"],
         env=env,
@@ -88,6 +89,52 @@ def test_tools_test_runs_in_the_project_venv(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"PREFIX {fake / '.venv'}" in r.stdout
     assert re.search(r"^1 passed", r.stdout, re.M), r.stdout
+
+
+def test_tools_test_runs_the_tests_in_parallel_workers(tmp_path):
+    """tools/test spreads the tests over pytest-xdist workers, FAVORMAP_TEST_WORKERS of them (default: one per
+    CPU), each with OpenMP threads for its share of the CPUs; a -n on the command line wins."""
+    pytest.importorskip("xdist")
+    fake = tmp_path / "repo"
+    (fake / "tools").mkdir(parents=True)
+    (fake / "tests").mkdir()
+    shutil.copy(REPO / "tools" / "test", fake / "tools" / "test")
+    shutil.copy(REPO / "tests" / "conftest.py", fake / "tests" / "conftest.py")
+    out = tmp_path / "seen"
+    out.mkdir()
+    (fake / "tests" / "test_where.py").write_text(
+        "import os, pathlib, pytest\n\n"
+        "@pytest.mark.parametrize('i', range(8))\n"
+        "def test_where(i):\n"
+        f"    pathlib.Path({str(out)!r}, str(i)).write_text("
+        "os.environ.get('PYTEST_XDIST_WORKER', 'main') + ' ' + os.environ.get('OMP_NUM_THREADS', '-'))\n"
+    )
+    drop = ("VIRTUAL_ENV", "PYTEST_XDIST_WORKER_COUNT", "OMP_NUM_THREADS")
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    env["PYTHON"] = sys.executable
+
+    def run(workers, *args):
+        for f in out.iterdir():
+            f.unlink()
+        r = subprocess.run(
+            ["bash", str(fake / "tools" / "test"), "-q", "-p", "no:cacheprovider", *args],
+            env=dict(env, FAVORMAP_TEST_WORKERS=workers),
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=tmp_path,
+        )
+        assert r.returncode == 0 and re.search(r"^8 passed", r.stdout, re.M), r.stdout + r.stderr
+        seen = [f.read_text().split() for f in out.iterdir()]
+        assert len(seen) == 8
+        return {w for w, _ in seen}, {t for _, t in seen}
+
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers, threads = run("2")
+    assert workers <= {"gw0", "gw1"} and len(workers) >= 1
+    assert threads == {str(max(1, cpus // 2))}
+    assert run("0") == ({"main"}, {"-"})
+    assert run("2", "-n", "0")[0] == {"main"}  # the command line's -n wins
 
 
 def test_quiet_runs_still_print_the_summary_line(tmp_path):
