@@ -109,8 +109,9 @@ def test_tools_test_runs_the_tests_in_parallel_workers(tmp_path):
         f"    pathlib.Path({str(out)!r}, str(i)).write_text("
         "os.environ.get('PYTEST_XDIST_WORKER', 'main') + ' ' + os.environ.get('OMP_NUM_THREADS', '-'))\n"
     )
-    drop = ("VIRTUAL_ENV", "PYTEST_XDIST_WORKER_COUNT", "OMP_NUM_THREADS")
-    env = {k: v for k, v in os.environ.items() if k not in drop}
+    # not this run's own worker variables (PYTEST_XDIST_WORKER, ..._COUNT) nor the threads its conftest set
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "OMP_NUM_THREADS")}
+    env = {k: v for k, v in env.items() if not k.startswith("PYTEST_")}
     env["PYTHON"] = sys.executable
 
     def run(workers, *args):
