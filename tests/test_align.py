@@ -55,17 +55,25 @@ def _errors(path, queries, align):
 def test_aligned_keypoints_localize_views_off_the_mapping_path_more_precisely(
     small_sequence, off_path_queries, tmp_path
 ):
-    """On the synthetic room with exact poses, a map whose tracks were aligned through the landmarks'
-    planes (BuildConfig.refine_window) localizes views 10-30 degrees off its path with the inliers'
-    keypoints aligned to the mapping images more precisely than with the detected keypoints (measured
-    when written: median 0.0015 -> 0.00057 units, every query better)."""
-    from favormap.build import build_map
-    from favormap.mapfile import write_map
+    """On the synthetic room with exact poses, a map built for them (BuildConfig.exact_poses: its tracks
+    aligned through the landmarks' planes, BuildConfig.refine_window 9, and its observations' pixels
+    stored) localizes views 10-30 degrees off its path, by default, with the inliers' keypoints aligned
+    to the mapping images, more precisely than with the detected keypoints (measured when written, with
+    the mapping images: median 0.0015 -> 0.00057 units, every query better)."""
+    import dataclasses
 
-    path = tmp_path / "pl9.h5"
-    write_map(build_map(small_sequence, small_build_config(refine_window=9)), path)
-    plain, _ = _errors(path, off_path_queries, align=False)
-    aligned, res = _errors(path, off_path_queries, align=True)
+    from favormap.build import build_map
+    from favormap.mapfile import Map, write_map
+
+    cfg = dataclasses.replace(small_build_config(), exact_poses=True)
+    assert (cfg.refine_window, cfg.align_patches) == (9, 20)
+    path = tmp_path / "exact.h5"
+    write_map(build_map(small_sequence, cfg), path)
+    with Map(path) as m:
+        assert m.has_track_patches and m.track_patch_radius == 20
+    plain, res_plain = _errors(path, off_path_queries, align=False)
+    assert res_plain.aligned is None and "align" not in res_plain.timings
+    aligned, res = _errors(path, off_path_queries, align=None)  # the map's choice
     assert np.median(aligned) < 0.6 * np.median(plain), (aligned, plain)
     assert np.sum(aligned < plain) >= 5, (aligned, plain)
     assert res.timings["align"] > 0
@@ -181,6 +189,12 @@ def test_the_cli_aligns_on_request_and_refuses_a_too_small_refine_window(small_m
     assert out["success"] and out["timings"]["align"] > 0 and out["num_aligned"] > 0
     p = subprocess.run([*cmd, "--align"], capture_output=True, text=True)
     assert p.returncode == 0 and f"{out['num_aligned']} of {out['num_inliers']} inlier keypoints aligned" in p.stdout
+    # without --align on a map not built with --exact-poses, and with --no-align: no alignment
+    for extra in ([], ["--no-align"]):
+        p = subprocess.run([*cmd, *extra, "--json"], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        out = json.loads(p.stdout)
+        assert out["success"] and "align" not in out["timings"] and "num_aligned" not in out
     out_map = tmp_path / "never.h5"
     p = subprocess.run(
         [

@@ -271,6 +271,17 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
         out = capsys.readouterr().out
         assert f"within 1 px of their epipolar line: {round(100 * kept)} %, within 3 px: {round(100 * kept3)} %" in out
         assert ("--max-epipolar 2" in out) == hint
+    # the exact synthetic poses of the small map (its own statistics) suggest --exact-poses; the fox's
+    # (85 % of the matches within 3 px within 1 px, 0.335 px) and a map built with it do not
+    for stats, hint in (
+        (st, True),
+        ({"epipolar_kept": 0.33, "epipolar_kept_3x": 0.39, "median_reproj_error_px": 0.335}, False),
+    ):
+        print_summary({**base, **stats})
+        assert ("--exact-poses localizes more precisely" in capsys.readouterr().out) == hint
+    print_summary({**base, **st, "exact_poses": True})
+    out = capsys.readouterr().out
+    assert "localize aligns by default" in out and "--exact-poses" not in out
 
 
 @pytest.mark.parametrize("epipolar_first", [False, True])

@@ -246,6 +246,15 @@ def test_quality_presets_and_cli_flags():
         ap.parse_args(["build", "seq", "-o", "x.h5", "--match-window", "3", "--max-epipolar", "2"])
     )
     assert (tracking.match_window, tracking.max_epipolar_px) == (3, 2.0)
+    # --exact-poses: aligned tracks and stored patches unless given, in the CLI and the API
+    exact = cli_build.config_from_args(ap.parse_args(["build", "seq", "-o", "x.h5", "--exact-poses"]))
+    assert (exact.exact_poses, exact.refine_window, exact.align_patches) == (True, 9, 20)
+    assert (plain.exact_poses, plain.refine_window, plain.align_patches) == (False, 0, 0)
+    exact = cli_build.config_from_args(
+        ap.parse_args(["build", "seq", "-o", "x.h5", "--exact-poses", "--refine-window", "5", "--align-patches", "12"])
+    )
+    assert (exact.refine_window, exact.align_patches) == (5, 12)
+    assert (BuildConfig(exact_poses=True).refine_window, BuildConfig(exact_poses=True).align_patches) == (9, 20)
     # the default preset follows the extractor, the same in the CLI and the API: SIFT balanced, the learned
     # extractors Adam ("fast")
     from favormap.voxels.train import default_quality

@@ -1056,6 +1056,8 @@ def main():
                 setattr(build_cfg, k, getattr(args, k))
         if args.iterations:
             build_cfg.voxel.iterations = args.iterations
+        # construct again: the defaults that follow the fields set (exact_poses: refine_window, align_patches)
+        build_cfg = dataclasses.replace(build_cfg)
         build_cfgs.append((vname, build_cfg))
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)

@@ -40,5 +40,7 @@ def run(args) -> int:
     if info["align_patches"]:
         r = info["align_patches"]
         print(f"observation patches {2 * r + 1} x {2 * r + 1} px (localize --align needs no mapping images)")
+    if info["exact_poses"]:
+        print("exact poses         built with --exact-poses: localize aligns the inliers' keypoints by default")
     print(f"file size           {human_size(info['file_size'])}")
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -87,11 +88,13 @@ def add_localize_options(p):
     )
     p.add_argument(
         "--align",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="before the final refinement, align each inlier's keypoint to the mapping image that saw its landmark "
         "from the nearest direction, through the landmark's local plane (needs the mapping images, or a map built "
         "with --align-patches; measured on a "
-        "synthetic scene with exact poses 0.2-0.5x the error, on the real fox sequence 1.1-1.3x: docs/accuracy.md)",
+        "synthetic scene with exact poses 0.2-0.5x the error, on the real fox sequence 1.1-1.3x: docs/accuracy.md). "
+        "Default: on for a map built with --exact-poses, else off",
     )
     p.add_argument(
         "--mapping-images",
@@ -213,7 +216,7 @@ def config_from_args(args):
             sigma = -1.0
         if not (sigma >= 0 and sigma < float("inf")):
             raise InputError("--landmark-sigma must be 'landmark', 'map' or a number of pixels >= 0")
-    align = getattr(args, "align", False)
+    align = getattr(args, "align", None)  # None: the map's choice (on for a map built with --exact-poses)
     images = getattr(args, "mapping_images", None)
     if images is not None and not align:
         raise InputError("--mapping-images is for --align")

@@ -31,6 +31,7 @@ from ..geometry import from_rigid3d, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
+from ..mapfile.model import built_for_exact_poses
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
@@ -175,8 +176,9 @@ class LocalizeConfig:
     # query (favormap.localize.align; needs the mapping images: align_images, or None for the folder
     # the map was built from). tools/bench_accuracy.py (twenty-ninth session, noise priors, paired with
     # the detected keypoints): synthetic orbit 0.54x (0.20x on a map built with refine_window=9), fox
-    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off
-    align: bool = False
+    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off, but on (None: the map's choice) for a map
+    # built for exact poses (BuildConfig.exact_poses: the aligned tracks and the stored patches it needs)
+    align: bool | None = None
     align_images: str | None = None
     align_references: int = 1  # mapping frames each inlier is aligned to (AlignConfig.references)
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
@@ -333,6 +335,8 @@ class Localizer:
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
+        if self.config.align is None:
+            self.config = dataclasses.replace(self.config, align=built_for_exact_poses(self.map.provenance))
         if self.config.align:
             from .align import AlignConfig, PlaneAligner
 

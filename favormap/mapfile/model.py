@@ -27,6 +27,12 @@ def new_landmark_ids(n: int, avoid: np.ndarray | None = None) -> np.ndarray:
     return ids[:n]
 
 
+def built_for_exact_poses(provenance: dict | None) -> bool:
+    """Whether a map of this provenance was built with ``BuildConfig.exact_poses`` (``build --exact-poses``):
+    then localization aligns the inliers' keypoints unless told otherwise (``LocalizeConfig.align`` None)."""
+    return bool((provenance or {}).get("config", {}).get("exact_poses", False))
+
+
 def median_landmark_reproj_error(reproj_error) -> float | None:
     """The map's reprojection-error figure, one definition for build's summary and ``info``: the
     median over landmarks of each landmark's mean reprojection error over its observations (px)."""
