@@ -445,3 +445,20 @@ def test_several_references_average_the_alignments_to_each(small_map, off_path_q
     m1, ok1 = al.align(gray, cam.K, T, loc.positions, rows, kp)
     np.testing.assert_array_equal(ok1, each[0][1])
     np.testing.assert_allclose(m1, np.where(ok1[:, None], each[0][0], kp))
+
+
+def test_multichannel_bilinear_samples_are_each_channels_samples():
+    """io.images.sample_bilinear of an (H, W, 3) image (the alignment samples the image and its two
+    gradients in one lookup) equals each channel sampled alone, outside the image too (NaN in every channel)."""
+    from favormap.io.images import sample_bilinear
+
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 50, 3), dtype=np.float32)
+    xy = np.concatenate([rng.uniform(0, 50, (200, 2)) * [1, 0.8], [[-3.0, 5.0], [55.0, 10.0], [10.0, 45.0]]])
+    xy = xy.reshape(-1, 7, 2)
+    for outside in (None, np.nan):
+        both = sample_bilinear(img, xy, outside=outside)
+        assert both.shape == (*xy.shape[:-1], 3)
+        for c in range(3):
+            np.testing.assert_array_equal(both[..., c], sample_bilinear(np.ascontiguousarray(img[..., c]), xy, outside))
+    assert np.isnan(both.reshape(-1, 3)[-3:]).all()

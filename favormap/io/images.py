@@ -118,18 +118,20 @@ def prepare_query(image, camera: Camera, max_side: int | None = 640) -> tuple[np
 
 
 def sample_bilinear(img: np.ndarray, xy: np.ndarray, outside: float | None = None) -> np.ndarray:
-    """Bilinear samples of a float32 image at points ``xy`` (..., 2), COLMAP pixel convention; outside
-    the image the border pixels continue (``outside`` None) or the value ``outside`` (e.g. NaN)."""
+    """Bilinear samples of a float32 image (H, W) or (H, W, C <= 4) at points ``xy`` (..., 2): (...) or
+    (..., C), COLMAP pixel convention; outside the image the border pixels continue (``outside`` None) or
+    the value ``outside`` (e.g. NaN) in every channel."""
     m = (xy.reshape(-1, 2) - 0.5).astype(np.float32)
     n, width = len(m), 4096  # cv2.remap's maps: fewer than 32,767 rows and columns
     m = np.concatenate([m, np.zeros((-n % width, 2), np.float32)]).reshape(-1, width, 2)
     border = (
         dict(borderMode=cv2.BORDER_REPLICATE)
         if outside is None
-        else dict(borderMode=cv2.BORDER_CONSTANT, borderValue=float(outside))
+        else dict(borderMode=cv2.BORDER_CONSTANT, borderValue=(float(outside),) * 4)
     )
     out = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, **border)
-    return out.reshape(-1)[:n].reshape(xy.shape[:-1])
+    channels = img.shape[2:]
+    return out.reshape((-1,) + channels)[:n].reshape(xy.shape[:-1] + channels)
 
 
 def patches_around(img: np.ndarray, xy: np.ndarray, radius: int) -> np.ndarray:

@@ -258,18 +258,20 @@ class PlaneAligner:
         ok = np.isfinite(tmpl).all(1) & (depth > 0).all(1)  # (a ray parallel to the plane: NaN)
         tmpl = np.nan_to_num(tmpl)
         gy, gx = np.gradient(gray)
+        # the image and its gradients as one 3-channel image: one bilinear lookup a step for all three
+        stack = np.ascontiguousarray(np.stack([gray, gx, gy], -1), np.float32)
         shift = np.zeros((len(rows), 2))
         gain, bias = np.ones(len(rows)), np.zeros(len(rows))
         ones = np.ones_like(tmpl)
         for _ in range(cfg.iterations):
-            at = u + shift[:, None]
-            val, dx, dy = sample(gray, at), sample(gx, at), sample(gy, at)
-            ok &= np.isfinite(val).all(1)
-            val, dx, dy = np.nan_to_num(val), np.nan_to_num(dx), np.nan_to_num(dy)
-            res = val - (gain[:, None] * tmpl + bias[:, None])
-            J = np.stack([dx, dy, -tmpl, -ones], -1)  # d res / d (shift, gain, bias)
-            H = np.einsum("npi,npj->nij", J, J) + 1e-6 * np.eye(4)
-            step = np.linalg.solve(H, -np.einsum("npi,np->ni", J, res)[..., None])[..., 0]
+            vd = sample(stack, u + shift[:, None])  # (N, P, 3): value, d/dx, d/dy
+            ok &= np.isfinite(vd[..., 0]).all(1)
+            vd = np.nan_to_num(vd)
+            res = vd[..., 0] - (gain[:, None] * tmpl + bias[:, None])
+            J = np.stack([vd[..., 1], vd[..., 2], -tmpl, -ones], -1)  # d res / d (shift, gain, bias)
+            Jt = J.transpose(0, 2, 1)
+            H = Jt @ J + 1e-6 * np.eye(4)  # batched products: BLAS, not einsum's loops
+            step = np.linalg.solve(H, -(Jt @ res[..., None]))[..., 0]
             shift += step[:, :2]
             gain += step[:, 2]
             bias += step[:, 3]
