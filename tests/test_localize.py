@@ -687,6 +687,12 @@ def test_demo_runs_end_to_end(tmp_path, capsys, monkeypatch):
     assert printed
     for p in printed:
         assert (tmp_path / p).exists() or Path(p).exists(), p
+    # the room's poses are exact: the build suggests --exact-poses, and with it the map aligns by itself
+    assert "--exact-poses localizes more precisely" in out
+    args = ["demo", "--workdir", "exact", "--frames", "10", "--width", "320", "--height", "240", "--exact-poses", "-q"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "localize aligns by default" in out and "rendered:" in out and "--exact-poses localizes" not in out
 
 
 def test_local_pnp_refines_a_pose_on_its_own_inliers(small_map, small_sequence):

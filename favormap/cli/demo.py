@@ -31,6 +31,12 @@ def register(sub):
         default=None,
         help="train the voxels with Adam (--quality fast) for this many iterations (default: the build's defaults)",
     )
+    p.add_argument(
+        "--exact-poses",
+        action="store_true",
+        help="build as `favormap build --exact-poses` does (the room's poses are exact): tracks and query keypoints "
+        "aligned to the mapping images",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto")
     add_threads_arg(p)
@@ -62,7 +68,7 @@ def run(args) -> int:
     held = [i for i in range(len(seq)) if i % 5 == 2]
     train = [i for i in range(len(seq)) if i % 5 != 2]
     # the build's defaults; --iterations: Adam training ("fast") with that many iterations
-    cfg = BuildConfig()
+    cfg = BuildConfig(exact_poses=args.exact_poses)
     if args.iterations is not None:
         cfg.voxel = VoxelConfig.preset("fast", iterations=args.iterations)
     bars = StageBars(args.quiet)
