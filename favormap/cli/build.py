@@ -221,10 +221,12 @@ def config_from_args(args):
 
 
 def summary(m, path: Path) -> dict:
+    from ..mapfile.model import built_for_exact_poses
+
     st = m.provenance["stats"]
     return {
         **st,
-        "exact_poses": bool(m.provenance.get("config", {}).get("exact_poses", False)),
+        "exact_poses": built_for_exact_poses(m.provenance),
         "file": str(path),
         "file_size": path.stat().st_size,
         "timings": m.provenance["timings"],
