@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, direction_cones, inverse, plane_points, project, sum_by_group
+from .geometry import camera_centers, direction_cones, inverse, sum_by_group
 from .io.images import sample_bilinear
 from .tracking import Tracks
 
@@ -206,6 +206,10 @@ def landmark_normals(positions: np.ndarray, toward: np.ndarray, k: int = 12) -> 
     return normal * np.where(np.einsum("ni,ni->n", normal, toward - positions) < 0, -1.0, 1.0)[:, None]
 
 
+# observations refine_observations aligns at a time (~60 MB of samples at a 9 x 9 window)
+REFINE_BLOCK = 32768
+
+
 def refine_observations(
     lms: Landmarks,
     grays,
@@ -250,43 +254,63 @@ def refine_observations(
     centers = camera_centers(cam_from_world)
     if normals is None:
         normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
-    imgs = {}
-
-    def image(f):  # float image and its gradients (central differences), once per frame
-        if f not in imgs:
-            im = np.asarray(grays[f], np.float32)
-            imgs[f] = (
-                im,
-                cv2.Sobel(im, cv2.CV_32F, 1, 0, ksize=1) * 0.5,
-                cv2.Sobel(im, cv2.CV_32F, 0, 1, ksize=1) * 0.5,
-            )
-        return imgs[f]
+    T = np.asarray(cam_from_world, np.float64)
+    K = np.broadcast_to(np.asarray(K, np.float64), (len(T), 3, 3))
+    # pixel -> world ray of each frame (R^T K^-1); with the plane through X of normal n, a pixel of frame a
+    # maps into frame b by the homography K_b [R_b (C_a n^T + c I) + t_b n^T] R_a^T K_a^-1, c = n . (X - C_a):
+    # the ray's meeting with the plane (geometry.plane_points) projected into b (geometry.project) in one product
+    ray_of = np.transpose(T[:, :3, :3], (0, 2, 1)) @ np.linalg.inv(K)
 
     todo = np.flatnonzero(np.arange(len(xy)) != ref)
     fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
-    pair = fa * (int(tracks.frame_idx.max()) + 1) + fb
-    order = np.argsort(pair, kind="stable")
-    for group in np.split(order, np.flatnonzero(np.diff(pair[order])) + 1):
-        o = todo[group]
-        a, b = int(fa[group[0]]), int(fb[group[0]])
-        X, n = lms.positions[tid[o]], normals[tid[o]]
-        pa = tracks.xy[ref[o]]
-        grid = pa[:, None] + g[None]
-        ia, gx, gy = image(a)
-        A = sample_bilinear(ia, grid)
+    X, n = lms.positions[tid[todo]], normals[tid[todo]]
+    Ca = centers[fa]
+    c = np.einsum("ni,ni->n", n, X - Ca)
+    inner = np.einsum("nij,nj,nk->nik", T[fb, :3, :3], Ca, n) + c[:, None, None] * T[fb, :3, :3]
+    inner += T[fb, :3, 3][:, :, None] * n[:, None, :]
+    H = K[fb] @ inner @ ray_of[fa]  # (N, 3, 3): reference pixel -> pixel in the observation's frame
+
+    def carried(h, pix):  # pix (N, G, 2) of the reference frames through the homographies h (N, 3, 3)
+        x, y = pix[..., 0], pix[..., 1]
+        q = [h[:, i, 0, None] * x + h[:, i, 1, None] * y + h[:, i, 2, None] for i in range(3)]
+        w = np.where(np.abs(q[2]) < 1e-12, 1e-12, q[2])
+        return np.stack([q[0] / w, q[1] / w], -1)
+
+    pa = tracks.xy[ref[todo]]
+    s = np.zeros((len(todo), 2))
+    imgs = {}  # frame -> its grey image, and it with its gradients (central differences) as 3 channels
+
+    def image(f):
+        if f not in imgs:
+            im = np.ascontiguousarray(grays[f], np.float32)
+            sobel = [cv2.Sobel(im, cv2.CV_32F, dx, 1 - dx, ksize=1) * 0.5 for dx in (1, 0)]
+            imgs[f] = im, np.stack([im] + sobel, -1)
+        return imgs[f]
+
+    for lo in range(0, len(todo), REFINE_BLOCK):  # bounded memory: (block, window^2) samples at a time
+        blk = np.arange(lo, min(lo + REFINE_BLOCK, len(todo)))
+        grid = pa[blk, None] + g[None]
+        # the reference templates and their gradients, frame by frame of the references (one lookup each)
+        A, J = np.zeros(grid.shape[:2]), np.zeros(grid.shape[:2] + (2,))
+        for a in np.unique(fa[blk]):
+            rows = np.flatnonzero(fa[blk] == a)
+            v = sample_bilinear(image(a)[1], grid[rows])
+            A[rows], J[rows] = v[..., 0], v[..., 1:]
         A -= A.mean(1, keepdims=True)
-        J = np.stack([sample_bilinear(gx, grid), sample_bilinear(gy, grid)], -1)
         J -= J.mean(1, keepdims=True)
-        hess = np.einsum("ngi,ngj->nij", J, J) + 1e-6 * np.eye(2)
-        ib = image(b)[0]
-        s = np.zeros((len(o), 2))
+        Jt = J.transpose(0, 2, 1)
+        step = np.linalg.inv(Jt @ J + 1e-6 * np.eye(2)) @ Jt  # (n, 2, G): Gauss-Newton's step from the residuals
+        # Lucas-Kanade, all observations in one frame a step at a time (one lookup of that frame)
+        by_frame = [(b, np.flatnonzero(fb[blk] == b)) for b in np.unique(fb[blk])]
+        sb, Hb = s[blk], H[blk]
         for _ in range(iterations):
-            P = plane_points(K[a], cam_from_world[a], grid + s[:, None], X, n)
-            W = sample_bilinear(ib, project(K[b], cam_from_world[b], P.reshape(-1, 3)).reshape(P.shape[:-1] + (2,)))
-            e = W - W.mean(1, keepdims=True) - A
-            s -= np.linalg.solve(hess, np.einsum("ngi,ng->ni", J, e)[..., None])[..., 0]
-        pb = project(K[b], cam_from_world[b], plane_points(K[a], cam_from_world[a], (pa + s)[:, None], X, n)[:, 0])
-        ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[o], axis=1) <= max_move_px)
-        xy[o[ok]] = pb[ok]
-        moved[o[ok]] = True
+            for b, rows in by_frame:
+                W = sample_bilinear(image(b)[0], carried(Hb[rows], grid[rows] + sb[rows, None]))
+                e = W - W.mean(1, keepdims=True) - A[rows]
+                sb[rows] -= (step[rows] @ e[..., None])[..., 0]
+        s[blk] = sb
+    pb = carried(H, (pa + s)[:, None])[:, 0]
+    ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[todo], axis=1) <= max_move_px)
+    xy[todo[ok]] = pb[ok]
+    moved[todo[ok]] = True
     return Tracks(tracks.frame_idx, tracks.keypoint_idx, xy, tracks.offsets), moved
