@@ -54,6 +54,27 @@ def default_max_epipolar(extractor: str) -> float:
 # settings measured on the synthetic orbit (twenty-ninth and thirty-eighth sessions)
 EXACT_POSES_REFINE_WINDOW = 9
 EXACT_POSES_PATCHES = 20
+# Extractors whose maps store their observations' pixels (align_patches 20 unless given) and localize with the
+# query keypoints aligned to them by default: the learned detectors place a keypoint 2-3x less precisely than
+# SIFT's scale-space fit (0.24-0.29 px against 0.10 px on the synthetic room, thirty-fifth session), and the
+# alignment takes that error out. Thirty-eighth session, tools/bench_accuracy.py --extractor disk,aliked, the
+# aligned rendering paired with the plain one (docs/accuracy.md): DISK fox hold-out 0.64x (0.0022 -> 0.0012 units),
+# extrapolation 0.82x (0.0087 -> 0.0056, 0.49x the pycolmap baseline), orbit 0.30x; ALIKED 0.53x (0.0031 ->
+# 0.0016), 0.86x (0.0127 -> 0.0109), 0.29x. SIFT's keypoints gain only where the poses are exact (exact_poses)
+ALIGNED_EXTRACTORS = ("disk", "aliked")
+
+
+def default_align_patches(extractor: str) -> int:
+    """The stored observation patches' radius a build of ``extractor`` uses when none is given (0: none)."""
+    return EXACT_POSES_PATCHES if extractor in ALIGNED_EXTRACTORS else 0
+
+
+def localize_defaults(config: BuildConfig) -> dict:
+    """What a map built with ``config`` asks of the localizer unless told otherwise (stored in the map's
+    provenance as ``localize_defaults``; LocalizeConfig fields left None follow it): the keypoint alignment
+    where the poses are exact or the extractor's keypoints imprecise, with the stored patches it needs."""
+    align = config.exact_poses or (config.extractor in ALIGNED_EXTRACTORS and config.align_patches > 0)
+    return {"align": bool(align)}
 
 
 @dataclass
@@ -88,8 +109,9 @@ class BuildConfig:
     # synthetic room with exact poses it halves the landmarks' distance to the surface (tests/test_build.py)
     refine_window: int = 0
     # store each observation's (2r+1)^2 grey pixels in the map (optional dataset tracks/patch; 0: none), so
-    # that localize --align needs no mapping images (favormap.localize.align)
-    align_patches: int = 0
+    # that localize --align needs no mapping images (favormap.localize.align). None: the extractor's default
+    # (default_align_patches: 20 for DISK and ALIKED, whose maps align by default; else 0)
+    align_patches: int | None = None
     # the mapping poses are exact (a simulator, motion capture; not SLAM or SfM): the tracks are aligned as
     # refine_window does (EXACT_POSES_REFINE_WINDOW unless refine_window is given), each observation's pixels
     # are stored (EXACT_POSES_PATCHES unless align_patches is given), and localization aligns each inlier's
@@ -114,6 +136,8 @@ class BuildConfig:
             self.voxel = VoxelConfig.preset(default_quality(self.extractor))
         if self.max_epipolar_px is None:
             self.max_epipolar_px = default_max_epipolar(self.extractor)
+        if self.align_patches is None:
+            self.align_patches = default_align_patches(self.extractor)
         if self.exact_poses:
             self.refine_window = self.refine_window or EXACT_POSES_REFINE_WINDOW
             self.align_patches = self.align_patches or EXACT_POSES_PATCHES
@@ -854,6 +878,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             "source": str(seq.root),
             "source_format": seq.format,
             "config": config.to_dict(),
+            "localize_defaults": localize_defaults(config),
             "timings": pr.timings,
             "stats": stats,
             "training_history": grids.history,

@@ -255,6 +255,18 @@ def test_quality_presets_and_cli_flags():
     )
     assert (exact.refine_window, exact.align_patches) == (5, 12)
     assert (BuildConfig(exact_poses=True).refine_window, BuildConfig(exact_poses=True).align_patches) == (9, 20)
+    # DISK and ALIKED maps store their observations' pixels and ask the localizer to align (build.localize_defaults)
+    from favormap.build import localize_defaults
+
+    assert [BuildConfig(extractor=ex).align_patches for ex in ("sift", "xfeat", "disk", "aliked")] == [0, 0, 20, 20]
+    assert BuildConfig(extractor="disk", align_patches=0).align_patches == 0
+    aligns = [localize_defaults(BuildConfig(extractor=ex))["align"] for ex in ("sift", "xfeat", "disk", "aliked")]
+    assert aligns == [False, False, True, True]
+    assert not localize_defaults(BuildConfig(extractor="disk", align_patches=0))["align"]  # nothing to align to
+    assert localize_defaults(BuildConfig(exact_poses=True))["align"]
+    for ex, r in (("sift", 0), ("disk", 20)):
+        args = ap.parse_args(["build", "seq", "-o", "x.h5", "--extractor", ex])
+        assert cli_build.config_from_args(args).align_patches == r
     # the default preset follows the extractor, the same in the CLI and the API: SIFT balanced, the learned
     # extractors Adam ("fast")
     from favormap.voxels.train import default_quality

@@ -84,7 +84,8 @@ def register(sub):
         default=None,
         metavar="R",
         help="store each observation's (2R+1) x (2R+1) grey pixels in the map (e.g. 20: 41 x 41 bytes an "
-        "observation, ~1.1 kB compressed), so that `localize --align` needs no mapping images (default 0: none)",
+        "observation, ~1.1 kB compressed), so that `localize --align` needs no mapping images (default: 20 for DISK "
+        "and ALIKED, whose maps localize with the alignment by default; else 0: none)",
     )
     p.add_argument(
         "--quality",
@@ -221,12 +222,13 @@ def config_from_args(args):
 
 
 def summary(m, path: Path) -> dict:
-    from ..mapfile.model import built_for_exact_poses
+    from ..mapfile.model import built_for_exact_poses, map_aligns_by_default
 
     st = m.provenance["stats"]
     return {
         **st,
         "exact_poses": built_for_exact_poses(m.provenance),
+        "aligns_by_default": map_aligns_by_default(m.provenance),
         "file": str(path),
         "file_size": path.stat().st_size,
         "timings": m.provenance["timings"],
@@ -265,6 +267,8 @@ def print_summary(s: dict) -> None:
     print(reproj_error_line(s["median_reproj_error_px"]))
     if s.get("exact_poses"):
         print("exact poses         tracks aligned through the landmarks' planes; localize aligns by default")
+    elif s.get("aligns_by_default"):
+        print("keypoint alignment  observations' pixels stored; localize aligns the query keypoints by default")
     elif kept and kept3 and kept >= _EXACT_HINT_SHARE * kept3 and s["median_reproj_error_px"] <= _EXACT_HINT_PX:
         print(
             "                    (the tracks fit the poses as exact ones do: if they are, from a simulator or motion "

@@ -40,7 +40,8 @@ def run(args) -> int:
     if info["align_patches"]:
         r = info["align_patches"]
         print(f"observation patches {2 * r + 1} x {2 * r + 1} px (localize --align needs no mapping images)")
-    if info["exact_poses"]:
-        print("exact poses         built with --exact-poses: localize aligns the inliers' keypoints by default")
+    if info["aligns_by_default"]:
+        why = "built with --exact-poses" if info["exact_poses"] else f"{info['extractor']} keypoints"
+        print(f"keypoint alignment  on by default in localize ({why}; --no-align turns it off)")
     print(f"file size           {human_size(info['file_size'])}")
     return 0

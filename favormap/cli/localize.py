@@ -94,7 +94,8 @@ def add_localize_options(p):
         "from the nearest direction, through the landmark's local plane (needs the mapping images, or a map built "
         "with --align-patches; measured on a "
         "synthetic scene with exact poses 0.2-0.5x the error, on the real fox sequence 1.1-1.3x: docs/accuracy.md). "
-        "Default: on for a map built with --exact-poses, else off",
+        "Default: what the map asks for (`favormap info`): on for maps built with --exact-poses and for DISK and "
+        "ALIKED maps, off for SIFT maps",
     )
     p.add_argument(
         "--mapping-images",

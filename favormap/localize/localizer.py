@@ -31,7 +31,7 @@ from ..geometry import from_rigid3d, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
-from ..mapfile.model import built_for_exact_poses
+from ..mapfile.model import map_aligns_by_default
 from ..threads import configure_threads, rebalance
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
@@ -176,8 +176,9 @@ class LocalizeConfig:
     # query (favormap.localize.align; needs the mapping images: align_images, or None for the folder
     # the map was built from). tools/bench_accuracy.py (twenty-ninth session, noise priors, paired with
     # the detected keypoints): synthetic orbit 0.54x (0.20x on a map built with refine_window=9), fox
-    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off, but on (None: the map's choice) for a map
-    # built for exact poses (BuildConfig.exact_poses: the aligned tracks and the stored patches it needs)
+    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off for SIFT maps; None (the default) follows
+    # the map (mapfile.model.map_aligns_by_default): on for a map built for exact poses (BuildConfig.exact_poses)
+    # and for DISK and ALIKED maps, which store the patches it needs (build.localize_defaults)
     align: bool | None = None
     align_images: str | None = None
     align_references: int = 1  # mapping frames each inlier is aligned to (AlignConfig.references)
@@ -336,7 +337,7 @@ class Localizer:
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
         if self.config.align is None:
-            self.config = dataclasses.replace(self.config, align=built_for_exact_poses(self.map.provenance))
+            self.config = dataclasses.replace(self.config, align=map_aligns_by_default(self.map.provenance))
         if self.config.align:
             from .align import AlignConfig, PlaneAligner
 

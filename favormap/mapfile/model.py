@@ -28,9 +28,15 @@ def new_landmark_ids(n: int, avoid: np.ndarray | None = None) -> np.ndarray:
 
 
 def built_for_exact_poses(provenance: dict | None) -> bool:
-    """Whether a map of this provenance was built with ``BuildConfig.exact_poses`` (``build --exact-poses``):
-    then localization aligns the inliers' keypoints unless told otherwise (``LocalizeConfig.align`` None)."""
+    """Whether a map of this provenance was built with ``BuildConfig.exact_poses`` (``build --exact-poses``)."""
     return bool((provenance or {}).get("config", {}).get("exact_poses", False))
+
+
+def map_aligns_by_default(provenance: dict | None) -> bool:
+    """Whether a map of this provenance asks the localizer for the keypoint alignment unless told otherwise
+    (``LocalizeConfig.align`` None; its build's ``localize_defaults``: exact poses, or DISK / ALIKED keypoints
+    with the observations' pixels stored; maps without the record: no)."""
+    return bool((provenance or {}).get("localize_defaults", {}).get("align", False))
 
 
 def median_landmark_reproj_error(reproj_error) -> float | None:

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import FavormapError, MapFormatError, first_line
 from ..io import Camera
 from .fields import bulk_datasets, field_name, metadata_datasets
-from .model import MapCounts, MapData, built_for_exact_poses, median_landmark_reproj_error
+from .model import MapCounts, MapData, built_for_exact_poses, map_aligns_by_default, median_landmark_reproj_error
 from .schema import FORMAT, check_structure, check_values, open_view
 
 
@@ -193,6 +193,7 @@ class Map(MapCounts):
             "align_patches": self.track_patch_radius,  # R of the stored observation patches (0: none)
             # built for exact poses (BuildConfig.exact_poses): localize aligns the inliers' keypoints by default
             "exact_poses": built_for_exact_poses(self.provenance),
+            "aligns_by_default": map_aligns_by_default(self.provenance),  # localize aligns unless told otherwise
             "mean_track_length": float(np.mean(self.track_length)) if len(self) else 0.0,
             "median_reproj_error_px": median_landmark_reproj_error(self.reproj_error),
             "median_psnr": float(np.median(self.quality)) if len(self) else None,
