@@ -217,6 +217,28 @@ def plane_points(
     return C + lam[..., None] * rays
 
 
+def plane_homographies(
+    K_a: np.ndarray, T_a: np.ndarray, K_b: np.ndarray, T_b: np.ndarray, X: np.ndarray, n: np.ndarray
+) -> np.ndarray:
+    """(N, 3, 3) homographies carrying pixels of camera a (K_a (N,3,3), cam_from_world T_a (N,4,4)) through the
+    planes through X (N, 3) with normals n (N, 3) into camera b: :func:`plane_points` followed by
+    :func:`project` in one product, K_b [R_b (C_a n^T + c I) + t_b n^T] R_a^T K_a^-1 with c = n . (X - C_a)."""
+    T_a, T_b = np.asarray(T_a, np.float64), np.asarray(T_b, np.float64)
+    Ca = camera_centers(T_a)
+    c = np.einsum("ni,ni->n", n, X - Ca)
+    Rb = T_b[:, :3, :3]
+    inner = np.einsum("nij,nj,nk->nik", Rb, Ca, n) + c[:, None, None] * Rb + T_b[:, :3, 3][:, :, None] * n[:, None, :]
+    return np.asarray(K_b, np.float64) @ inner @ np.transpose(T_a[:, :3, :3], (0, 2, 1)) @ np.linalg.inv(K_a)
+
+
+def apply_homographies(H: np.ndarray, pix: np.ndarray) -> np.ndarray:
+    """Pixels ``pix`` (N, G, 2) carried by the homographies ``H`` (N, 3, 3), one per row: (N, G, 2)."""
+    x, y = pix[..., 0], pix[..., 1]
+    q = [H[:, i, 0, None] * x + H[:, i, 1, None] * y + H[:, i, 2, None] for i in range(3)]
+    w = np.where(np.abs(q[2]) < 1e-12, 1e-12, q[2])
+    return np.stack([q[0] / w, q[1] / w], -1)
+
+
 def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray, with_depth: bool = False):
     """Pixel positions (N, 2) of world points (N, 3) in a pinhole camera with intrinsics ``K`` (COLMAP
     pixel convention when K is a COLMAP/favormap camera's): the one pinhole projection of favormap.

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, direction_cones, inverse, sum_by_group
+from .geometry import apply_homographies, camera_centers, direction_cones, inverse, plane_homographies, sum_by_group
 from .io.images import sample_bilinear
 from .tracking import Tracks
 
@@ -256,26 +256,10 @@ def refine_observations(
         normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
     T = np.asarray(cam_from_world, np.float64)
     K = np.broadcast_to(np.asarray(K, np.float64), (len(T), 3, 3))
-    # pixel -> world ray of each frame (R^T K^-1); with the plane through X of normal n, a pixel of frame a
-    # maps into frame b by the homography K_b [R_b (C_a n^T + c I) + t_b n^T] R_a^T K_a^-1, c = n . (X - C_a):
-    # the ray's meeting with the plane (geometry.plane_points) projected into b (geometry.project) in one product
-    ray_of = np.transpose(T[:, :3, :3], (0, 2, 1)) @ np.linalg.inv(K)
-
     todo = np.flatnonzero(np.arange(len(xy)) != ref)
     fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
-    X, n = lms.positions[tid[todo]], normals[tid[todo]]
-    Ca = centers[fa]
-    c = np.einsum("ni,ni->n", n, X - Ca)
-    inner = np.einsum("nij,nj,nk->nik", T[fb, :3, :3], Ca, n) + c[:, None, None] * T[fb, :3, :3]
-    inner += T[fb, :3, 3][:, :, None] * n[:, None, :]
-    H = K[fb] @ inner @ ray_of[fa]  # (N, 3, 3): reference pixel -> pixel in the observation's frame
-
-    def carried(h, pix):  # pix (N, G, 2) of the reference frames through the homographies h (N, 3, 3)
-        x, y = pix[..., 0], pix[..., 1]
-        q = [h[:, i, 0, None] * x + h[:, i, 1, None] * y + h[:, i, 2, None] for i in range(3)]
-        w = np.where(np.abs(q[2]) < 1e-12, 1e-12, q[2])
-        return np.stack([q[0] / w, q[1] / w], -1)
-
+    # each observation's reference pixels carried into its frame through the landmark's plane
+    H = plane_homographies(K[fa], T[fa], K[fb], T[fb], lms.positions[tid[todo]], normals[tid[todo]])
     pa = tracks.xy[ref[todo]]
     s = np.zeros((len(todo), 2))
     imgs = {}  # frame -> its grey image, and it with its gradients (central differences) as 3 channels
@@ -305,11 +289,11 @@ def refine_observations(
         sb, Hb = s[blk], H[blk]
         for _ in range(iterations):
             for b, rows in by_frame:
-                W = sample_bilinear(image(b)[0], carried(Hb[rows], grid[rows] + sb[rows, None]))
+                W = sample_bilinear(image(b)[0], apply_homographies(Hb[rows], grid[rows] + sb[rows, None]))
                 e = W - W.mean(1, keepdims=True) - A[rows]
                 sb[rows] -= (step[rows] @ e[..., None])[..., 0]
         s[blk] = sb
-    pb = carried(H, (pa + s)[:, None])[:, 0]
+    pb = apply_homographies(H, (pa + s)[:, None])[:, 0]
     ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[todo], axis=1) <= max_move_px)
     xy[todo[ok]] = pb[ok]
     moved[todo[ok]] = True

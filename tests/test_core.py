@@ -366,3 +366,24 @@ def test_quaternions_match_scipy_including_half_turns():
     qs = rots.as_quat() * 3.0  # not normalised: quat_to_rotmat normalises
     assert np.allclose(quat_to_rotmat(qs), mats, atol=1e-12)
     assert quat_to_rotmat(qs.reshape(5, 101, 4)).shape == (5, 101, 3, 3)
+
+
+def test_plane_homographies_carry_pixels_as_the_plane_points_project():
+    """geometry.plane_homographies: a pixel of camera a carried by the homography of a landmark's plane lands
+    where its ray's meeting with that plane (geometry.plane_points) projects into camera b."""
+    from favormap.geometry import apply_homographies, plane_homographies, plane_points, project
+
+    rng = np.random.default_rng(3)
+    K = np.array([[500.0, 0, 320], [0, 480.0, 240], [0, 0, 1]])
+    Ta = look_at(np.array([0.0, -2.0, 0.3]), np.zeros(3))
+    Tb = look_at(np.array([0.8, -1.8, 0.5]), np.zeros(3))
+    X = rng.normal(0, 0.2, (6, 3))
+    n = rng.normal(size=(6, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    pix = project(K, Ta, X)[:, None] + rng.uniform(-6, 6, (6, 9, 2))
+    want = project(K, Tb, plane_points(K, Ta, pix, X, n).reshape(-1, 3)).reshape(pix.shape)
+    N = len(X)
+    H = plane_homographies(np.repeat(K[None], N, 0), np.repeat(Ta[None], N, 0), np.repeat(K[None], N, 0),
+                           np.repeat(Tb[None], N, 0), X, n)  # fmt: skip
+    np.testing.assert_allclose(apply_homographies(H, pix), want, atol=1e-8)
+    np.testing.assert_allclose(apply_homographies(H, project(K, Ta, X)[:, None])[:, 0], project(K, Tb, X), atol=1e-8)
