@@ -217,7 +217,7 @@ def config_from_args(args):
             sigma = -1.0
         if not (sigma >= 0 and sigma < float("inf")):
             raise InputError("--landmark-sigma must be 'landmark', 'map' or a number of pixels >= 0")
-    align = getattr(args, "align", None)  # None: the map's choice (on for a map built with --exact-poses)
+    align = getattr(args, "align", None)  # None: the map's choice (on for --exact-poses, DISK and ALIKED maps)
     images = getattr(args, "mapping_images", None)
     if images is not None and not align:
         raise InputError("--mapping-images is for --align")

@@ -21,9 +21,11 @@ lies inside the stored patch less the blur's reach; where it does not, the detec
 Measured with tools/bench_accuracy.py (see docs/accuracy.md, twenty-ninth session): on the synthetic
 orbit with exact poses 0.54x the error of the detected keypoints, 0.20x on a map whose tracks were
 aligned the same way (``BuildConfig.refine_window``), 0.35x the pycolmap baseline's; on the real
-fox sequence, whose poses come from COLMAP, 1.1-1.3x worse: off by default, on by default for a map built
+fox sequence, whose poses come from COLMAP, 1.1-1.3x worse: off for SIFT maps, on by default for a map built
 for exact poses (``BuildConfig.exact_poses``, ``favormap build --exact-poses``: its tracks aligned too and its
-observations' pixels stored; thirty-eighth session, orbit: 0.20x the default map's error). Aligned to
+observations' pixels stored; thirty-eighth session, orbit: 0.20x the default map's error) and for DISK and
+ALIKED maps, whose imprecise keypoints it corrects on the real fox too (fox hold-out 0.53-0.64x; the map's
+provenance records the choice, ``build.localize_defaults``). Aligned to
 one mapping frame, a keypoint inherits that frame's pose error; ``AlignConfig.references`` > 1
 aligns it to several frames nearest in direction, each alone, and averages the converged results
 (thirty-first session: with 5 the fox extrapolation error 0.99x the detected keypoints' instead of
