@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 
 # module names, tried in this order by auto-detection
-_MODULES = ["favormap_layout", "nerf", "colmap", "sevenscenes", "cambridge", "tum", "llff"]
+_MODULES = ["favormap_layout", "nerf", "colmap", "sevenscenes_flat", "sevenscenes", "cambridge", "tum", "llff"]
 
 
 def _load():
