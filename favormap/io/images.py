@@ -1,8 +1,24 @@
 """Image loading: read, undistort to the pinhole model, resize. Build and localize share it, so a
-query image goes through exactly the same steps as the mapping images."""
+query image goes through exactly the same steps as the mapping images.
+
+The pinhole working camera of a camera (:func:`working_camera`; docs/cameras.md):
+
+- pinhole models: the camera itself;
+- perspective distortion models (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV): the pinhole with the
+  camera's own focal length and principal point;
+- fisheye models (SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE, FOV), and any distorted
+  camera with a ``working_fov``: square pixels, the principal point at the image centre, the
+  optical axis of the camera, and the horizontal field of view ``working_fov``, or by default the
+  widest one (at most ``DEFAULT_MAX_FOV``) whose every pixel sees inside the original image (no
+  border without image content).
+
+Always at the original image size, then resized so that its longest side is ``max_side``.
+"""
 
 from __future__ import annotations
 
+import functools
+import math
 from pathlib import Path
 
 import cv2
@@ -12,9 +28,68 @@ from ..errors import InputError
 from .types import Camera
 
 
+# the widest horizontal field of view (degrees) the default rule gives a fisheye camera: wider pinholes
+# stretch the periphery and shrink the centre of the image
+DEFAULT_MAX_FOV = 120.0
+
+
+def _border_points(width: int, height: int, n: int = 64) -> np.ndarray:
+    """(4n, 2) points along the border of a ``width`` x ``height`` image (its outer edges)."""
+    u, v = np.linspace(0, width, n), np.linspace(0, height, n)
+    return np.concatenate(
+        [np.c_[u, np.zeros(n)], np.c_[u, np.full(n, height)], np.c_[np.zeros(n), v], np.c_[np.full(n, width), v]]
+    )
+
+
+def _sees_inside(camera: Camera, K: np.ndarray, pixels: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether the rays of the pinhole ``K`` through ``pixels`` all hit ``camera``'s image."""
+    xy = (pixels - K[:2, 2]) / [K[0, 0], K[1, 1]]
+    uv = camera.to_pycolmap().img_from_cam(np.c_[xy, np.ones(len(xy))])
+    return bool(
+        np.all(np.isfinite(uv))
+        and np.all(uv >= -tol)
+        and np.all(uv[:, 0] <= camera.width + tol)
+        and np.all(uv[:, 1] <= camera.height + tol)
+    )
+
+
+def _pinhole(width: int, height: int, fov_deg: float) -> Camera:
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    return Camera("PINHOLE", width, height, [f, f, width / 2, height / 2])
+
+
+@functools.lru_cache(maxsize=32)
+def _wide_working_camera(model: str, width: int, height: int, params: tuple, fov: float | None) -> Camera:
+    cam = Camera(model, width, height, np.array(params))
+    if fov is not None:
+        return _pinhole(width, height, fov)
+    border = _border_points(width, height)
+    if _sees_inside(cam, _pinhole(width, height, DEFAULT_MAX_FOV).K, border):
+        return _pinhole(width, height, DEFAULT_MAX_FOV)
+    lo, hi = 0.0, DEFAULT_MAX_FOV  # bisection on the field of view: inside at lo, outside at hi
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _sees_inside(cam, _pinhole(width, height, mid).K, border) else (lo, mid)
+    if lo <= 0:
+        from ..errors import InputError
+
+        raise InputError(f"camera {model} {width}x{height} {list(params)}: no pinhole view lies inside its image")
+    return _pinhole(width, height, lo)
+
+
+def full_working_camera(camera: Camera) -> Camera:
+    """The pinhole working camera of ``camera`` at the original image size (see the module's docstring)."""
+    if camera.is_fisheye or (camera.working_fov is not None and not camera.is_pinhole):
+        c = _wide_working_camera(
+            camera.model, camera.width, camera.height, tuple(camera.params.tolist()), camera.working_fov
+        )
+        return Camera(c.model, c.width, c.height, c.params.copy())
+    return camera.pinhole()
+
+
 def working_camera(camera: Camera, max_side: int | None) -> Camera:
     """The pinhole camera that images of ``camera`` have after :func:`load_image`."""
-    cam = camera.pinhole()
+    cam = full_working_camera(camera)
     if max_side and max(camera.width, camera.height) > max_side:
         s = max_side / max(camera.width, camera.height)
         cam = cam.scaled(max(1, round(camera.width * s)), max(1, round(camera.height * s)))
@@ -82,14 +157,35 @@ def decode_and_prepare(
     return prepare_image(img, camera, max_side)
 
 
+@functools.lru_cache(maxsize=8)
+def _undistort_maps(model: str, width: int, height: int, params: tuple, K: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps (OpenCV pixel convention) from the pinhole ``K`` (same size) into the image of
+    the camera: each working pixel's ray projected by pycolmap's camera model."""
+    cam = Camera(model, width, height, np.array(params)).to_pycolmap()
+    K = np.array(K).reshape(3, 3)
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.c_[(u.ravel() - K[0, 2]) / K[0, 0], (v.ravel() - K[1, 2]) / K[1, 1], np.ones(u.size)]
+    uv = cam.img_from_cam(rays) - 0.5
+    uv[~np.isfinite(uv)] = -10.0  # outside the image: the border value
+    maps = uv[:, 0].reshape(height, width).astype(np.float32), uv[:, 1].reshape(height, width).astype(np.float32)
+    for m in maps:
+        m.flags.writeable = False
+    return maps
+
+
 def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
-    """Undistort (to the same K) and resize an in-memory RGB image."""
+    """Undistort (to the working camera, :func:`working_camera`) and resize an in-memory RGB image."""
     out_cam = working_camera(camera, max_side)
     if (out_cam.width, out_cam.height) != (camera.width, camera.height):
         # resize first (cheaper), then undistort with the camera scaled to the new size
         img = cv2.resize(img, (out_cam.width, out_cam.height), interpolation=cv2.INTER_AREA)
         camera = camera.scaled(out_cam.width, out_cam.height)
-    if not camera.is_pinhole:
+    if camera.is_fisheye or (camera.working_fov is not None and not camera.is_pinhole):
+        mx, my = _undistort_maps(
+            camera.model, camera.width, camera.height, tuple(camera.params.tolist()), tuple(out_cam.K.ravel().tolist())
+        )
+        img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    elif not camera.is_pinhole:
         dist = camera.opencv_distortion()
         if np.any(dist != 0):
             # OpenCV's pixel-centre convention is COLMAP's minus 0.5.

@@ -119,14 +119,22 @@ class Map(MapCounts):
             from ..io.types import SUPPORTED_MODELS
 
             self.cameras = {}
-            for cid, model, (w, h), params in zip(
+            fov = np.zeros(len(arrays["cameras/ids"]))
+            if self._ds("cameras/working_fov") is not None:  # optional: 0 = the default rule
+                with _guard(self.path, "'cameras/working_fov'"):
+                    fov = self._ds("cameras/working_fov")[()]
+                    self._check_values({"cameras/working_fov": fov})
+            for cid, model, (w, h), params, wf in zip(
                 arrays["cameras/ids"],
                 _strings(arrays["cameras/models"]),
                 arrays["cameras/sizes"],
                 arrays["cameras/params"],
+                fov,
             ):
                 try:
-                    self.cameras[int(cid)] = Camera(model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])])
+                    self.cameras[int(cid)] = Camera(
+                        model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])], float(wf) or None
+                    )
                 except FavormapError as e:
                     raise MapFormatError(f"{self.path}: invalid camera {int(cid)}: {e}") from None
         except BaseException as e:

@@ -141,17 +141,20 @@ def _json_default(o):
 
 
 def camera_arrays(cameras: dict[int, Camera]) -> dict[str, np.ndarray]:
-    """The cameras/* datasets of a camera dict (ids sorted, params zero padded to 12)."""
+    """The cameras/* datasets of a camera dict (ids sorted, params zero padded to 12; the optional
+    cameras/working_fov only when a camera has one, 0 standing for the default rule)."""
     K = sorted(cameras)
     params = np.zeros((len(K), 12))
     for i, k in enumerate(K):
         p = cameras[k].params
         params[i, : len(p)] = p
+    fov = np.array([cameras[k].working_fov or 0.0 for k in K], np.float64)
     return {
         "cameras/ids": np.array(K, np.int32),
         "cameras/models": [cameras[k].model for k in K],
         "cameras/sizes": np.array([[cameras[k].width, cameras[k].height] for k in K], np.int32).reshape(-1, 2),
         "cameras/params": params,
+        **({"cameras/working_fov": fov} if fov.any() else {}),
     }
 
 

@@ -24,7 +24,7 @@ def _pixel_rays(camera: Camera, cam_from_world: np.ndarray, ss: int = 1) -> tupl
     center = geometry.camera_centers(T)
     rays = np.empty((H, W, 2, 3), np.float32)
     rays[:, :, 0] = center.astype(np.float32)
-    if camera.is_pinhole or not np.any(camera.opencv_distortion() != 0):
+    if not camera.has_distortion:
         fx, fy = camera.focal
         cx, cy = camera.principal_point
         xs = (((np.arange(W, dtype=np.float64) + 0.5) / ss - cx) / fx).astype(np.float32)
@@ -37,13 +37,28 @@ def _pixel_rays(camera: Camera, cam_from_world: np.ndarray, ss: int = 1) -> tupl
     return rays.reshape(-1, 6), center
 
 
+def _plane_coordinates(camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) image-plane coordinates (x, y at z = 1) of the rays of ``camera`` (any COLMAP model,
+    pycolmap's unprojection) through (N, 2) pixels; NaN for rays that do not point forward (a fisheye
+    sees beyond 90 degrees from its axis, a ray of z-depth 1 cannot)."""
+    cam = camera.to_pycolmap()
+    pixels = np.asarray(pixels, np.float64)
+    ray = cam.cam_ray_from_img(pixels)
+    # beyond the range where the model is invertible the unprojection is not the inverse of the
+    # projection (pycolmap's fisheye models beyond 90 degrees): those pixels see nothing
+    back = cam.img_from_cam(ray, check_cheirality=False)
+    ok = (ray[:, 2] > 1e-6) & (np.abs(back - pixels).max(1) < 1e-3)
+    return np.where(ok[:, None], ray[:, :2] / np.where(ok, ray[:, 2], 1.0)[:, None], np.nan)
+
+
 @functools.lru_cache(maxsize=4)
 def _image_plane(model: str, width: int, height: int, params: tuple, ss: int) -> np.ndarray:
     """Undistorted image-plane coordinates (x, y at z = 1), float32 (H*W*ss^2, 2), of the samples of
-    a distorted camera (COLMAP's camera model; the same for every frame of a sequence)."""
+    a distorted camera (COLMAP's camera model; the same for every frame of a sequence); NaN where
+    the ray does not point forward."""
     u, v = np.meshgrid((np.arange(width * ss) + 0.5) / ss, (np.arange(height * ss) + 0.5) / ss)
     cam = Camera(model, width, height, np.array(params))
-    xy = cam.to_pycolmap().cam_from_img(np.stack([u.ravel(), v.ravel()], 1)).astype(np.float32)
+    xy = _plane_coordinates(cam, np.stack([u.ravel(), v.ravel()], 1)).astype(np.float32)
     xy.flags.writeable = False
     return xy
 
@@ -54,6 +69,8 @@ def _cast(scene: Scene, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ans = scene.raycaster.cast_rays(o3d.core.Tensor(rays))
     t = ans["t_hit"].numpy()
     prim = ans["primitive_ids"].numpy().astype(np.int64)
+    forward = np.isfinite(rays[:, 3:]).all(1)  # rays that do not point forward (NaN) hit nothing
+    t[~forward] = np.inf
     hit = np.isfinite(t)
     face = np.full(len(t), -1, np.int64)
     face[hit] = scene.tri_face[prim[hit]]
@@ -70,7 +87,8 @@ def render_depth(scene: Scene, camera: Camera, cam_from_world: np.ndarray) -> np
 def render(
     scene: Scene, camera: Camera, cam_from_world: np.ndarray, ss: int = 2, with_depth: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Render ``scene`` seen by ``camera`` (any supported model: distortion is applied) at ``cam_from_world``.
+    """Render ``scene`` seen by ``camera`` (any supported model, fisheye included: each pixel's ray is
+    pycolmap's unprojection) at ``cam_from_world``; pixels whose ray does not point forward stay black.
 
     Returns (rgb uint8 HxWx3, depth float32 HxW): the colour is averaged over ``ss x ss`` samples
     per pixel (anti-aliasing), the depth is the z-depth at the pixel centre (COLMAP convention),
@@ -134,10 +152,10 @@ def backproject(camera: Camera, cam_from_world: np.ndarray, pixels: np.ndarray, 
     non-pinhole ``camera``) with z-depths (N,)."""
     pixels = np.atleast_2d(np.asarray(pixels, float))
     z = np.asarray(depth, float).reshape(-1)
-    if camera.is_pinhole:
+    if not camera.has_distortion:
         xy = geometry.unproject(camera.K, pixels)[:, :2]
     else:
-        xy = camera.to_pycolmap().cam_from_img(pixels)
+        xy = _plane_coordinates(camera, pixels)
     return geometry.transform_points(geometry.inverse(cam_from_world), np.c_[xy * z[:, None], z])
 
 
@@ -145,7 +163,7 @@ def project(camera: Camera, cam_from_world: np.ndarray, points: np.ndarray) -> t
     """(N,2) pixel coordinates (COLMAP convention, through the lens distortion of a non-pinhole
     ``camera``) and (N,) z-depths of world points."""
     uv, z = geometry.project(camera.K, cam_from_world, np.atleast_2d(points), with_depth=True)
-    if not camera.is_pinhole:
+    if camera.has_distortion:
         Xc = geometry.transform_points(np.asarray(cam_from_world, float), np.atleast_2d(points).astype(float))
         uv = camera.to_pycolmap().img_from_cam(Xc, check_cheirality=False)
     return uv, z

@@ -19,7 +19,9 @@ Intrinsics (top level, each overridable per frame as instant-ngp allows):
 a missing ``fl_y`` equals ``fl_x``), ``cx``/``cy`` (default ``w/2``, ``h/2``, taken as COLMAP
 pixel coordinates, as instant-ngp's colmap2nerf writes them), ``w``/``h`` (else the size of the
 first image), distortion ``k1 k2 p1 p2`` -> OPENCV, with ``k3`` -> FULL_OPENCV, all zero ->
-PINHOLE. Fisheye cameras (``is_fisheye``, ``camera_model: OPENCV_FISHEYE``) and ``k4`` are not
+PINHOLE. Fisheye cameras (``camera_model: OPENCV_FISHEYE`` as nerfstudio writes it, or instant-ngp's
+``is_fisheye: true``) -> OPENCV_FISHEYE with ``k1 k2 k3 k4`` (equidistant model; they need
+``fl_x``, as ``camera_angle_x`` describes a pinhole). ``k4`` on a perspective camera is not
 supported. Frames with equal intrinsics share a camera id (0, 1, ... in order of appearance).
 
 ``file_path`` may lack its extension (Blender: ``./train/r_0``): ``.png``, ``.jpg``, ``.jpeg``
@@ -113,11 +115,15 @@ def _num(d: dict, key: str, where: str) -> float | None:
 
 def _camera(d: dict, where: str, first_image_size) -> Camera:
     """Camera from the merged (top level + frame) intrinsics dict ``d``."""
-    if d.get("is_fisheye") or str(d.get("camera_model", "OPENCV")).upper() not in ("OPENCV", "PINHOLE"):
+    named = str(d.get("camera_model", "OPENCV")).upper()
+    if named not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE"):
         raise SequenceError(
-            f"{where}: unsupported camera model {d.get('camera_model', 'fisheye')!r} "
-            "(only perspective OPENCV/PINHOLE cameras are supported)"
+            f"{where}: unsupported camera model {d.get('camera_model')!r} "
+            "(supported: OPENCV, PINHOLE, SIMPLE_PINHOLE, OPENCV_FISHEYE)"
         )
+    fisheye = named == "OPENCV_FISHEYE" or bool(d.get("is_fisheye"))
+    if fisheye and _num(d, "fl_x", where) is None and _num(d, "fl_y", where) is None:
+        raise SequenceError(f"{where}: a fisheye camera needs fl_x (camera_angle_x describes a pinhole)")
     w, h = _num(d, "w", where), _num(d, "h", where)
     if w is None or h is None:
         w, h = first_image_size()
@@ -137,6 +143,10 @@ def _camera(d: dict, where: str, first_image_size) -> Camera:
     cx = w / 2 if cx is None else cx
     cy = h / 2 if cy is None else cy
     k1, k2, k3, k4, p1, p2 = (_num(d, k, where) or 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+    if fisheye:
+        if p1 or p2:
+            raise SequenceError(f"{where}: a fisheye camera has no tangential distortion (p1, p2)")
+        return make_camera("OPENCV_FISHEYE", w, h, [fx, fy, cx, cy, k1, k2, k3, k4], where)
     if k4:
         raise SequenceError(f"{where}: distortion coefficient k4 is not supported")
     if k3:
@@ -224,6 +234,13 @@ def read(root: Path) -> Sequence:
 def _intrinsics(cam: Camera) -> dict:
     fx, fy = cam.focal
     cx, cy = cam.principal_point
+    if cam.model == "FOV":
+        raise SequenceError(f"camera model FOV cannot be written to {FILENAME}")
+    if cam.is_fisheye:  # SIMPLE_RADIAL_FISHEYE / RADIAL_FISHEYE are OPENCV_FISHEYE with fewer terms
+        d = {"camera_model": "OPENCV_FISHEYE", "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy}
+        d.update(w=int(cam.width), h=int(cam.height))
+        d.update({k: float(v) for k, v in zip(("k1", "k2", "k3", "k4"), cam.opencv_distortion())})
+        return d
     d = {
         "camera_angle_x": 2 * math.atan(cam.width / (2 * fx)),
         "camera_angle_y": 2 * math.atan(cam.height / (2 * fy)),
@@ -247,7 +264,8 @@ def write(seq: Sequence, root: Path) -> Path:
     """Write ``transforms.json`` for a sequence whose images already lie under ``root``.
 
     One camera -> top-level intrinsics; several -> per-frame intrinsics. SIMPLE_RADIAL/RADIAL
-    cameras come back as OPENCV (same distortion)."""
+    cameras come back as OPENCV, SIMPLE_RADIAL_FISHEYE/RADIAL_FISHEYE as OPENCV_FISHEYE (same
+    distortion); FOV cameras cannot be written."""
     root = Path(root)
     data: dict = {}
     per_frame = len({f.camera_id for f in seq.frames}) > 1
