@@ -16,7 +16,7 @@ and the landmarks refined from the queries localized so far: favormap.localize.s
 Splits:
   fox-holdout  ../shared/data/fox, map from frames i % 5 != 0, queries 0, 5, 10, ...
   fox-extrap   the same sequence, map from the first half of the path, queries: every frame of the
-               second half (--extrap-step 2: every 2nd, as before 2026-11-26's seventh session)
+               second half (--extrap-step 2: every 2nd, the earlier set)
   orbit        a synthetic room orbit with exact ground truth, map from part of the arc, queries beyond it
                and off it, binned by the angle to the nearest mapping view
   orbit-dense  the orbit's map, 53 queries at 4-degree steps beyond both ends of the arc and raised
@@ -58,7 +58,14 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-FOX = Path(os.environ.get("FAVORMAP_FOX", ROOT.parent / "shared" / "data" / "fox"))
+# ../shared/data beside the checkout (or beside the folder that holds it, for a git worktree)
+DATA = Path(
+    os.environ.get(
+        "FAVORMAP_DATA",
+        next((p / "shared" / "data" for p in ROOT.parents if (p / "shared" / "data").is_dir()), ROOT.parent / "shared"),
+    )
+)
+FOX = Path(os.environ.get("FAVORMAP_FOX", DATA / "fox"))
 ANGLE_BINS = ((0, 10), (10, 20), (20, 40), (40, 180))
 
 # localizer variants on the same map: name -> (descriptor source, LocalizeConfig overrides)
@@ -69,19 +76,19 @@ VARIANTS = {
     # each landmark matched through two descriptors (favormap.localize.descriptors.StackedDescriptors)
     "rendered+mean": ("rendered+mean", {}),
     # the inliers' keypoints aligned to the mapping images through the landmark's plane before the final
-    # refinement (LocalizeConfig.align, favormap.localize.align; twenty-ninth session)
+    # refinement (LocalizeConfig.align, favormap.localize.align)
     "rendered align": ("rendered", {"align": True}),
     "mean align": ("mean", {"align": True}),
     "nearest-view align": ("nearest", {"align": True}),
     "rendered+nearest-view": ("rendered+nearest", {}),
     # each inlier aligned to its landmark's 3 / 5 mapping frames nearest in direction, averaged
-    # (LocalizeConfig.align_references; thirty-first session)
+    # (LocalizeConfig.align_references)
     "rendered align refs-3": ("rendered", {"align": True, "align_references": 3}),
     "mean align refs-3": ("mean", {"align": True, "align_references": 3}),
     "rendered align refs-5": ("rendered", {"align": True, "align_references": 5}),
     "mean align refs-5": ("mean", {"align": True, "align_references": 5}),
     # more rendering iterations for view-dependent descriptors (DISK), whose first iteration renders at
-    # the prior's viewpoint (thirty-first session)
+    # the prior's viewpoint
     "rendered 5-iterations": ("rendered", {"iterations": 5}),
     "rendered align 5-iterations": ("rendered", {"align": True, "iterations": 5}),
     "mean align 5-iterations": ("mean", {"align": True, "iterations": 5}),
@@ -98,8 +105,8 @@ VARIANTS = {
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
     # the guided step (LocalizeConfig.guided_*; default: gated at 3 sigma within 8 px, for poses with
-    # fewer than 400 descriptor inliers): off (the default until 2026-11-26's ninth session), for every
-    # pose, ungated at 3 px (the eighth session's option), and other gates
+    # fewer than 400 descriptor inliers): off (the default until 2026-11-26), for every pose, ungated at
+    # 3 px (an earlier option), and other gates
     "rendered no-guided": ("rendered", {"guided_radius_px": 0}),
     "rendered gated every pose": ("rendered", {"guided_below_inliers": None}),
     "rendered guided-3px": (
@@ -151,7 +158,7 @@ VARIANTS = {
     "rendered global-ratio-1.0": ("rendered", {"global_ratio": 1.0}),
     # the final pose refined with each landmark's position uncertainty (favormap.localize.refine; the
     # default: the keypoint noise of each landmark from its reprojection error), or not (before
-    # 2026-11-26's eighth session), or for this keypoint noise (px) in the mapping images
+    # 2026-11-26), or for this keypoint noise (px) in the mapping images
     "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
     "rendered no-guided no-uncertainty": (
         "rendered",
@@ -168,13 +175,13 @@ VARIANTS = {
     "rendered uncertainty-map": ("rendered", {"landmark_sigma_px": "map"}),
     "rendered uncertainty-landmark": ("rendered", {"landmark_sigma_px": "landmark"}),
     "mean uncertainty-map": ("mean", {"landmark_sigma_px": "map"}),
-    # the final refinement's noise model as the map says (before 2026-11-27's twelfth session), not
+    # the final refinement's noise model as the map says (the default before 2026-11-27), not
     # fitted to each query's inliers (LocalizeConfig.refine_noise)
     "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
     "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
     "nearest-view noise-fixed": ("nearest", {"refine_noise": "fixed"}),
     # the keypoint noise fitted per quarter of the inliers by descriptor similarity (refine_noise
-    # "similarity", thirty-fourth session)
+    # "similarity")
     "rendered sim-noise": ("rendered", {"refine_noise": "similarity"}),
     "mean sim-noise": ("mean", {"refine_noise": "similarity"}),
     "rendered align sim-noise": ("rendered", {"align": True, "refine_noise": "similarity"}),
@@ -205,6 +212,9 @@ class Split:
     queries: object  # Sequence
     angle: np.ndarray | None = None  # per query: rotation to the nearest mapping view (deg)
     map_name: str | None = None  # the map (and baseline) files: another split's of the same mapping frames
+    path_extent: float | None = None  # real sets: bounding-box diagonal of all the set's camera centres (units)
+    units: str = "units"
+    recall: tuple = ()  # real sets: (translation, rotation deg) recall thresholds in the set's units
 
     @property
     def files(self) -> str:
@@ -227,6 +237,91 @@ def fox_splits(which: list[str], extrap_step: int = 1) -> list[Split]:
         out.append(Split("fox-extrap", seq.subset(list(range(half))), seq.subset(list(range(half, n, extrap_step)))))
     for s in out:
         s.angle = nearest_view_angle(s.queries, s.mapping)
+    return out
+
+
+# the real sets, each read as shipped (favormap.io.read_sequence): folder, units, extra recall thresholds
+REAL_SETS = {
+    "fox": ("fox", "units", ()),
+    "fern": ("llff_fern", "units", ()),
+    "7scenes": ("7scenes_redkitchen_half", "m", ((0.05, 5.0), (0.02, 2.0))),
+    "office": ("phone_office_colmap64", "units", ()),
+    "cup": ("phone_cup_colmap77", "units", ()),
+    "castle": ("strecha_castle_p30", "m", ()),
+    "dino": ("middlebury_dino", "units", ()),
+}
+# the splits of each real set. holdout-K: every K-th frame held out as a query (in the reader's order),
+# the map from the rest (queries between mapping views); sparse: the map from every 4th frame, queries
+# midway (frames 2, 6, 10, ...); extrap: the map from the first half of the path, queries from the second
+REAL_SPLITS = {
+    "fox-holdout": ("fox", "holdout-5"),
+    "fox-extrap": ("fox", "extrap"),
+    "fern-holdout": ("fern", "holdout-3"),
+    "7scenes-holdout": ("7scenes", "holdout-5"),
+    "7scenes-sparse": ("7scenes", "sparse"),
+    "office-holdout": ("office", "holdout-5"),
+    "office-sparse": ("office", "sparse"),
+    "cup-holdout": ("cup", "holdout-5"),
+    "cup-sparse": ("cup", "sparse"),
+    "castle-holdout": ("castle", "holdout-3"),
+    "dino-holdout": ("dino", "holdout-5"),
+}
+# 7-Scenes with the RGB focal (525 px) instead of the file's 585 px (not in a suite: the focal measurement)
+EXTRA_SPLITS = {"7scenes-holdout-f525": ("7scenes", "holdout-5"), "7scenes-sparse-f525": ("7scenes", "sparse")}
+SUITES = {
+    "real": list(REAL_SPLITS),
+    "real-quick": ["7scenes-holdout", "cup-holdout", "castle-holdout", "dino-holdout", "fern-holdout"],
+}
+# recall thresholds of every real set, as shares of its path extent (and degrees)
+REAL_RECALL = ((0.005, 2.0), (0.02, 5.0))
+
+
+def _natural_order(seq) -> list[int]:
+    """Frame indices in the order of their names with numbers compared as numbers (IMG_2 before IMG_10):
+    the capture order of a video whose reader lists the frames lexicographically."""
+    import re
+
+    def key(i):
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", seq.frames[i].name)]
+
+    return sorted(range(len(seq)), key=key)
+
+
+def real_splits(which: list[str]) -> list[Split]:
+    """The real-data splits in ``which`` (names of REAL_SPLITS / EXTRA_SPLITS), each set read as shipped."""
+    from favormap.io import read_sequence
+    from favormap.io.readers import sevenscenes_flat
+
+    out, cache = [], {}
+    for name in which:
+        spec = REAL_SPLITS.get(name) or EXTRA_SPLITS.get(name)
+        if spec is None:
+            continue
+        key, kind = spec
+        folder, units, extra_recall = REAL_SETS[key]
+        root = DATA / folder
+        if not root.exists():
+            print(f"(skipping {name}: {root} not found)", file=sys.stderr)
+            continue
+        rgb = name.endswith("-f525")
+        if (key, rgb) not in cache:
+            cache[key, rgb] = sevenscenes_flat.read_with_focal(root, "rgb") if rgb else read_sequence(root)
+        seq = cache[key, rgb]
+        n = len(seq)
+        order = _natural_order(seq)
+        if kind.startswith("holdout-"):
+            k = int(kind.split("-")[1])
+            m_idx, q_idx = [i for i in range(n) if i % k], list(range(0, n, k))
+        elif kind == "sparse":
+            m_idx, q_idx = [order[i] for i in range(0, n, 4)], [order[i] for i in range(2, n, 4)]
+        else:  # extrap
+            m_idx, q_idx = order[: n // 2], order[n // 2 :]
+        centres = np.array([-f.cam_from_world[:3, :3].T @ f.cam_from_world[:3, 3] for f in seq.frames])
+        ext = float(np.linalg.norm(centres.max(0) - centres.min(0)))
+        recall = tuple((t * ext, r) for t, r in REAL_RECALL) + tuple(extra_recall)
+        sp = Split(name, seq.subset(m_idx), seq.subset(q_idx), path_extent=ext, units=units, recall=recall)
+        sp.angle = nearest_view_angle(sp.queries, sp.mapping)
+        out.append(sp)
     return out
 
 
@@ -446,9 +541,10 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 res = loc.localize(fr.image_path, prior, cam)
                 seq_priors.update(res)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
-                o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
-                o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
-                o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
+                if args.diagnostics:
+                    o.diagnostics = match_diagnostics(loc, fr.image_path, cam, fr.cam_from_world)
+                    o.diagnostics["nees"] = pose_nees(res, fr.cam_from_world)  # reported uncertainty against the error
+                    o.diagnostics.update(localizer_noise_floor(loc, fr.image_path, cam, res))
                 outs.append(o)
             seq_priors.close()
             rows.append(record(split, prefix + name, prior_mode, outs, cfg.iterations, extent, len(m)))
@@ -458,6 +554,8 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 solver_tag=f" {build_cfg.voxel.solver}",
                 map_variant=prefix.strip(),
                 build_s=None if build_s is None else round(build_s, 1),
+                map_bytes_per_landmark=path.stat().st_size / max(len(m), 1),
+                build_stats={k: v for k, v in (m.provenance.get("stats") or {}).items() if np.isscalar(v)},
             )
     m.close()
     return rows, extent
@@ -761,19 +859,23 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
         runs.append((f"pycolmap-SIFT {args.baseline_budget} longest tracks", "none", base.subset(args.baseline_budget)))
     if "stream" in args.priors:
         runs.append(("pycolmap-SIFT", "stream", PointRefinement(base)))
+    seeds = args.baseline_seeds
     for name, prior_mode, b in runs:
         outs = []
         for fr in split.queries.frames:
             cam = split.queries.cameras[fr.camera_id]
             pts = np.array(b.points3d, copy=True)  # a stream's: as refined up to this query
-            res = b.localize(fr.image_path, cam)
+            if prior_mode == "none" and len(seeds) > 1:
+                res = median_over_seeds(b, fr, cam, seeds)
+            else:
+                res = b.localize(fr.image_path, cam)
             o = QueryOutcome(fr.name, fr.cam_from_world, None, res, res.seconds)
             _, wcam = load_image(fr.image_path, cam, build_cfg.max_side)
             mm = np.asarray(res.matches, np.int64).reshape(-1, 2)
             o.diagnostics = diagnostics_from_matches(
                 wcam, fr.cam_from_world, pts, res.keypoints, pts[mm[:, 0]], res.keypoints[mm[:, 1]]
             )
-            if res.success:
+            if res.success and args.diagnostics:
                 inl = mm[np.asarray(res.inlier_mask, bool)]
                 o.diagnostics.update(
                     pose_noise_floor(wcam, res.cam_from_world, pts[inl[:, 0]], res.keypoints[inl[:, 1]])
@@ -782,6 +884,168 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
         rows.append(record(split, name, prior_mode, outs, 1, extent, len(b.points3d)))
         rows[-1]["per_query"] = [per_query(o, a) for o, a in zip(outs, _angles(split))]
     return rows
+
+
+def median_over_seeds(b, fr, cam, seeds):
+    """The baseline's result for one query over several RANSAC seeds: the run whose translation error
+    is the median of the seeds' (failed runs count as infinite), so that the query counts as localized
+    when most seeds localize it. The seconds are the mean over the runs."""
+    import dataclasses as dc
+
+    from favormap.geometry import pose_error
+
+    config = b.config
+    results = []
+    try:
+        for seed in seeds:
+            b.config = dc.replace(config, seed=int(seed))
+            results.append(b.localize(fr.image_path, cam))
+    finally:
+        b.config = config
+    err = [pose_error(r.cam_from_world, fr.cam_from_world)[0] if r.success else np.inf for r in results]
+    pick = results[int(np.argsort(err, kind="stable")[(len(err) - 1) // 2])]
+    return dc.replace(pick, seconds=float(np.mean([r.seconds for r in results])))
+
+
+def _query_arrays(row: dict, names: list[str]):
+    by = {q["name"]: q for q in row["per_query"]}
+    qs = [by.get(n) for n in names]
+    succ = np.array([bool(q and q["success"]) for q in qs])
+    t = np.array([q["t_err"] if q else np.inf for q in qs], np.float64)
+    r = np.array([q["r_err_deg"] if q else np.inf for q in qs], np.float64)
+    return succ, t, r
+
+
+def _method_stats(split: Split, row: dict, names: list[str]) -> dict:
+    """One method's figures on a real split, from its per-query rows: medians over the localized
+    queries in the set's units and as % of the path extent, recall, localized share, false successes
+    (localized with an error above 5 % of the path extent or 5 deg)."""
+    succ, t, r = _query_arrays(row, names)
+    ext = split.path_extent
+    med_t = float(np.median(t[succ])) if succ.any() else None
+    return {
+        "median_t": med_t,
+        "median_t_pct_path": None if med_t is None else 100 * med_t / ext,
+        "median_r_deg": float(np.median(r[succ])) if succ.any() else None,
+        "recall": {f"{tt:.4g}/{rr:g}deg": float(np.mean(succ & (t <= tt) & (r <= rr))) for tt, rr in split.recall},
+        "localized": int(succ.sum()),
+        "queries": len(names),
+        "false_successes": int((succ & ((t > 0.05 * ext) | (r > 5.0))).sum()),
+    }
+
+
+def real_rows(rows: list[dict], splits: list[Split], reference: str = "rendered") -> list[dict]:
+    """Per real split and favormap map (the default and each --build-variant): favormap's ``reference``
+    method under the noise priors and the baseline side by side, with the paired ratio of their
+    translation errors (favormap / baseline over the queries both localized, 95 % bootstrap interval)."""
+    out = []
+    for sp in splits:
+        if sp.path_extent is None:
+            continue
+        base = [r for r in rows if r["split"] == sp.name and r["method"] == "pycolmap-SIFT" and r["prior"] == "none"]
+        favs = [
+            r
+            for r in rows
+            if r["split"] == sp.name
+            and r["prior"] == "noise"
+            and r.get("map_variant") is not None
+            and r["method"] == " ".join(w for w in (r["map_variant"], reference) if w)
+        ]
+        names = [f.name for f in sp.queries.frames]
+        b_stats = _method_stats(sp, base[0], names) if base else None
+        for f in favs:
+            entry = {
+                "split": sp.name,
+                "map": f["map_variant"] or "(default)",
+                "mapping_frames": len(sp.mapping),
+                "units": sp.units,
+                "path_extent": sp.path_extent,
+                "favormap": _method_stats(sp, f, names),
+                "landmarks": f.get("landmarks"),
+                "build_s_per_frame": None if f.get("build_s") is None else f["build_s"] / len(sp.mapping),
+                "map_bytes_per_landmark": f.get("map_bytes_per_landmark"),
+                "build_stats": f.get("build_stats"),
+            }
+            if base:
+                succ_f, t_f, _ = _query_arrays(f, names)
+                succ_b, t_b, _ = _query_arrays(base[0], names)
+                entry["baseline"] = b_stats
+                entry["baseline_points"] = base[0].get("landmarks")
+                entry["ratio"] = paired_ratio(np.where(succ_f, t_f, np.inf), np.where(succ_b, t_b, np.inf))
+                entry["baseline_only"] = int((succ_b & ~succ_f).sum())  # localized by the baseline, not by favormap
+            out.append(entry)
+    return out
+
+
+def geometric_means(entries: list[dict]) -> dict[str, float]:
+    """Per favormap map: the geometric mean over the splits of the paired ratios to the baseline."""
+    by: dict[str, list[float]] = {}
+    for e in entries:
+        if e.get("ratio"):
+            by.setdefault(e["map"], []).append(np.log(e["ratio"]["ratio"]))
+    return {k: float(np.exp(np.mean(v))) for k, v in by.items()}
+
+
+def real_table(entries: list[dict]) -> str:
+    """Markdown of :func:`real_rows`, and one line per favormap map: the geometric mean of the ratios."""
+    if not entries:
+        return ""
+    rec_keys = []
+    for e in entries:
+        for k in range(len(e["favormap"]["recall"])):
+            rec_keys.append(k) if k not in rec_keys else None
+
+    def st(s, e):
+        if s is None:
+            return ["-"] * 5
+        rec = " / ".join(f"{100 * v:.0f}" for v in s["recall"].values())
+        return [
+            f"{_f(s['median_t'], '.4f')} ({_f(s['median_t_pct_path'], '.2f')} %)",
+            _f(s["median_r_deg"], ".3f"),
+            rec,
+            f"{s['localized']}/{s['queries']}",
+            str(s["false_successes"]),
+        ]
+
+    out = [
+        "| split | map | frames map / queries | path extent | favormap median t (% path) | R (deg) | recall % | "
+        "localized | FS | baseline median t (% path) | R (deg) | recall % | localized | FS | favormap / baseline "
+        "[95 % CI] | baseline-only | landmarks / points | build s/frame | map B/landmark |",
+        "|---" * 19 + "|",
+    ]
+    for e in entries:
+        r = e.get("ratio")
+        ratio = "-" if not r else f"{r['ratio']:.2f} [{r['ci95'][0]:.2f}, {r['ci95'][1]:.2f}]"
+        bps = e.get("build_s_per_frame")
+        bpl = e.get("map_bytes_per_landmark")
+        out.append(
+            "| "
+            + " | ".join(
+                [
+                    e["split"],
+                    e["map"],
+                    f"{e['mapping_frames']} / {e['favormap']['queries']}",
+                    f"{e['path_extent']:.3f} {e['units']}",
+                    *st(e["favormap"], e),
+                    *st(e.get("baseline"), e),
+                    ratio,
+                    str(e.get("baseline_only", "-")),
+                    f"{e.get('landmarks') or '-'} / {e.get('baseline_points') or '-'}",
+                    _f(bps, ".2f"),
+                    _f(bpl, ".0f"),
+                ]
+            )
+            + " |"
+        )
+    out.append("")
+    out.append(
+        "Recall thresholds: 0.5 % of the path extent / 2 deg, 2 % / 5 deg (and for 7-Scenes 5 cm / 5 deg, "
+        "2 cm / 2 deg); FS: false successes (localized, error > 5 % of the path extent or 5 deg)."
+    )
+    for k, v in geometric_means(entries).items():
+        n = sum(1 for e in entries if e["map"] == k and e.get("ratio"))
+        out.append(f"geometric mean of favormap / baseline over {n} splits, map {k}: {v:.3f}")
+    return "\n".join(out)
 
 
 def _angles(split: Split) -> list:
@@ -918,6 +1182,25 @@ def markdown(rows: list[dict]) -> str:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--splits", default="fox-holdout,fox-extrap,orbit")
+    ap.add_argument(
+        "--suite",
+        choices=sorted(SUITES),
+        help="the real-data suite (every set of ../shared/data read as shipped, the baseline side by side; "
+        "real-quick: a subset): sets --splits, --priors noise, --variants rendered, --baseline-seeds 0,1,2 "
+        "unless given, and no per-query diagnostics",
+    )
+    ap.add_argument(
+        "--baseline-seeds",
+        default=None,
+        help="the baseline's RANSAC seeds (comma-separated): each query's result is the seeds' median "
+        "(default 0; the suite: 0,1,2)",
+    )
+    ap.add_argument(
+        "--no-diagnostics",
+        dest="diagnostics",
+        action="store_false",
+        help="skip the per-query diagnostics at the ground-truth pose (match precision, noise floor, NEES)",
+    )
     ap.add_argument("--map", help="custom split: mapping sequence")
     ap.add_argument("--queries", help="custom split: query sequence")
     ap.add_argument("--priors", default="noise,nearest,constant,none,sequential,stream")
@@ -970,7 +1253,7 @@ def main():
         type=int,
         default=1,
         help="fox-extrap queries: every STEP-th frame of the second half (default 1: 20 queries; before "
-        "2026-11-26's seventh session 2: 10 queries)",
+        "2026-11-26: 2, 10 queries)",
     )
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
     ap.add_argument(
@@ -1001,6 +1284,19 @@ def main():
         table = compare_table(ref_rows, new_rows)
         print(table or "--compare: no (split, prior, map, method, seed) in both runs")
         return 0 if table else 1
+    if args.suite:
+        args.splits = ",".join(SUITES[args.suite])
+        given = set(sys.argv)
+        if "--priors" not in given:
+            args.priors = "noise"
+        if "--variants" not in given:
+            args.variants = "rendered"
+        args.diagnostics = False
+        args.baseline_seeds = args.baseline_seeds or "0,1,2"
+    try:
+        args.baseline_seeds = [int(x) for x in (args.baseline_seeds or "0").split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--baseline-seeds {args.baseline_seeds!r}: expected integers, e.g. 0,1,2")
     args.priors = [p for p in args.priors.split(",") if p]
     args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in args.variants if v not in VARIANTS]
@@ -1072,7 +1368,11 @@ def main():
         splits.append(Split("custom", mapping, queries, nearest_view_angle(queries, mapping)))
     else:
         which = args.splits.split(",")
-        splits += fox_splits(which, args.extrap_step)
+        real = [w for w in which if w in REAL_SPLITS or w in EXTRA_SPLITS]
+        if args.suite or any(w not in ("fox-holdout", "fox-extrap") for w in real):
+            splits += real_splits(real)
+        else:
+            splits += fox_splits(which, args.extrap_step)
         if "orbit" in which:
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
         if "orbit-dense" in which:
@@ -1081,6 +1381,14 @@ def main():
     for sp in splits:
         rows += run_split(sp, args, build_cfgs)
     print(markdown(rows))
+    real = real_rows(rows, splits)
+    if real:
+        print(
+            "\nReal sets, favormap (rendered, noise priors) and the baseline (median over RANSAC seeds "
+            + ",".join(map(str, args.baseline_seeds))
+            + ") on the same queries:\n"
+        )
+        print(real_table(real))
     paired = paired_table(rows)
     if paired:
         print("\n" + paired)
@@ -1104,7 +1412,7 @@ def main():
         + ", ".join(f"{sp} {ex} {'reused' if b is None else f'{b:.0f} s'}" for (sp, ex), b in builds.items())
     )
     if args.json:
-        write_rows(args.json, rows)
+        write_rows(args.json, rows + ([{"real": real}] if real else []))
 
 
 if __name__ == "__main__":
