@@ -27,7 +27,6 @@ import numpy as np
 from ..errors import InputError
 from .types import Camera
 
-
 # the widest horizontal field of view (degrees) the default rule gives a fisheye camera: wider pinholes
 # stretch the periphery and shrink the centre of the image
 DEFAULT_MAX_FOV = 120.0
