@@ -56,7 +56,7 @@ def random_map(seed: int = 0, L: int = 20, C: int = 8, R: int = 3, M: int = 5, o
     )
     cams = {
         0: Camera("PINHOLE", 320, 240, np.array([300.0, 300.0, 160.0, 120.0])),
-        3: Camera("OPENCV", 640, 480, np.array([500.0, 500.0, 320.0, 240.0, 0.01, -0.02, 0.0, 0.0])),
+        3: Camera("OPENCV", 640, 480, np.array([500.0, 500.0, 320.0, 240.0, 0.01, -0.02, 0.0, 0.0]), 70.0),
     }
     return MapData(
         extractor="sift",
@@ -131,6 +131,7 @@ def test_schema_is_consistent_with_the_code():
         "cameras/models",
         "cameras/sizes",
         "cameras/params",
+        "cameras/working_fov",
         "frames/names",
         "frames/camera_ids",
         "frames/cam_from_world",
@@ -139,8 +140,9 @@ def test_schema_is_consistent_with_the_code():
         "tracks/xy",
         "tracks/patch",
     }
-    # the one dataset a map may lack: the observation patches of `build --align-patches`
-    assert {p for p, d in s["datasets"].items() if d.get("optional")} == {"tracks/patch"}
+    # the datasets a map may lack: the observation patches of `build --align-patches`, and the working
+    # field of view of cameras that all follow the default rule
+    assert {p for p, d in s["datasets"].items() if d.get("optional")} == {"tracks/patch", "cameras/working_fov"}
     known = {
         "finite",
         "not_nan",
@@ -177,6 +179,7 @@ def test_roundtrip_and_every_dataset_has_fletcher32(rmap):
         np.testing.assert_allclose(s[0], m.density[5].reshape(-1))
         np.testing.assert_allclose(mm.mean_descriptors([3, 1, 3]), m.mean_descriptor[[3, 1, 3]], atol=4e-3)
         assert mm.cameras[3].model == "OPENCV" and mm.frame_names == m.frame_names
+        assert mm.cameras[3].working_fov == 70.0 and mm.cameras[0].working_fov is None
         tl, tf, xy = mm.tracks()
         np.testing.assert_array_equal(tl, m.track_landmark)
         back = mm.load()

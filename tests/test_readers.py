@@ -175,7 +175,7 @@ def _nerf_file(tmp_path, frames, **top):
         "bad_shape",
         "no_file_path",
         "frames_not_list",
-        "fisheye",
+        "unsupported_model",
         "no_focal",
         "string_focal",
     ],
@@ -203,8 +203,8 @@ def test_nerf_malformed(tmp_path, case):
         _nerf_file(tmp_path, [{"transform_matrix": good}])
     elif case == "frames_not_list":
         _nerf_file(tmp_path, {"a": 1})
-    elif case == "fisheye":
-        _nerf_file(tmp_path, [{"file_path": "a.png", "transform_matrix": good}], camera_model="OPENCV_FISHEYE")
+    elif case == "unsupported_model":
+        _nerf_file(tmp_path, [{"file_path": "a.png", "transform_matrix": good}], camera_model="FISHEYE624")
     elif case == "no_focal":
         write_image(tmp_path / "a.png")
         (tmp_path / "transforms.json").write_text(
@@ -393,8 +393,9 @@ def test_colmap_images_in_root(tmp_path):
 
 
 def test_colmap_unsupported_model(tmp_path):
-    _colmap_model(tmp_path, "sparse/0", False, model="SIMPLE_RADIAL_FISHEYE", params=[50.0, 32, 24, 0.1])
-    with pytest.raises(SequenceError, match="SIMPLE_RADIAL_FISHEYE"):
+    params = [50.0, 50.0, 32, 24] + [0.01] * 8
+    _colmap_model(tmp_path, "sparse/0", False, model="THIN_PRISM_FISHEYE", params=params)
+    with pytest.raises(SequenceError, match="THIN_PRISM_FISHEYE"):
         read_sequence(tmp_path)
 
 

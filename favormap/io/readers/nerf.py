@@ -115,7 +115,7 @@ def _num(d: dict, key: str, where: str) -> float | None:
 
 def _camera(d: dict, where: str, first_image_size) -> Camera:
     """Camera from the merged (top level + frame) intrinsics dict ``d``."""
-    named = str(d.get("camera_model", "OPENCV")).upper()
+    named = str(d.get("camera_model") or "OPENCV").upper()
     if named not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE"):
         raise SequenceError(
             f"{where}: unsupported camera model {d.get('camera_model')!r} "
