@@ -96,7 +96,7 @@ class BuildConfig:
     # None: the extractor's default (default_max_epipolar, set on construction): 1 px, DISK 2 px
     max_epipolar_px: float | None = None
     min_similarity: float = 0.7
-    # tracking variants, each measured and lost (three seeds, docs/benchmarks/accuracy-2026-11-27-s16-tracking.md):
+    # tracking variants, each measured and lost (three seeds, docs/accuracy.md):
     # the epipolar constraint before the descriptors; conflicting components rebuilt instead of dropped
     # (fox extrapolation 0.0074-0.0078 against 0.0060-0.0063); Lowe's ratio (0.9: hold-out 1.14x, 0.8: 1.42x)
     epipolar_first: bool = False
