@@ -105,7 +105,7 @@ VARIANTS = {
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
     # the guided step (LocalizeConfig.guided_*; default: gated at 3 sigma within 8 px, for poses with
-    # fewer than 400 descriptor inliers): off (the default until 2026-11-26), for every pose, ungated at
+    # fewer than 400 descriptor inliers): off, for every pose, ungated at
     # 3 px (an earlier option), and other gates
     "rendered no-guided": ("rendered", {"guided_radius_px": 0}),
     "rendered gated every pose": ("rendered", {"guided_below_inliers": None}),
@@ -157,8 +157,8 @@ VARIANTS = {
     "rendered global-ratio-0.9": ("rendered", {"global_ratio": 0.9}),
     "rendered global-ratio-1.0": ("rendered", {"global_ratio": 1.0}),
     # the final pose refined with each landmark's position uncertainty (favormap.localize.refine; the
-    # default: the keypoint noise of each landmark from its reprojection error), or not (before
-    # 2026-11-26), or for this keypoint noise (px) in the mapping images
+    # default: the keypoint noise of each landmark from its reprojection error), or not,
+    # or for this keypoint noise (px) in the mapping images
     "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
     "rendered no-guided no-uncertainty": (
         "rendered",
@@ -175,7 +175,7 @@ VARIANTS = {
     "rendered uncertainty-map": ("rendered", {"landmark_sigma_px": "map"}),
     "rendered uncertainty-landmark": ("rendered", {"landmark_sigma_px": "landmark"}),
     "mean uncertainty-map": ("mean", {"landmark_sigma_px": "map"}),
-    # the final refinement's noise model as the map says (the default before 2026-11-27), not
+    # the final refinement's noise model as the map says, not
     # fitted to each query's inliers (LocalizeConfig.refine_noise)
     "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
     "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
@@ -364,7 +364,7 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int, dense: bool 
         right = inverse(base)[:3, 0]  # camera x axis in world: tilting about it raises the camera over the scene
         for deg in (8, 15, 25, 35, 45):
             q.append(about(base, right, -deg))
-    # before the first view too; the views beyond 40 deg (6 here, 2 before 2026-11-26) give that bin
+    # before the first view too; the views beyond 40 deg (6 here) give that bin
     # of the angle table more than a couple of queries
     for deg in (10, 20, 45, 55):
         q.append(about(first, [0, 0, 1], -sign * deg))
@@ -1252,8 +1252,7 @@ def main():
         "--extrap-step",
         type=int,
         default=1,
-        help="fox-extrap queries: every STEP-th frame of the second half (default 1: 20 queries; before "
-        "2026-11-26: 2, 10 queries)",
+        help="fox-extrap queries: every STEP-th frame of the second half (default 1: 20 queries)",
     )
     ap.add_argument("--no-baseline", dest="baseline", action="store_false")
     ap.add_argument(

@@ -5,8 +5,8 @@ convolution's 128 descriptor channels only where descriptors are sampled.
     python tools/bench_disk.py [--sizes 640x360,640x480,1024x576] [--runs 3] [--samples 20000]
 
 Per image size (a synthetic room rendered at that size; DISK's cost does not depend on the
-content): the median wall time of kornia's ``heatmap_and_dense_descriptors`` (what
-``DISKExtractor.extract`` ran before the thirty-first session), of ``DISKExtractor.extract`` (its
+content): the median wall time of kornia's ``heatmap_and_dense_descriptors`` (the
+network's dense output), of ``DISKExtractor.extract`` (its
 keypoints and their descriptors), and of ``DISKExtractor.sample`` at ``--samples`` random
 positions (what a build's training patches ask of a frame); the largest 1 - cosine between the
 descriptors at the keypoints and the dense map's interpolated there; and the sampling state's size

@@ -31,82 +31,8 @@ truth) is cached in --cache, keyed by the scene settings; variants only train an
     python tools/bench_novel_view.py --extractor sift --variants paper,default
     python tools/bench_novel_view.py --list                # names and settings of the variants
 
-Results (OMP_NUM_THREADS=1 python tools/bench_novel_view.py --variants all; 2-core VM shared with
-other jobs, 600 landmarks, 10,969 pairs; all rows of the run in VARIANTS order, abridged):
-
-    mean cosine to truth          0-10   10-20   20-40    >40     all  view chg  cpu s
-    truth (extracted)                                                   0.1720
-    nearest training view        .9512   .9038   .8448   .6790   .9008   0.0570
-    2 nearest views              .9549   .9069   .8470   .6810   .9039   0.0461
-    mean descriptor              .9416   .8910   .8312   .6723   .8890   0
-    default (= prior16-centre50-k1)
-                                 .9545   .9070   .8440   .6815   .9031   0.0388   28.9
-    paper (former training)      .9415   .8892   .8329   .6771   .8886   0.0026   19.4
-    box12                        .9514   .9034   .8391   .6662   .8991   0.0479   22.8
-    box12-it600                  .9514   .8905   .7980   .6097   .8827   0.1300   58.9
-    box12-R5                     .9520   .8982   .8218   .6564   .8927   0.0883   49.2
-    centre50                     .9528   .9041   .8419   .6787   .9008   0.0273   20.0
-    centre80                     .9535   .9031   .8371   .6756   .8993   0.0524   21.2
-    centre100                    .9498   .8840   .7862   .5921   .8763   0.1175   21.9
-    box12-centre50               .9532   .9026   .8339   .6651   .8981   0.0667   21.5
-    centre50-tv0.03              .9519   .9033   .8420   .6785   .9001   0.0192   20.9
-    centre50-dens5               .9522   .9019   .8393   .6731   .8989   0.0221   22.0
-    centre50-dens0.2             .9510   .9029   .8422   .6804   .8998   0.0167   20.6
-    centre50-constlr             .9531   .9011   .8295   .6689   .8964   0.0645   22.1
-    prior16                      .9512   .9042   .8441   .6813   .9009   0.0167   28.9
-    prior16-centre50             .9533   .9058   .8442   .6813   .9022   0.0281   28.0
-    prior16-centre50-spread60    .9533   .9058   .8442   .6812   .9022   0.0284   30.4
-    prior16-centre50-k6          .9517   .9037   .8429   .6796   .9005   0.0177   29.7
-    prior32-centre50             .9532   .9060   .8447   .6817   .9024   0.0267   37.8
-    prior16-centre25             .9525   .9053   .8443   .6813   .9018   0.0227   28.9
-    prior16-centre50-box12       .9536   .9060   .8439   .6827   .9023   0.0378   28.6
-    prior16-centre50-it400       .9538   .9061   .8438   .6804   .9024   0.0327   49.4
-    prior16-centre50-R5          .9561   .9076   .8452   .6810   .9041   0.0319   51.0
-    prior16-centre50-constlr     .9535   .9058   .8438   .6812   .9022   0.0325   26.2
-    prior16-centre100-k1         .9547   .9056   .8410   .6743   .9017   0.0561   27.1
-    prior16-centre50-k1-w2       .9546   .9074   .8446   .6817   .9034   0.0384   31.6
-    prior16-centre50-k1-zero     .7741   .7378   .6888   .5497   .7343   0.0090   31.3
-    prior16-centre50-k0.5        .9546   .9071   .8433   .6807   .9029   0.0421   29.4
-    prior8-centre50-k1           .9542   .9065   .8435   .6812   .9026   0.0375   26.6
-    prior16-centre50-k1-box12    .9545   .9066   .8426   .6806   .9025   0.0494   31.1
-    prior16-centre50-k1-mean10   .9510   .9024   .8423   .6790   .8996   0.0097   29.7
-    prior16-centre50-k1-mean30   .9530   .9057   .8454   .6823   .9024   0.0190   29.2
-
-With --extractor sift (12,699 pairs) the mean descriptor beats the nearest view (SIFT takes the
-scale and orientation of whichever keypoint is detected near the point in each image), hence the
-per-extractor prior_mean_deg:
-
-    nearest training view        .9184   .8625   .8171   .7502   .8749
-    mean descriptor              .9178   .8843   .8535   .8033   .8910
-    paper                        .9159   .8636   .8246   .7635   .8758
-    box12                        .9150   .8663   .8302   .7967   .8787
-    centre50                     .9206   .8666   .8247   .7673   .8790
-    prior16-centre50-k1          .9204   .8650   .8205   .7665   .8774
-    prior16-centre50-k1-mean30   .9233   .8757   .8416   .7940   .8871
-    default (= ...-k1-mean10)    .9247   .8808   .8500   .8027   .8914
-
-2026-11-26 (session 5), SIFT described at each keypoint's own pyramid level, with the closed-form
-solver of the quick preset (python tools/bench_novel_view.py --extractor sift --refresh --threads 2
---variants default,...; 12,704 pairs; lstsq rows from the same cached data):
-
-    nearest training view        .9086   .8478   .7972   .7061   .8609   view chg 0.0342
-    mean descriptor              .9043   .8649   .8287   .7572   .8727
-    default (adam)               .9130   .8627   .8263   .7560   .8745   0.0113   66.6 cpu s
-    prior16-centre50-k1-mean30   .9117   .8584   .8193   .7498   .8709
-    prior16-centre50-k1 (mean0)  .9092   .8490   .8003   .7247   .8623
-    lstsq (quick preset)         .9132   .8652   .8277   .7581   .8760   0.0025    ~4 cpu s (9 with evaluation)
-    lstsq-prior1                 .9129   .8640   .8258   .7558   .8750
-    lstsq-prior0.5               .9124   .8623   .8233   .7525   .8736
-
-2026-11-26 (session 7), nearly opaque densities for the closed form (python tools/bench_novel_view.py
---extractor sift|xfeat --threads 2 --variants default,lstsq,lstsq-dens5,lstsq-dens20; view chg, cpu s):
-
-    SIFT   lstsq .9132 .8652 .8277 .7581 .8760 0.0025 | dens5 .8758 0.0065 | dens20 .9134 .8645 .8277 .7596 .8758 0.0079
-    XFeat  default (adam) .9545 .9070 .8440 .6815 .9031 0.0388 50.0 | lstsq .9518 .9056 .8460 .6812 .9021 0.0142 4.5
-           lstsq-dens5 .9534 .9070 .8464 .6830 .9033 0.0256 5.0 | lstsq-dens20 .9537 .9071 .8463 .6837 .9034 0.0280 5.3
-
-The truth changes by 0.2047 across views; beyond 10 deg the nearest view predicts it worse than the
-mean, so no predictor trained on the mapping views beats the mean there by much.
+The current defaults' figures are in docs/measurements.md; the variants that lost are listed in
+docs/implementation-notes.md.
 """
 
 from __future__ import annotations

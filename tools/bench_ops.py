@@ -361,7 +361,7 @@ def main(argv=None) -> int:
                 f.unlink()
             os.rmdir(tmpdir)
     w = max(len(r[0]) for r in table)
-    print(f"{'step':<{w}}  {'ms':>10}  notes")
+    print(f"{'step':<{w}}  {'ms':>10}  details")
     for name, ms, note in table:
         print(f"{name:<{w}}  {ms:10.1f}  {note}")
     print(

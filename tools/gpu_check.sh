@@ -71,7 +71,7 @@ run)
                 || echo "(build failed or timed out)"
             echo "== fox build, full resolution, the defaults (balanced quality), GPU"
             timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 || echo "(build failed or timed out)"
-            echo "== fox build, full resolution, fast quality (Adam), GPU: issue 14's <= 10 s"
+            echo "== fox build, full resolution, fast quality (Adam), GPU"
             timeout 200 python3 tools/bench_build.py .gpu/fox --device cuda --max-side 0 --quality fast \
                 || echo "(build failed or timed out)"
             echo "== the same, SIFT's patch descriptors by OpenCV on the CPU threads (--patches-on cpu)"
