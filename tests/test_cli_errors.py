@@ -297,7 +297,7 @@ def test_validate_valid_map_exit_0(tmp_path):
     assert r.returncode == 0 and rep["valid"] is True and rep["problems"] == [] and rep["format_version"] == 1
 
 
-# -- pending changes outside this file's owner (see the report of issue 6) ---------------------------
+# -- a build's errors come first: no progress bar before an error, the output checked before the inputs ---
 def test_build_progress_bars_do_not_precede_an_error(sequences, tmp_path):
     problems = run_cases(
         {

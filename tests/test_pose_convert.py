@@ -1,4 +1,4 @@
-"""`favormap pose`: priors from the poses other tools write (issue 12, item 14)."""
+"""`favormap pose`: priors from the poses other tools write."""
 
 from __future__ import annotations
 

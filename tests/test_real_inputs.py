@@ -1,6 +1,6 @@
 """Real inputs: files written exactly as the real datasets and tools write them, near-rigid
-rotations (projected onto SO(3) at read time, refused beyond the one tolerance), and the checks
-that can refuse a map running before the work (issue 12, items 1-2)."""
+rotations (projected onto SO(3) at read time, refused beyond the one tolerance), and a build
+that refuses non-rigid poses before any image is read."""
 
 from __future__ import annotations
 

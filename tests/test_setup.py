@@ -1,4 +1,4 @@
-"""Set-up, CI and installation (issue 12, items 5-7): the README's commands, the project venv on a
+"""Set-up, CI and installation: the README's commands, the project venv on a
 system Python that refuses pip (PEP 668), the pytest summary line, the schema in a wheel."""
 
 from __future__ import annotations

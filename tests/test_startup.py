@@ -1,4 +1,4 @@
-"""Start-up: each command imports only what it needs (issue 12, item 15). Times are measured by
+"""Start-up: each command imports only what it needs. Times are measured by
 tools/bench_startup.py, not here; these tests check which heavy modules a command pulls in."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Words and numbers a user reads (issue 12, items 10-13): one reprojection-error figure, prune's
+"""Words and numbers a user reads: one reprojection-error figure, prune's
 reasons in words, conventions and units named in the outputs."""
 
 from __future__ import annotations

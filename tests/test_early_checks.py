@@ -1,5 +1,5 @@
-"""Mistakes caught before the work (issue 12, items 8-9): outputs into missing or read-only folders,
-outputs that are inputs, and a file given where a sequence folder is expected."""
+"""Mistakes caught before any image is read or any map is opened: outputs into missing or read-only
+folders, outputs that are inputs, and a file given where a sequence folder is expected."""
 
 from __future__ import annotations
 
