@@ -21,6 +21,7 @@ from .model import MapData
 from .schema import (
     FORMAT,
     FORMAT_VERSION,
+    POSE_CONVENTION,
     check_arrays,
     check_attributes,
     check_file,
@@ -28,12 +29,6 @@ from .schema import (
     load_schema,
     numpy_dtype,
 )
-
-POSE_CONVENTION = (
-    "cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
-    "pixel centre of the top-left pixel at (0.5, 0.5)"
-)
-
 
 PARTIAL_SUFFIX = ".partial"
 
@@ -118,8 +113,8 @@ def atomic_path(path: Path):
 
 
 def _stored(data, spec: dict) -> np.ndarray:
-    """An array exactly as it is stored: the schema dtype; strings as fixed-length UTF-8
-    (variable-length strings cannot be checksummed)."""
+    """An array exactly as it is stored: the schema dtype; strings as fixed-length byte strings
+    (HDF5 character set ASCII) holding UTF-8 (variable-length strings cannot be checksummed)."""
     if spec["dtype"] == "str":
         if isinstance(data, np.ndarray) and data.dtype.kind == "S":
             return data
