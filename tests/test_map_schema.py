@@ -182,3 +182,31 @@ def test_validate_json_reports_the_version_of_a_newer_file(small_map, tmp_path, 
         and out["format_version"] == FORMAT_VERSION + 1
         and "upgrade favormap" in out["problems"][0]
     )
+
+
+def _load_tables_tool():
+    spec = importlib.util.spec_from_file_location("gen_map_format_tables", REPO / "tools" / "gen_map_format_tables.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_docs_tables_are_the_generated_ones():
+    tool = _load_tables_tool()
+    doc = (REPO / "docs" / "map-format.md").read_text()
+    assert tool.render(doc, _schema()) == doc
+    for name, table in tool.tables(_schema()).items():
+        assert f"<!-- generated: {name} -->\n{table}\n<!-- end generated -->" in doc
+    # a changed description shows
+    s = _schema()
+    s["properties"]["datasets"]["properties"]["tracks/xy"]["description"] = "changed"
+    assert tool.render(doc, s) != doc
+    assert tool.main(["--check"]) == 0
+
+
+def test_the_docs_camera_parameters_are_favormaps():
+    from favormap.io.types import SUPPORTED_MODELS
+
+    doc = (REPO / "docs" / "map-format.md").read_text()
+    for model, names in SUPPORTED_MODELS.items():
+        assert f"| `{model}` | {len(names)} | {', '.join(names)} |" in doc, model
