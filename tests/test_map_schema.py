@@ -210,3 +210,34 @@ def test_the_docs_camera_parameters_are_favormaps():
     doc = (REPO / "docs" / "map-format.md").read_text()
     for model, names in SUPPORTED_MODELS.items():
         assert f"| `{model}` | {len(names)} | {', '.join(names)} |" in doc, model
+
+
+def test_documented_units_and_norms_hold_on_a_built_map(small_map):
+    """depth_range: distances landmark - camera centre (not z-depths); mean_descriptor unit length,
+    grid nodes not; voxel_size = box_factor * min distance / ((fx + fy) / 2) of the working cameras."""
+    from favormap.geometry import camera_centers
+    from favormap.io.images import working_camera
+
+    m, path = small_map
+    with h5py.File(path, "r") as f:
+        prov = json.loads(f.attrs["provenance"])
+        max_side = int(f.attrs["max_side"])
+    centres = camera_centers(m.cam_from_world)[m.track_frame]
+    dist = np.linalg.norm(m.positions[m.track_landmark] - centres, axis=1)
+    lo, hi = np.full(len(m.positions), np.inf), np.zeros(len(m.positions))
+    np.minimum.at(lo, m.track_landmark, dist)
+    np.maximum.at(hi, m.track_landmark, dist)
+    np.testing.assert_allclose(m.depth_range, np.stack([lo, hi], 1), rtol=1e-5)
+    cam_of = dict(zip(range(len(m.frame_camera_ids)), m.frame_camera_ids))
+    focal = np.array(
+        [
+            (lambda K: 0.5 * (K[0, 0] + K[1, 1]))(working_camera(m.cameras[int(cam_of[int(i)])], max_side).K)
+            for i in m.track_frame
+        ]
+    )
+    size = np.full(len(m.positions), np.inf)
+    np.minimum.at(size, m.track_landmark, prov["config"]["voxel"]["box_factor"] * dist / focal)
+    np.testing.assert_allclose(m.voxel_size, size, rtol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(m.mean_descriptor, axis=1), 1, atol=2e-3)
+    nodes = np.linalg.norm(m.descriptors.reshape(-1, m.descriptors.shape[-1]), axis=1)
+    assert np.abs(nodes - 1).max() > 0.05
