@@ -178,7 +178,7 @@ class MapWriter:
     """Write a map file dataset by dataset, large datasets row block by row block.
 
     Same layout as ``mapfile.write_map`` (schema dtypes, per-landmark chunks for voxel grids,
-    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings), the same integrity checks (schema
+    Fletcher-32, gzip+shuffle, fixed-length strings holding UTF-8), the same integrity checks (schema
     ``values`` constraints of every array and streamed block, attributes, then the structure of the
     written file) and the same atomicity: the file is written beside ``path`` and renamed into place
     on success, with the ``format`` attribute last::
