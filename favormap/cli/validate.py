@@ -15,7 +15,11 @@ def register(sub):
     )
     p.add_argument("map", help="map file (HDF5)")
     p.add_argument(
-        "--json", action="store_true", help='print {"valid": bool, "problems": [...], ...} as one JSON object'
+        "--json",
+        action="store_true",
+        help='print {"valid": bool, "problems": [...], ..., "attributes": {...}, "groups": [...], '
+        '"datasets": {...}} as one JSON object: the report and the file\'s layout description, which '
+        "the JSON Schema schemas/favormap-map.v1.json validates",
     )
     p.set_defaults(func=run)
 

@@ -1,8 +1,9 @@
 """mapfile: the persistent HDF5 map (schema in schemas/), atomic writer, lazy reader."""
 
+from .layout import describe_layout
 from .model import MapData, new_landmark_ids
 from .reader import Map
-from .schema import FORMAT, FORMAT_VERSION, check_file, load_schema
+from .schema import FORMAT, FORMAT_VERSION, POSE_CONVENTION, check_file, load_schema
 from .writer import MapWriter, atomic_path, write_map
 
 __all__ = [
@@ -11,8 +12,10 @@ __all__ = [
     "Map",
     "MapData",
     "MapWriter",
+    "POSE_CONVENTION",
     "atomic_path",
     "check_file",
+    "describe_layout",
     "load_schema",
     "new_landmark_ids",
     "write_map",

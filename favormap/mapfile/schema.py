@@ -28,9 +28,17 @@ from ..errors import MapFormatError, first_line
 FORMAT = "favormap-map"
 FORMAT_VERSION = 1
 
+# the root attribute pose_convention of every map (the schema's const): how frames/cam_from_world
+# and tracks/xy are to be read
+POSE_CONVENTION = (
+    "cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
+    "pixel centre of the top-left pixel at (0.5, 0.5)"
+)
+
 # MIGRATIONS[V](view) upgrades a MapView of version V to version V + 1 in memory: rename or derive
 # datasets/attributes (view.datasets values may become numpy arrays), then set view.version = V + 1.
-# Keep every old schemas/favormap-map.v<V>.json and document the change in its "migrations" section.
+# The migrations live here only (the schemas and docs/map-format.md point to this table); keep every
+# old schemas/favormap-map.v<V>.json and say in each function's docstring what it changes.
 MIGRATIONS: dict[int, Callable[[MapView], None]] = {}
 
 # the dimension symbols that root attributes fix (the others, K and O, come from the datasets)
@@ -45,13 +53,38 @@ def _schema_dir() -> Path:
 
 @cache
 def load_schema(version: int = FORMAT_VERSION) -> dict:
+    """The schema of format ``version``: the JSON Schema file's content plus favormap's reading of
+    it (:func:`layout_spec`): ``format``, ``version``, ``compatibility``, ``attributes`` and
+    ``datasets`` (name -> the entry's ``x-favormap`` with its ``description``)."""
     path = _schema_dir() / f"favormap-map.v{int(version)}.json"
     try:
-        return json.loads(path.read_text())
+        raw = json.loads(path.read_text())
     except FileNotFoundError:
         raise MapFormatError(
             f"no schema for map format version {version} ({path} is missing; broken installation?)"
         ) from None
+    return raw if "datasets" in raw else {**raw, **layout_spec(raw)}
+
+
+def layout_spec(json_schema: dict) -> dict:
+    """favormap's checks from a JSON Schema of a layout description: each attribute's and dataset's
+    ``x-favormap`` entry with its ``description``, in the schema's order."""
+    props = json_schema["properties"]
+
+    def entries(section: str) -> dict:
+        return {
+            name: {**e["x-favormap"], "description": e["description"]}
+            for name, e in props[section]["properties"].items()
+        }
+
+    root = json_schema["x-favormap"]
+    return {
+        "format": root["format"],
+        "version": root["version"],
+        "compatibility": root["compatibility"],
+        "attributes": entries("attributes"),
+        "datasets": entries("datasets"),
+    }
 
 
 def numpy_dtype(name: str):

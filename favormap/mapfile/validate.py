@@ -13,6 +13,10 @@
    ranges, positive voxel sizes, unit view directions, rigid poses, known camera models, ...).
 
 Unknown extra datasets and observation-count mismatches are warnings, not problems.
+
+The report carries the file's layout description (:mod:`favormap.mapfile.layout`) for any readable
+HDF5 file; ``Report.to_dict`` (``favormap validate --json``) merges it into the report's fields,
+which is what the JSON Schema ``schemas/favormap-map.v<N>.json`` validates.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FavormapError, first_line
+from .layout import describe_open
 from .schema import (
     FORMAT,
     FORMAT_VERSION,
@@ -49,9 +54,14 @@ class Report:
     num_frames: int | None = None
     datasets_read: int = 0
     bytes_read: int = 0
+    layout: dict | None = None  # the layout description; None when the file is no readable HDF5 file
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The report's fields and, when there is one, the layout description's ``attributes``,
+        ``groups`` and ``datasets``: a JSON object the map schema validates."""
+        d = asdict(self)
+        layout = d.pop("layout")
+        return {**d, **(layout or {})}
 
 
 def _describe(e: BaseException) -> str:
@@ -153,6 +163,10 @@ def validate(path) -> Report:
             report.problems.append(f"{path} is not a readable HDF5 file ({first_line(e)})")
         return report
     try:
+        report.layout = describe_open(f)
+    except Exception as e:  # noqa: BLE001
+        report.problems.append(f"{path}: the layout cannot be listed ({type(e).__name__}: {first_line(e)})")
+    try:
         _validate_open(f, path, report)
     except Exception as e:  # noqa: BLE001 - validation itself must never crash on a hostile file
         report.problems.append(f"{path}: unexpected damage, validation stopped ({type(e).__name__}: {first_line(e)})")
@@ -172,6 +186,9 @@ def _validate_open(f, path: Path, report: Report) -> None:
     except FavormapError as e:
         msg = str(e)
         report.problems.append(msg)
+        ver = _raw_version(f.attrs)
+        if ver is not None:
+            report.format_version = ver  # a newer or invalid version is still the file's version
         if "reads up to" in msg:
             return  # an unknown future layout: nothing more can be checked
         groups = {p.split("/")[0] for p in load_schema(FORMAT_VERSION)["datasets"]}
@@ -185,7 +202,7 @@ def _validate_open(f, path: Path, report: Report) -> None:
     except Exception as e:  # noqa: BLE001
         report.problems.append(f"the file header cannot be read: {_describe(e)}")
         return
-    report.format_version = version
+    report.format_version = _raw_version(f.attrs)
     # -- structure (through the file's own schema, migrated to this version)
     try:
         view = MapView.from_file(f, version).upgrade()
@@ -221,6 +238,19 @@ def _validate_open(f, path: Path, report: Report) -> None:
             problems, warnings = [f"{p!r}: values cannot be checked ({type(e).__name__}: {first_line(e)})"], []
         report.problems += problems
         report.warnings += warnings
+
+
+def _raw_version(attrs) -> int | None:
+    """The file's ``format_version`` attribute as an int, whatever its value; None when absent or
+    not an integer."""
+    try:
+        v = attrs.get("format_version")
+        v = v[()] if isinstance(v, np.ndarray) and v.shape == () else v
+    except Exception:  # noqa: BLE001
+        return None
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+        return None
+    return int(v)
 
 
 def format_report(r: Report) -> list[str]:

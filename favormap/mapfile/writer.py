@@ -21,6 +21,7 @@ from .model import MapData
 from .schema import (
     FORMAT,
     FORMAT_VERSION,
+    POSE_CONVENTION,
     check_arrays,
     check_attributes,
     check_file,
@@ -28,12 +29,6 @@ from .schema import (
     load_schema,
     numpy_dtype,
 )
-
-POSE_CONVENTION = (
-    "cam_from_world 4x4; OpenCV camera axes (x right, y down, z forward); "
-    "pixel centre of the top-left pixel at (0.5, 0.5)"
-)
-
 
 PARTIAL_SUFFIX = ".partial"
 
@@ -118,8 +113,8 @@ def atomic_path(path: Path):
 
 
 def _stored(data, spec: dict) -> np.ndarray:
-    """An array exactly as it is stored: the schema dtype; strings as fixed-length UTF-8
-    (variable-length strings cannot be checksummed)."""
+    """An array exactly as it is stored: the schema dtype; strings as fixed-length byte strings
+    (HDF5 character set ASCII) holding UTF-8 (variable-length strings cannot be checksummed)."""
     if spec["dtype"] == "str":
         if isinstance(data, np.ndarray) and data.dtype.kind == "S":
             return data
@@ -183,7 +178,7 @@ class MapWriter:
     """Write a map file dataset by dataset, large datasets row block by row block.
 
     Same layout as ``mapfile.write_map`` (schema dtypes, per-landmark chunks for voxel grids,
-    Fletcher-32, gzip+shuffle, fixed-length UTF-8 strings), the same integrity checks (schema
+    Fletcher-32, gzip+shuffle, fixed-length strings holding UTF-8), the same integrity checks (schema
     ``values`` constraints of every array and streamed block, attributes, then the structure of the
     written file) and the same atomicity: the file is written beside ``path`` and renamed into place
     on success, with the ``format`` attribute last::
