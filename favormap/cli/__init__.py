@@ -23,6 +23,7 @@ _COMMANDS = [
     "pose",
     "eval",
     "query",
+    "align",
     "merge",
     "prune",
     "export",

@@ -1,4 +1,4 @@
-"""favormap merge a.h5 b.h5 [c.h5 ...] -o merged.h5 [--dedup-radius R] [--transform b_to_a.txt]"""
+"""favormap merge a.h5 b.h5 [c.h5 ...] -o merged.h5 [--dedup-radius R] [--transform b_to_a.txt | --align]"""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
+from .align import add_align_args, align_config, summary_lines
 from .common import StageBars, human_size, print_json
 
 
@@ -39,6 +40,12 @@ def register(sub):
         metavar="FILE",
         help="4x4 b_to_a matrix (rigid or similarity) applied to the second and later maps",
     )
+    p.add_argument(
+        "--align",
+        action="store_true",
+        help="estimate b_to_a from the landmarks first (as 'favormap align'; two maps only)",
+    )
+    add_align_args(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_threads_arg(p)
@@ -54,6 +61,21 @@ def run(args) -> int:
     if len(args.maps) < 2:
         raise InputError("merge needs at least two maps")
     T = read_transform(args.transform)[0] if args.transform else None
+    alignment = None
+    if args.align:
+        from ..mapfile.writer import check_output_path
+        from ..ops.align import align_maps
+
+        if args.transform:
+            raise InputError("--align and --transform exclude each other")
+        if len(args.maps) != 2:
+            raise InputError(f"--align takes exactly two maps, got {len(args.maps)}")
+        check_output_path(args.output, args.maps)  # fail before any work
+        alignment = align_maps(args.maps[0], args.maps[1], align_config(args))
+        T = alignment.b_to_a
+        if not args.json:
+            for line in summary_lines(alignment):
+                print(line)
     rec = recording_from_args(args, "favormap merge")
     bars = StageBars(args.quiet or args.json)
     try:
@@ -75,6 +97,8 @@ def run(args) -> int:
         print(f"favormap merge: warning: {w}", file=sys.stderr)
     d = res.to_dict()
     d["file_size"] = Path(args.output).stat().st_size
+    if alignment is not None:
+        d["alignment"] = alignment.to_dict()
     if args.json:
         print_json(d)
         return 0
