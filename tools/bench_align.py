@@ -58,6 +58,7 @@ def main() -> int:
     ap.add_argument("--quality", default="quick", help="voxel training preset of both builds")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--other", help="a sequence of another place: its map must be refused")
+    ap.add_argument("--keep", metavar="DIR", help="write the two maps (a.h5, b.h5) and b_to_a_true.txt here")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
 
@@ -70,6 +71,10 @@ def main() -> int:
     cfg = BuildConfig(voxel=VoxelConfig.preset(args.quality))
     out: dict = {"sequence": args.sequence, "frames": n, "split": args.split, "path_extent": extent}
     with tempfile.TemporaryDirectory() as tmp:
+        if args.keep:
+            tmp = args.keep
+            Path(tmp).mkdir(parents=True, exist_ok=True)
+            np.savetxt(Path(tmp) / "b_to_a_true.txt", T)
         a, b = Path(tmp) / "a.h5", Path(tmp) / "b.h5"
         t0 = time.perf_counter()
         write_map(build_map(seq.subset(ia), cfg), a)
