@@ -93,7 +93,9 @@ class BuildConfig:
     # hold-out 0.88x, extrapolation 0.87x (medians 0.0041-0.0046 against 0.0060-0.0063), orbit 1.01x; fox
     # tracking 6.6 s instead of 2.7 s. Poses less accurate than ~1 px at max_side want a looser check (2-3 px)
     match_window: int = 10
-    # None: the extractor's default (default_max_epipolar, set on construction): 1 px, DISK 2 px
+    # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
+    # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
+    # no less than the extractor's keypoint precision (default_max_epipolar: 1 px, DISK 2 px)
     max_epipolar_px: float | None = None
     min_similarity: float = 0.7
     # tracking variants, each measured and lost (three seeds, docs/accuracy.md):
@@ -134,8 +136,6 @@ class BuildConfig:
     def __post_init__(self):
         if self.voxel is None:
             self.voxel = VoxelConfig.preset(default_quality(self.extractor))
-        if self.max_epipolar_px is None:
-            self.max_epipolar_px = default_max_epipolar(self.extractor)
         if self.align_patches is None:
             self.align_patches = default_align_patches(self.extractor)
         if self.exact_poses:
@@ -373,6 +373,7 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
         config.epipolar_first,
         config.split_conflicts,
         config.match_ratio,
+        min_epipolar_px=default_max_epipolar(config.extractor),
     )
 
 
@@ -680,7 +681,7 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
         check_patch(config.voxel.patch_size, config.voxel.patch_stride, bool(config.voxel.patch_interp))
     except ValueError as e:
         raise InputError(f"VoxelConfig: {e}") from None
-    if config.match_window < 1 or not config.max_epipolar_px > 0:
+    if config.match_window < 1 or not (config.max_epipolar_px is None or config.max_epipolar_px > 0):
         raise InputError(
             f"BuildConfig: match_window must be >= 1 and max_epipolar_px > 0 "
             f"(got {config.match_window}, {config.max_epipolar_px})"
@@ -799,6 +800,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         n_tracks, n_triangulated = len(tracks), len(all_lms)
         epipolar_kept = tracks.epipolar_matches / max(tracks.matches, 1)
         epipolar_kept_3x = tracks.epipolar_matches_3x / max(tracks.matches, 1)
+        epipolar_px, epipolar_median = tracks.max_epipolar_px, tracks.epipolar_median_px
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on
         release_free_memory()
         pr.callback("triangulate", 1, 1)
@@ -835,7 +837,10 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         # shares of the mutual matches within the epipolar limit and 3x it (favormap.tracking.Tracks)
         "epipolar_kept": round(epipolar_kept, 4),
         "epipolar_kept_3x": round(epipolar_kept_3x, 4),  # within 3x the limit
-        "max_epipolar_px": float(config.max_epipolar_px),
+        "max_epipolar_px": float(epipolar_px),  # the limit used: given, or measured
+        "epipolar_measured": config.max_epipolar_px is None,
+        # the right matches' median distance from their epipolar lines (px; measured limits only)
+        **({"epipolar_median_px": round(epipolar_median, 3)} if epipolar_median == epipolar_median else {}),
         "triangulated": int(n_triangulated),
         "landmarks": int(len(lms)),
         "mean_track_length": float(lms.tracks.lengths.mean()),

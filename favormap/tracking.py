@@ -42,6 +42,10 @@ class Tracks:
     matches: int = 0
     epipolar_matches: int = 0
     epipolar_matches_3x: int = 0
+    # the epipolar limit the matches were held to (px), and the median distance of the right matches from
+    # their epipolar line that chose it when the limit was measured (epipolar_limit; nan when it was given)
+    max_epipolar_px: float = float("nan")
+    epipolar_median_px: float = float("nan")
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -250,18 +254,49 @@ def _counts(features) -> np.ndarray:
     return np.asarray(counts() if callable(counts) else [len(f) for f in features], np.int64)
 
 
+# epipolar_limit: the measured limit is this many times the right matches' median distance, within
+# [the extractor's floor, EPIPOLAR_CEILING x the floor]; wrong matches are counted in a band of distances
+# that right matches do not reach, and with fewer right matches than EPIPOLAR_MIN_MATCHES the floor is kept
+EPIPOLAR_FACTOR = 3.0
+EPIPOLAR_CEILING = 8.0
+EPIPOLAR_MIN_MATCHES = 200
+_WRONG_BAND = (32.0, 64.0)
+
+
+def epipolar_limit(dist: np.ndarray, floor: float) -> tuple[float, float]:
+    """The epipolar limit (px) measured from the distances ``dist`` of the mutual matches from their
+    epipolar lines, and the median distance of the right ones it rests on: (limit, median).
+
+    The poses' accuracy sets the spread of the right matches' distances; the wrong matches' distances
+    are spread nearly evenly over tens of pixels. Their density per pixel is counted in a far band
+    (``_WRONG_BAND``) and taken off the cumulative count, which leaves the right matches' distribution;
+    the limit is ``EPIPOLAR_FACTOR`` times its median, no less than ``floor`` (the extractor's keypoint
+    precision) and no more than ``EPIPOLAR_CEILING * floor``."""
+    d = np.sort(np.asarray(dist, np.float64))
+    lo, hi = _WRONG_BAND
+    density = (np.searchsorted(d, hi, "right") - np.searchsorted(d, lo, "right")) / (hi - lo)
+    grid = np.arange(1, int(lo * 20) + 1) / 20.0  # 0.05 px steps up to the band
+    right = np.searchsorted(d, grid, "right") - density * grid
+    n_right = right[-1]
+    if n_right < EPIPOLAR_MIN_MATCHES:
+        return float(floor), float("nan")
+    median = float(grid[np.argmax(right >= 0.5 * n_right)])
+    return float(np.clip(EPIPOLAR_FACTOR * median, floor, EPIPOLAR_CEILING * floor)), median
+
+
 def track_features(
     features: SequenceABC[Features],
     cam_from_world: np.ndarray,
     cameras: list[Camera],
     min_track: int = 5,
     window: int = 3,
-    max_epipolar_px: float = 2.0,
+    max_epipolar_px: float | None = 2.0,
     min_similarity: float = 0.7,
     epipolar_first: bool = False,
     split_conflicts: bool = False,
     ratio: float = 1.0,
     workers: int | None = None,
+    min_epipolar_px: float = 1.0,
 ) -> Tracks:
     """Tracks of keypoints through a sequence of frames with known poses and pinhole cameras.
     ``workers``: threads matching frame pairs (None: favormap.threads' count); the tracks are the
@@ -269,7 +304,10 @@ def track_features(
 
     ``features`` is read frame by frame (at most ``window + 1`` frames at a time), so it may be a
     :class:`favormap.features.cache.CachedFrames` of a sequence that does not fit in memory; only the
-    matched keypoints are kept."""
+    matched keypoints are kept.
+
+    ``max_epipolar_px`` None: the limit is measured from the mutual matches (:func:`epipolar_limit`, no
+    less than ``min_epipolar_px``), so poses less accurate than the keypoints get a looser check."""
     n = len(features)
     counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])
@@ -287,13 +325,13 @@ def track_features(
         F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
         if epipolar_first:
             ia, ib, sab = epipolar_mutual_nn(da, db, ka, kb, F, max_epipolar_px, min_similarity, ratio)
-            return ia, ib, sab, np.ones(len(ia), bool), len(ia)  # chosen among the pairs within the limit already
+            return ia, ib, sab, np.zeros(len(ia), np.float32)  # chosen among the pairs within the limit already
         ia, ib, sab = mutual_nn(da, db, min_similarity, ratio)
-        dist = epipolar_distance(F, ka[ia], kb[ib])
-        return ia, ib, sab, dist <= max_epipolar_px, int((dist <= 3 * max_epipolar_px).sum())
+        return ia, ib, sab, epipolar_distance(F, ka[ia], kb[ib]).astype(np.float32)
 
-    rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
-    n_mutual = n_kept = n_kept3 = 0
+    if epipolar_first and max_epipolar_px is None:
+        raise ValueError("track_features: epipolar_first needs a given max_epipolar_px")
+    pairs_found = []  # (a, b, ia, ib, similarity, epipolar distance) of every frame pair's mutual matches
     # the pairs of one frame on a pool of threads, one BLAS thread each (favormap.threads.serial_pools):
     # each similarity is one 128-term dot product whatever the thread count, and the NumPy reductions
     # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS, not
@@ -310,23 +348,40 @@ def track_features(
                 for i in [a, *bs]:
                     frame(i)
                 results = pool.map(match, [a] * len(bs), bs) if pool else map(match, [a] * len(bs), bs)
-                for b, (ia, ib, sab, ok, kept3) in zip(bs, results):
-                    if len(ia) == 0:
-                        continue
-                    n_kept3 += kept3
-                    n_mutual, n_kept = n_mutual + len(ia), n_kept + int(ok.sum())
-                    ka, kb = held[a][0], held[b][0]
-                    rows.append((base[a] + ia[ok]).astype(gid))
-                    cols.append((base[b] + ib[ok]).astype(gid))
-                    xy_rows.append(ka[ia[ok]])
-                    xy_cols.append(kb[ib[ok]])
-                    sims.append(sab[ok].astype(np.float32))
+                for b, (ia, ib, sab, dist) in zip(bs, results):
+                    if len(ia):
+                        ka, kb = held[a][0], held[b][0]
+                        pairs_found.append((a, b, ia, ib, ka[ia], kb[ib], sab.astype(np.float32), dist))
     finally:
         if pool:
             pool.shutdown()
+    all_dist = np.concatenate([p[-1] for p in pairs_found]) if pairs_found else np.zeros(0, np.float32)
+    median = float("nan")
+    if max_epipolar_px is None:
+        max_epipolar_px, median = epipolar_limit(all_dist, min_epipolar_px)
+    n_mutual = len(all_dist)
+    n_kept = int((all_dist <= max_epipolar_px).sum())
+    n_kept3 = int((all_dist <= 3 * max_epipolar_px).sum())
+    del all_dist
+    rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
+    for a, b, ia, ib, xa, xb, sab, dist in pairs_found:
+        ok = dist <= max_epipolar_px
+        rows.append((base[a] + ia[ok]).astype(gid))
+        cols.append((base[b] + ib[ok]).astype(gid))
+        xy_rows.append(xa[ok])
+        xy_cols.append(xb[ok])
+        sims.append(sab[ok])
+    del pairs_found
+    found = dict(
+        matches=n_mutual,
+        epipolar_matches=n_kept,
+        epipolar_matches_3x=n_kept3,
+        max_epipolar_px=float(max_epipolar_px),
+        epipolar_median_px=median,
+    )
     if not rows or not sum(len(r) for r in rows):
         empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
-        return Tracks(*empty, matches=n_mutual, epipolar_matches=n_kept, epipolar_matches_3x=n_kept3)
+        return Tracks(*empty, **found)
     # the graph of matched keypoints only (global keypoint index -> node)
     ends = np.concatenate(rows + cols)
     node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
@@ -350,5 +405,6 @@ def track_features(
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
     tracks = Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])
-    tracks.matches, tracks.epipolar_matches, tracks.epipolar_matches_3x = n_mutual, n_kept, n_kept3
+    for k, v in found.items():
+        setattr(tracks, k, v)
     return tracks

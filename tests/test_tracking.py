@@ -9,7 +9,7 @@ import pytest
 from favormap.features import Features
 from favormap.geometry import look_at, project
 from favormap.io import Camera
-from favormap.tracking import Tracks, track_features
+from favormap.tracking import EPIPOLAR_CEILING, Tracks, epipolar_limit, track_features
 from favormap.triangulation import TriangulationConfig, triangulate
 
 CAM = Camera("PINHOLE", 640, 480, [500.0, 500.0, 320.0, 240.0])
@@ -88,6 +88,45 @@ def test_tracking_drops_short_tracks_and_matches_that_break_the_epipolar_constra
     # the run's match counts: the same mutual matches; the pose check refused the decoy's
     assert tracks.matches == loose.matches > 0 and loose.epipolar_matches == loose.matches
     assert 0 < tracks.epipolar_matches < tracks.matches and tracks.epipolar_matches <= tracks.epipolar_matches_3x
+
+
+@pytest.mark.parametrize("sigma", [0.2, 0.8, 2.0])
+def test_the_measured_epipolar_limit_follows_the_spread_of_the_right_matches(sigma):
+    """Right matches' distances from their epipolar lines spread with the poses' error, wrong ones
+    evenly: the measured limit rests on the right ones' median (3x it), whatever the share of wrong
+    ones, within [floor, ceiling x floor]."""
+    rng = np.random.default_rng(1)
+    right = np.abs(rng.normal(0.0, sigma, (4000, 2))).sum(1) / 2  # a symmetric distance: two one-sided ones
+    for wrong_share in (0.2, 0.5):
+        n_wrong = int(len(right) * wrong_share / (1 - wrong_share))
+        d = np.r_[right, rng.uniform(0, 300, n_wrong)]
+        limit, median = epipolar_limit(d, floor=1.0)
+        assert median == pytest.approx(np.median(right), rel=0.1, abs=0.06)
+        assert limit == pytest.approx(float(np.clip(3 * median, 1.0, EPIPOLAR_CEILING)))
+    assert epipolar_limit(right[:50], floor=1.5) == (1.5, pytest.approx(np.nan, nan_ok=True))  # too few: the floor
+
+
+def test_tracking_measures_a_looser_limit_for_less_accurate_poses():
+    """No limit given: exact poses keep the floor; poses moved by ~2 px get a limit that holds their
+    right matches, and the tracks a fixed 1 px limit would break stay whole."""
+    X, T, D, rng = _rig(n_points=300)
+    feats, owners = _features(X, T, D, rng)
+    exact = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, max_epipolar_px=None)
+    assert exact.max_epipolar_px == 1.0 and exact.epipolar_median_px < 0.5
+    moved = T.copy()
+    for i in range(len(T)):  # each camera turned by a random ~0.25 deg: ~2 px at f = 500
+        axis = rng.normal(size=3)
+        angle = np.deg2rad(0.25) * axis / np.linalg.norm(axis)
+        K = np.array([[0, -angle[2], angle[1]], [angle[2], 0, -angle[0]], [-angle[1], angle[0], 0]])
+        moved[i, :3, :3] = (np.eye(3) + K) @ T[i, :3, :3]
+        u, _, vt = np.linalg.svd(moved[i, :3, :3])
+        moved[i, :3, :3] = u @ vt
+    fixed = track_features(feats, moved, [CAM] * len(T), min_track=5, window=3, max_epipolar_px=1.0)
+    measured = track_features(feats, moved, [CAM] * len(T), min_track=5, window=3, max_epipolar_px=None)
+    assert measured.max_epipolar_px > 2.0 and measured.epipolar_median_px > 0.7
+    assert np.isnan(fixed.epipolar_median_px) and fixed.max_epipolar_px == 1.0
+    assert measured.lengths.sum() > 1.3 * fixed.lengths.sum()
+    assert all(len(np.unique(o)) == 1 and o[0] >= 0 for o in _owners_of(measured, owners))  # still right
 
 
 def _two_keypoints_of_point_7():
@@ -251,8 +290,8 @@ def test_split_conflicts_rebuilds_an_ambiguous_component_from_its_strongest_matc
 
 def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map, capsys):
     """A build records which shares of the mutual matches lie within the epipolar limit and within 3x
-    it, and its summary says so, with a hint to loosen the check when many right matches seem to lie
-    beyond the limit (poses less accurate than it)."""
+    it, and its summary says so; a given limit that many right matches seem to lie beyond (poses less
+    accurate than it) gets a hint to let the build measure it."""
     from favormap.cli.build import print_summary
 
     m, _ = small_map
@@ -270,7 +309,12 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
         print_summary({**base, "epipolar_kept": kept, "epipolar_kept_3x": kept3})
         out = capsys.readouterr().out
         assert f"within 1 px of their epipolar line: {round(100 * kept)} %, within 3 px: {round(100 * kept3)} %" in out
-        assert ("--max-epipolar 2" in out) == hint
+        assert ("leave --max-epipolar out to measure it" in out) == hint
+        # a measured limit gives no hint, and says what it chose from
+        print_summary({**base, "epipolar_kept": kept, "epipolar_kept_3x": kept3, "epipolar_measured": True,
+                       "epipolar_median_px": 0.4})  # fmt: skip
+        out = capsys.readouterr().out
+        assert "--max-epipolar" not in out and "epipolar limit      1.00 px, measured" in out and "0.40 px" in out
     # the exact synthetic poses of the small map (its own statistics) suggest --exact-poses; the fox's
     # (85 % of the matches within 3 px within 1 px, 0.335 px) and a map built with it do not
     for stats, hint in (

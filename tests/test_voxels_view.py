@@ -278,16 +278,16 @@ def test_quality_presets_and_cli_flags():
     assert BuildConfig().voxel == VoxelConfig.preset("balanced")
     given = BuildConfig(extractor="disk", voxel=VoxelConfig.preset("quick"))  # a given preset stays
     assert given.voxel == VoxelConfig.preset("quick")
-    assert (BuildConfig().match_window, BuildConfig().max_epipolar_px) == (10, 1.0)
-    # the epipolar limit follows the extractor too (DISK's keypoints are less precise), in the CLI and the API;
-    # a given limit stays
+    assert (BuildConfig().match_window, BuildConfig().max_epipolar_px) == (10, None)
+    # the epipolar limit is measured unless given, no less than the extractor's floor (DISK's keypoints are
+    # less precise), in the CLI and the API; a given limit stays
     from favormap.build import default_max_epipolar
 
     assert [default_max_epipolar(ex) for ex in ("sift", "disk", "xfeat")] == [1.0, 2.0, 1.0]
     for ex in ("sift", "disk", "xfeat"):
         args = ap.parse_args(["build", "seq", "-o", "x.h5", "--extractor", ex])
-        assert cli_build.config_from_args(args).max_epipolar_px == default_max_epipolar(ex)
-        assert BuildConfig(extractor=ex).max_epipolar_px == default_max_epipolar(ex)
+        assert cli_build.config_from_args(args).max_epipolar_px is None
+        assert BuildConfig(extractor=ex).max_epipolar_px is None
         args = ap.parse_args(["build", "seq", "-o", "x.h5", "--extractor", ex, "--max-epipolar", "1.5"])
         assert cli_build.config_from_args(args).max_epipolar_px == 1.5
     assert BuildConfig(extractor="disk", max_epipolar_px=1.0).max_epipolar_px == 1.0

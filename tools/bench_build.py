@@ -118,7 +118,7 @@ def main():
     print(
         f"sequence {seq_path}: {len(seq)} frames, {st['landmarks']} landmarks, extractor {cfg.extractor}, "
         f"quality {args.quality or 'default'}, match window {cfg.match_window}, "
-        f"epipolar {cfg.max_epipolar_px:g} px, max side {cfg.max_side}, device {args.device}, "
+        f"epipolar {st['max_epipolar_px']:.2f} px, max side {cfg.max_side}, device {args.device}, "
         f"patches on {'cpu' if args.patches_on == 'cpu' or args.device == 'cpu' else args.device}, "
         f"CPU-stage workers {m.provenance['executor']['workers']}, torch threads {torch.get_num_threads()}, "
         f"cores {os.cpu_count()}"

@@ -58,7 +58,7 @@ def register(sub):
         default=None,
         metavar="PX",
         help="tracking: largest distance of a match from its epipolar line, in px at the working resolution "
-        "(default 1, DISK 2; raise it to 2-3 for poses less accurate than that, e.g. from a SLAM system)",
+        "(default: measured from the matches, 3x the median distance of the right ones, at least 1 px, DISK 2)",
     )
     p.add_argument(
         "--refine-window",
@@ -257,10 +257,15 @@ def print_summary(s: dict) -> None:
         line += f"within {3 * px:g} px: {100 * kept3:.0f} %"
         # accurate poses put nearly every right match within the limit; wrong matches spread evenly
         line += (
-            "; many beyond: poses less accurate than the limit? try --max-epipolar 2 or 3)"
-            if kept < _EPIPOLAR_HINT * kept3
+            "; many beyond: poses less accurate than the limit? leave --max-epipolar out to measure it)"
+            if kept < _EPIPOLAR_HINT * kept3 and not s.get("epipolar_measured")
             else ")"
         )
+    print(line)
+    if s.get("epipolar_measured"):
+        line = f"epipolar limit      {s['max_epipolar_px']:.2f} px, measured"
+        med = s.get("epipolar_median_px")
+        line += f" (right matches' median distance {med:.2f} px)" if med is not None else " (too few matches: floor)"
     print(line)
     print(f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']})")
     print(f"mean track length   {s['mean_track_length']:.2f}")
