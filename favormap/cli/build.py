@@ -82,8 +82,8 @@ def register(sub):
         "--align-patches",
         type=int,
         default=None,
-        metavar="R",
-        help="store each observation's (2R+1) x (2R+1) grey pixels in the map (e.g. 20: 41 x 41 bytes an "
+        metavar="RADIUS",
+        help="store each observation's (2 RADIUS + 1)^2 grey pixels in the map (e.g. 20: 41 x 41 bytes an "
         "observation, ~1.1 kB compressed), so that `localize --align` needs no mapping images (default: 20 for DISK "
         "and ALIKED, whose maps localize with the alignment by default; else 0: none)",
     )

@@ -13,7 +13,7 @@ query that matches that template best. The alignment is kept where it converged 
 cross-correlation >= ``min_ncc``) within ``max_shift_px`` of the detected keypoint.
 
 It needs the mapping images: the grey pixels around each observation that a map built with
-``favormap build --align-patches R`` stores (``tracks/patch``), or else the folder the map was built
+``favormap build --align-patches RADIUS`` stores (``tracks/patch``), or else the folder the map was built
 from (its provenance), or another folder of the same sequence. Both give the same alignment (the
 stored pixels are the image's, blurred alike) wherever the template's footprint in the mapping frame
 lies inside the stored patch less the blur's reach; where it does not, the detected keypoint stays.
