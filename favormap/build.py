@@ -34,108 +34,72 @@ from .threads import configure_threads, rebalance
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
-from .voxels.train import default_quality, voxel_config_for
-
-# Tracking's epipolar limit per extractor (px at the working resolution; others: 1). DISK's keypoints are less
-# precise than SIFT's (the fox-extrapolation DISK map's landmarks reproject 0.46 px from their observations by the
-# median, SIFT's 0.30 px), so 1 px drops right matches: with 2 px, thirty-second session, tools/bench_accuracy.py
-# --extractor disk, localize --align: fox extrapolation 0.0058 / 0.0056 / 0.0055 over three training seeds against
-# 0.0073 / 0.0070 / 0.0067 (paired 0.98x on seed 0), hold-out 0.88x, orbit 1.03x paired; plain rendering hold-out
-# 1.04x, orbit 0.97x (docs/accuracy.md). SIFT's 1.5 / 2 px lose between the mapping views (hold-out 1.10x / 1.32x).
-DEFAULT_MAX_EPIPOLAR_PX: dict[str, float] = {"disk": 2.0}
+from .voxels.train import voxel_config_for
 
 
 def default_max_epipolar(extractor: str) -> float:
-    """The epipolar limit a build of ``extractor`` uses when none is given (BuildConfig, ``build --max-epipolar``)."""
-    return DEFAULT_MAX_EPIPOLAR_PX.get(extractor, 1.0)
-
-
-# BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius, the
-# settings measured on the synthetic orbit (twenty-ninth and thirty-eighth sessions)
-EXACT_POSES_REFINE_WINDOW = 9
-EXACT_POSES_PATCHES = 20
-# Extractors whose maps store their observations' pixels (align_patches 20 unless given) and localize with the
-# query keypoints aligned to them by default: the learned detectors place a keypoint 2-3x less precisely than
-# SIFT's scale-space fit (0.24-0.29 px against 0.10 px on the synthetic room, thirty-fifth session), and the
-# alignment takes that error out. Thirty-eighth session, tools/bench_accuracy.py --extractor disk,aliked, the
-# aligned rendering paired with the plain one (docs/accuracy.md): DISK fox hold-out 0.64x (0.0022 -> 0.0012 units),
-# extrapolation 0.82x (0.0087 -> 0.0056, 0.49x the pycolmap baseline), orbit 0.30x; ALIKED 0.53x (0.0031 ->
-# 0.0016), 0.86x (0.0127 -> 0.0109), 0.29x. SIFT's keypoints gain only where the poses are exact (exact_poses)
-ALIGNED_EXTRACTORS = ("disk", "aliked")
+    """The least epipolar limit of tracking for ``extractor`` (its policy's keypoint precision, px)."""
+    return feats_mod.policy_of(extractor).keypoint_precision_px
 
 
 def default_align_patches(extractor: str) -> int:
     """The stored observation patches' radius a build of ``extractor`` uses when none is given (0: none)."""
-    return EXACT_POSES_PATCHES if extractor in ALIGNED_EXTRACTORS else 0
+    return feats_mod.policy_of(extractor).align_patches
+
+
+# BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius
+EXACT_POSES_REFINE_WINDOW = 9
+EXACT_POSES_PATCHES = 20
 
 
 def localize_defaults(config: BuildConfig) -> dict:
     """What a map built with ``config`` asks of the localizer unless told otherwise (stored in the map's
     provenance as ``localize_defaults``; LocalizeConfig fields left None follow it): the keypoint alignment
-    where the poses are exact or the extractor's keypoints imprecise, with the stored patches it needs."""
-    align = config.exact_poses or (config.extractor in ALIGNED_EXTRACTORS and config.align_patches > 0)
+    where the poses are exact or the extractor's policy asks for it, with the stored patches it needs."""
+    aligning = feats_mod.policy_of(config.extractor).align_patches > 0
+    align = config.exact_poses or (aligning and config.align_patches > 0)
     return {"align": bool(align)}
 
 
 @dataclass
 class BuildConfig:
-    extractor: str = (
-        "sift"  # tools/bench_accuracy.py: fox hold-out 0.0021 vs 0.0052 units (xfeat), extrapolation 0.0058 vs 0.054
-    )
-    max_keypoints: int = 2048
+    """Settings of :func:`build_map`. Fields left None follow the extractor's policy
+    (:class:`favormap.features.ExtractorPolicy`) or are measured from the data; the reasons for the
+    defaults are in docs/implementation-notes.md."""
+
+    extractor: str = "sift"  # a registered feature extractor (favormap.features.available())
+    max_keypoints: int = 2048  # keypoints per mapping image
     max_side: int = 640  # images are downscaled so that max(w, h) <= max_side (0: keep)
-    # tools/bench_accuracy.py: tracks >= 3 and 3,000 landmarks put the fox hold-out at 0.0015 units against
-    # the pycolmap baseline's 0.0017 (tracks >= 5, 1,500 landmarks: 0.0019 / 0.0018); fox build 160 s on 2 cores
-    min_track: int = 3
-    # each frame matched with its next 10 frames, matches kept within 1 px of their epipolar line (was 3
-    # frames, 2 px): clean tracks. Twenty-third session, with the balanced voxels below, three training seeds
-    # paired with the former default (Adam, 3 frames, 2 px), tools/bench_accuracy.py --train-seeds 0,1,2: fox
-    # hold-out 0.88x, extrapolation 0.87x (medians 0.0041-0.0046 against 0.0060-0.0063), orbit 1.01x; fox
-    # tracking 6.6 s instead of 2.7 s. Poses less accurate than ~1 px at max_side want a looser check (2-3 px)
-    match_window: int = 10
+    min_track: int = 3  # frames a track must span to become a landmark
+    match_window: int = 10  # each frame is matched with this many next frames
     # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
     # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
-    # no less than the extractor's keypoint precision (default_max_epipolar: 1 px, DISK 2 px)
+    # no less than the extractor's keypoint precision (ExtractorPolicy.keypoint_precision_px)
     max_epipolar_px: float | None = None
-    min_similarity: float = 0.7
-    # tracking variants, each measured and lost (three seeds, docs/accuracy.md):
-    # the epipolar constraint before the descriptors; conflicting components rebuilt instead of dropped
-    # (fox extrapolation 0.0074-0.0078 against 0.0060-0.0063); Lowe's ratio (0.9: hold-out 1.14x, 0.8: 1.42x)
-    epipolar_first: bool = False
-    split_conflicts: bool = False
-    match_ratio: float = 1.0
+    min_similarity: float = 0.7  # cosine similarity of a tracking match
     # align each landmark's observations to its middle one through its local plane, then triangulate again
-    # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off). Lost on the
-    # fox (three seeds, docs/benchmarks/accuracy-2026-11-27-s18-plane-lk.json.gz): extrapolation 0.0079 / 0.0081 /
-    # 0.0081 against 0.0063 / 0.0060 / 0.0060, hold-out p90 0.0098-0.0121 against 0.0055-0.0060, though on the
-    # synthetic room with exact poses it halves the landmarks' distance to the surface (tests/test_build.py)
+    # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off)
     refine_window: int = 0
     # store each observation's (2r+1)^2 grey pixels in the map (optional dataset tracks/patch; 0: none), so
-    # that localize --align needs no mapping images (favormap.localize.align). None: the extractor's default
-    # (default_align_patches: 20 for DISK and ALIKED, whose maps align by default; else 0)
+    # that localize --align needs no mapping images (favormap.localize.align). None: ExtractorPolicy.align_patches
     align_patches: int | None = None
     # the mapping poses are exact (a simulator, motion capture; not SLAM or SfM): the tracks are aligned as
     # refine_window does (EXACT_POSES_REFINE_WINDOW unless refine_window is given), each observation's pixels
     # are stored (EXACT_POSES_PATCHES unless align_patches is given), and localization aligns each inlier's
-    # keypoint to them unless told otherwise (LocalizeConfig.align None: the map's choice). Synthetic orbit
-    # (exact poses): 0.00012 units against the default's 0.00064; on the real fox (COLMAP poses) the same
-    # settings lose 1.1-1.3x, so it is a statement about the data, not a default (README, Accuracy)
+    # keypoint to them unless told otherwise (LocalizeConfig.align None: the map's choice)
     exact_poses: bool = False
-    max_reproj_px: float = 5.0
-    min_angle_deg: float = 1.0
-    max_landmarks: int = 3000
+    max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
+    min_angle_deg: float = 1.0  # a landmark's least triangulation angle
+    max_landmarks: int = 3000  # the longest tracks are kept
     # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
     # this, not on who runs the batches (LocalExecutor or Ray workers)
     train_batch: int = 1024
-    # None: the extractor's default preset (favormap.voxels.train.default_quality), set on construction. SIFT:
-    # "balanced" (closed-form descriptors on 7 x 7 patches, pulled towards the track mean), which on the clean
-    # tracks above localizes as well as Adam ("fast") or better, in a third of the build time
-    voxel: VoxelConfig | None = None
+    voxel: VoxelConfig | None = None  # None: the preset ExtractorPolicy.training_quality names
     threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule); not stored in the map
 
     def __post_init__(self):
         if self.voxel is None:
-            self.voxel = VoxelConfig.preset(default_quality(self.extractor))
+            self.voxel = VoxelConfig.preset(feats_mod.policy_of(self.extractor).training_quality)
         if self.align_patches is None:
             self.align_patches = default_align_patches(self.extractor)
         if self.exact_poses:
@@ -214,9 +178,8 @@ class ExtractorSpec:
 
     @property
     def samples_on_device(self) -> bool:
-        """Whether sampling descriptors (the training patches) can run on a GPU: SIFT's, through
-        favormap.features.sift_torch (OpenCV's descriptors in torch)."""
-        return self.name == "sift"
+        """Whether sampling descriptors (the training patches) can run on a GPU (Extractor.samples_on_device)."""
+        return bool(getattr(feats_mod.extractor_class(self.name), "samples_on_device", False))
 
 
 @lru_cache(maxsize=64)
@@ -370,9 +333,6 @@ def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
         config.match_window,
         config.max_epipolar_px,
         config.min_similarity,
-        config.epipolar_first,
-        config.split_conflicts,
-        config.match_ratio,
         min_epipolar_px=default_max_epipolar(config.extractor),
     )
 

@@ -4,11 +4,6 @@ Frames are matched with their next ``window`` neighbours by mutual nearest neigh
 descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
 are joined into tracks by connected components; a track that holds two different keypoints of one
 frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
-
-Options (off by default; each lost on the accuracy benchmark, docs/accuracy.md): Lowe's ratio on
-top of mutual matching (``ratio``), the epipolar constraint applied before the descriptors choose
-(``epipolar_first``), and conflicting components rebuilt strongest match first instead of dropped
-(``split_conflicts``).
 """
 
 from __future__ import annotations
@@ -164,63 +159,6 @@ def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> n
     return (0.5 * num * (inv_a[:, None] + inv_b[None, :])).astype(np.float32)
 
 
-def epipolar_mutual_nn(
-    da: np.ndarray,
-    db: np.ndarray,
-    ka: np.ndarray,
-    kb: np.ndarray,
-    F: np.ndarray,
-    max_px: float,
-    min_sim: float,
-    ratio: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`mutual_nn` among the pairs that the known poses allow (within ``max_px`` of each
-    other's epipolar line, F from a to b): the poses pick the candidates before the descriptors
-    choose, so a repeated pattern elsewhere in the image no longer takes a keypoint's match."""
-    sim = np.asarray(da) @ np.asarray(db).T
-    sim[epipolar_distance_matrix(F, ka, kb) > max_px] = -2.0
-    return _mutual(sim, min_sim, ratio)
-
-
-def _split_conflicts(label, bad_labels, r, c, sim, node_frame) -> np.ndarray:
-    """New component labels where the components ``bad_labels`` (which hold two keypoints of one
-    frame) are rebuilt from their matches, strongest first, refusing every match that would join two
-    keypoints of one frame (a greedy union-find, as COLMAP's track building). Only the conflicting
-    components' matches go through this loop."""
-    bad = np.zeros(label.max() + 1, bool)
-    bad[bad_labels] = True
-    e = np.flatnonzero(bad[label[r]])
-    e = e[np.argsort(-sim[e], kind="stable")]
-    parent: dict[int, int] = {}
-    frames: dict[int, set] = {}
-
-    def find(x):
-        root = x
-        while parent.get(root, root) != root:
-            root = parent[root]
-        while parent.get(x, x) != root:
-            parent[x], x = root, parent[x]
-        return root
-
-    for i, j in zip(r[e].tolist(), c[e].tolist()):
-        a, b = find(i), find(j)
-        if a == b:
-            continue
-        fa = frames.setdefault(a, {int(node_frame[a])})
-        fb = frames.setdefault(b, {int(node_frame[b])})
-        if fa & fb:
-            continue
-        if len(fa) < len(fb):
-            a, b, fa, fb = b, a, fb, fa
-        parent[b] = a
-        fa |= frames.pop(b)
-    nodes = np.flatnonzero(bad[label])
-    roots = np.array([find(x) for x in nodes.tolist()], np.int64)
-    out = label.astype(np.int64).copy()
-    out[nodes] = label.max() + 1 + roots  # fresh labels, one per rebuilt component
-    return out
-
-
 def connected_components(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The component of each of ``n`` nodes joined by the edges (a[i], b[i]): labels 0, 1, ... in the
     order of each component's smallest node, as ``scipy.sparse.csgraph.connected_components`` numbers
@@ -292,9 +230,6 @@ def track_features(
     window: int = 3,
     max_epipolar_px: float | None = 2.0,
     min_similarity: float = 0.7,
-    epipolar_first: bool = False,
-    split_conflicts: bool = False,
-    ratio: float = 1.0,
     workers: int | None = None,
     min_epipolar_px: float = 1.0,
 ) -> Tracks:
@@ -323,21 +258,16 @@ def track_features(
     def match(a, b):
         (ka, da), (kb, db) = held[a], held[b]
         F = fundamental(cam_from_world[a], cameras[a].K, cam_from_world[b], cameras[b].K)
-        if epipolar_first:
-            ia, ib, sab = epipolar_mutual_nn(da, db, ka, kb, F, max_epipolar_px, min_similarity, ratio)
-            return ia, ib, sab, np.zeros(len(ia), np.float32)  # chosen among the pairs within the limit already
-        ia, ib, sab = mutual_nn(da, db, min_similarity, ratio)
-        return ia, ib, sab, epipolar_distance(F, ka[ia], kb[ib]).astype(np.float32)
+        ia, ib, _ = mutual_nn(da, db, min_similarity)
+        return ia, ib, epipolar_distance(F, ka[ia], kb[ib]).astype(np.float32)
 
-    if epipolar_first and max_epipolar_px is None:
-        raise ValueError("track_features: epipolar_first needs a given max_epipolar_px")
-    pairs_found = []  # (a, b, ia, ib, similarity, epipolar distance) of every frame pair's mutual matches
+    pairs_found = []  # (a, b, ia, ib, xy in a, xy in b, epipolar distance) of every frame pair's mutual matches
     # the pairs of one frame on a pool of threads, one BLAS thread each (favormap.threads.serial_pools):
     # each similarity is one 128-term dot product whatever the thread count, and the NumPy reductions
     # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS, not
     # torch's MKL: 1,740 x 1,740 x 128 on one core of this AMD EPYC, 12.7 against 18.1 ms. Fox, 345
     # pairs on two cores: 3.6 s (torch, one pair after the other) -> 2.9-3.1 s (torch, two threads)
-    # -> 2.2-2.3 s (docs/benchmarks/s26-prototypes/mm.py, mm2.py)
+    # -> 2.2-2.3 s
     workers = configure_threads() if workers is None else int(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
@@ -348,10 +278,10 @@ def track_features(
                 for i in [a, *bs]:
                     frame(i)
                 results = pool.map(match, [a] * len(bs), bs) if pool else map(match, [a] * len(bs), bs)
-                for b, (ia, ib, sab, dist) in zip(bs, results):
+                for b, (ia, ib, dist) in zip(bs, results):
                     if len(ia):
                         ka, kb = held[a][0], held[b][0]
-                        pairs_found.append((a, b, ia, ib, ka[ia], kb[ib], sab.astype(np.float32), dist))
+                        pairs_found.append((a, b, ia, ib, ka[ia], kb[ib], dist))
     finally:
         if pool:
             pool.shutdown()
@@ -363,14 +293,13 @@ def track_features(
     n_kept = int((all_dist <= max_epipolar_px).sum())
     n_kept3 = int((all_dist <= 3 * max_epipolar_px).sum())
     del all_dist
-    rows, cols, xy_rows, xy_cols, sims = [], [], [], [], []
-    for a, b, ia, ib, xa, xb, sab, dist in pairs_found:
+    rows, cols, xy_rows, xy_cols = [], [], [], []
+    for a, b, ia, ib, xa, xb, dist in pairs_found:
         ok = dist <= max_epipolar_px
         rows.append((base[a] + ia[ok]).astype(gid))
         cols.append((base[b] + ib[ok]).astype(gid))
         xy_rows.append(xa[ok])
         xy_cols.append(xb[ok])
-        sims.append(sab[ok])
     del pairs_found
     found = dict(
         matches=n_mutual,
@@ -386,8 +315,7 @@ def track_features(
     ends = np.concatenate(rows + cols)
     node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
     node_xy = np.concatenate(xy_rows + xy_cols)[first]
-    sim = np.concatenate(sims)
-    del ends, rows, cols, xy_rows, xy_cols, sims
+    del ends, rows, cols, xy_rows, xy_cols
     m = len(node_id)
     r, c = inv[: len(inv) // 2], inv[len(inv) // 2 :]
     label = connected_components(m, r, c)
@@ -397,11 +325,6 @@ def track_features(
     pairs = label.astype(np.int64) * n + node_frame
     uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
     bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
-    if split_conflicts and len(bad_labels):
-        label = _split_conflicts(label, bad_labels, r, c, sim, node_frame)
-        pairs = label.astype(np.int64) * n + node_frame
-        uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
-        bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
     tracks = Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])

@@ -32,11 +32,10 @@ def small_build_config(**over):
     from favormap.build import BuildConfig
     from favormap.voxels import VoxelConfig
 
+    # every setting goes through the constructor, so that the fields left out resolve from the extractor's
+    # policy as a user's build resolves them (stored patches, epipolar floor)
     vox = VoxelConfig(iterations=over.pop("iterations", 120))
-    cfg = BuildConfig(max_keypoints=1024, max_side=0, max_landmarks=over.pop("max_landmarks", 400), voxel=vox)
-    for k, v in over.items():
-        setattr(cfg, k, v)
-    return cfg
+    return BuildConfig(**{"max_keypoints": 1024, "max_side": 0, "max_landmarks": 400, "voxel": vox, **over})
 
 
 def assert_samples_at_full_resolution(ex, f, image, near_min: float, far_max: float) -> None:

@@ -184,8 +184,10 @@ def test_an_aliked_map_localizes(small_sequence, tmp_path):
     write_map(m, path)
     with Map.open(path) as mm:
         assert mm.extractor == "aliked" and mm.channels == 128
+        assert mm.track_patch_radius == 20  # ALIKED's policy: the observations' pixels stored, for the alignment
     loc = Localizer(path)
-    assert loc.config.match_threshold == loc.extractor.match_threshold
+    assert loc.config.match_threshold == loc.extractor.policy.match_threshold == 0.5
+    assert loc.config.align  # the map asks for it
     errs = localize_perturbed(loc, small_sequence.frames[2::6])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
 

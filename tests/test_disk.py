@@ -133,8 +133,10 @@ def test_a_disk_map_localizes(small_sequence, tmp_path):
     write_map(m, path)
     with Map.open(path) as mm:
         assert mm.extractor == "disk" and mm.channels == 128
+        assert mm.track_patch_radius == 20  # DISK's policy: the observations' pixels stored, for the alignment
     loc = Localizer(path)
-    assert loc.config.match_threshold == loc.extractor.match_threshold == 0.5  # DISK's own (SIFT: 0.7)
+    assert loc.config.match_threshold == loc.extractor.policy.match_threshold == 0.5  # DISK's own (SIFT: 0.7)
+    assert loc.config.align  # the map asks for it
     errs = localize_perturbed(loc, small_sequence.frames[2::6])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs
 

@@ -138,9 +138,9 @@ def test_a_sift_map_localizes(small_sequence, tmp_path):
     write_map(m, path)
     loc = Localizer(path)
     # the extractor's ratio test when matching without a prior (0.9 since 2026-11-26, was 0.8)
-    assert loc.config.global_ratio == loc.extractor.match_ratio == 0.9
+    assert loc.config.global_ratio == loc.extractor.policy.match_ratio == 0.9
     # and its cosine threshold (the paper's 0.7); one given explicitly is kept
-    assert loc.config.match_threshold == loc.extractor.match_threshold == 0.7
+    assert loc.config.match_threshold == loc.extractor.policy.match_threshold == 0.7
     assert Localizer(path, LocalizeConfig(match_threshold=0.55)).config.match_threshold == 0.55
     errs = localize_perturbed(loc, small_sequence.frames[1::5])
     assert np.median(errs[:, 0]) < 0.005 and np.median(errs[:, 1]) < 0.2, errs

@@ -249,45 +249,6 @@ def test_the_ratio_test_drops_matches_with_a_close_second_candidate():
     assert np.all(owners[0][ja] == owners[1][jb])  # the others all kept, and right
 
 
-def test_epipolar_first_matching_keeps_a_point_whose_twin_lies_off_its_epipolar_line():
-    """A copy of point 20's descriptor (exact, so more similar than its own noisy keypoint) far off
-    its epipolar line in frame 4: plain mutual matching picks the copy and the pose check then
-    rejects it, so point 20 loses frame 4; choosing among the pose-allowed pairs first keeps it."""
-    X, T, D, rng = _rig(n_points=40)
-    decoy = (np.array([[50.0, 40.0]]), D[20:21])
-    feats, owners = _features(X, T, D, rng, extra={4: decoy})
-    plain = track_features(feats, T, [CAM] * len(T), min_track=3, window=1)
-    first = track_features(feats, T, [CAM] * len(T), min_track=3, window=1, epipolar_first=True)
-
-    def frames_of_20(tracks):
-        return sorted(
-            int(f)
-            for o, a, b in zip(_owners_of(tracks, owners), tracks.offsets[:-1], tracks.offsets[1:])
-            if o[0] == 20
-            for f in tracks.frame_idx[a:b]
-        )
-
-    assert 4 not in frames_of_20(plain)  # the window-1 chain breaks at frame 4
-    assert frames_of_20(first) == list(range(len(T)))
-    assert all(np.all(o >= 0) and len(np.unique(o)) == 1 for o in _owners_of(first, owners))
-
-
-def test_split_conflicts_rebuilds_an_ambiguous_component_from_its_strongest_matches():
-    """The setting of test_a_track_with_two_keypoints_in_one_frame_is_dropped: by default point 7's
-    component goes; with ``split_conflicts`` it is rebuilt strongest match first, so point 7 keeps
-    one track (frames 2-7, descriptor B: frames 0-1 alone are too short) with one keypoint per frame."""
-    T, feats, owners = _two_keypoints_of_point_7()
-    owners[2][-1] = 7  # the second keypoint is point 7 too
-    tracks = track_features(feats, T, [CAM] * len(T), min_track=5, window=3, split_conflicts=True)
-    per_track = _owners_of(tracks, owners)
-    assert all(len(np.unique(o)) == 1 for o in per_track)
-    assert {int(o[0]) for o in per_track} == set(range(30))
-    for a_, b_ in zip(tracks.offsets[:-1], tracks.offsets[1:]):
-        assert len(np.unique(tracks.frame_idx[a_:b_])) == b_ - a_  # one keypoint per frame
-    t7 = [i for i, o in enumerate(per_track) if o[0] == 7]
-    assert len(t7) == 1 and tracks.lengths[t7[0]] >= 5
-
-
 def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map, capsys):
     """A build records which shares of the mutual matches lie within the epipolar limit and within 3x
     it, and its summary says so; a given limit that many right matches seem to lie beyond (poses less
@@ -328,14 +289,13 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
     assert "localize aligns by default" in out and "--exact-poses" not in out
 
 
-@pytest.mark.parametrize("epipolar_first", [False, True])
-def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks(epipolar_first):
+def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks():
     """With more than one worker, a frame's pairs are matched on a pool of threads (one BLAS thread
     each): the tracks and match counts are those of the serial run."""
     X, T, D, rng = _rig(n_frames=10, n_points=300)
     feats, _ = _features(X, T, D, rng, noise_px=0.6)
     got = {
-        n: track_features(feats, T, [CAM] * len(T), min_track=3, window=4, epipolar_first=epipolar_first, workers=n)
+        n: track_features(feats, T, [CAM] * len(T), min_track=3, window=4, workers=n)
         for n in (1, 2, 3)
     }
     a = got[1]

@@ -268,12 +268,13 @@ def test_quality_presets_and_cli_flags():
         assert cli_build.config_from_args(args).align_patches == r
     # the default preset follows the extractor, the same in the CLI and the API: SIFT balanced, the learned
     # extractors Adam ("fast")
-    from favormap.voxels.train import default_quality
+    from favormap.features import policy_of
 
-    assert (default_quality("sift"), default_quality("disk"), default_quality("xfeat")) == ("balanced", "fast", "fast")
+    quality = [policy_of(ex).training_quality for ex in ("sift", "disk", "xfeat")]
+    assert quality == ["balanced", "fast", "fast"]
     for ex in ("sift", "disk", "xfeat"):
         args = ap.parse_args(["build", "seq", "-o", "x.h5", "--device", "cpu", "--extractor", ex])
-        want = VoxelConfig.preset(default_quality(ex))
+        want = VoxelConfig.preset(policy_of(ex).training_quality)
         assert cli_build.config_from_args(args).voxel == want == BuildConfig(extractor=ex).voxel
     assert BuildConfig().voxel == VoxelConfig.preset("balanced")
     given = BuildConfig(extractor="disk", voxel=VoxelConfig.preset("quick"))  # a given preset stays
@@ -341,3 +342,42 @@ def test_reference_preset_trains_in_memory_bounded_groups():
     b = train_voxels(data, VoxelConfig.preset("reference", iterations=3, max_batch_rays=2000))  # 1 landmark per group
     torch.testing.assert_close(a.descriptors, b.descriptors, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(a.density, b.density, atol=1e-5, rtol=1e-4)
+
+
+def test_a_registered_extractor_states_its_own_policy(monkeypatch):
+    """A user's extractor registered with its own ExtractorPolicy gets it everywhere a build and a map's
+    localizer resolve defaults: epipolar floor, stored patches (and the localizer's alignment), training preset,
+    view prior, patch interpolation; one without a policy gets ExtractorPolicy's defaults."""
+    from favormap import features
+    from favormap.build import BuildConfig, default_max_epipolar, localize_defaults
+    from favormap.errors import InputError
+    from favormap.features import ExtractorPolicy
+    from favormap.features.sift import SIFTExtractor
+    from favormap.voxels import VoxelConfig
+    from favormap.voxels.train import voxel_config_for
+
+    monkeypatch.setattr(features.base, "_REGISTRY", dict(features.base._REGISTRY))
+
+    @features.register("toy-precise")
+    class Toy(SIFTExtractor):
+        policy = ExtractorPolicy(
+            keypoint_precision_px=1.5, align_patches=6, training_quality="quick", view_prior_deg=5.0, patch_interp=True
+        )
+
+    @features.register("toy-plain")
+    class Plain(SIFTExtractor):
+        policy = ExtractorPolicy()
+
+    cfg = BuildConfig(extractor="toy-precise")
+    assert (cfg.align_patches, cfg.voxel.solver, cfg.voxel.patch_size) == (6, "lstsq", 3)
+    assert default_max_epipolar("toy-precise") == 1.5 and localize_defaults(cfg)["align"]
+    full = voxel_config_for(VoxelConfig.preset("balanced"), "toy-precise")
+    assert (full.prior_mean_deg, full.patch_interp) == (5.0, True)
+    plain = BuildConfig(extractor="toy-plain")
+    assert (plain.align_patches, plain.voxel) == (0, VoxelConfig.preset("fast"))
+    assert default_max_epipolar("toy-plain") == 1.0 and not localize_defaults(plain)["align"]
+    assert voxel_config_for(plain.voxel, "toy-plain").prior_mean_deg == 30.0
+    with pytest.raises(InputError, match="unknown feature extractor"):
+        BuildConfig(extractor="no-such-extractor")
+    with pytest.raises(InputError, match="align_patches"):
+        ExtractorPolicy(align_patches=-1)

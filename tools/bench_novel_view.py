@@ -312,11 +312,11 @@ def run_variant(data, overrides: dict, extractor: str):
     import torch
 
     from favormap.voxels import VoxelConfig, render_from_camera, train_voxels
-    from favormap.voxels.train import PRIOR_MEAN_DEG, PRIOR_MEAN_DEG_OTHER
+    from favormap.features import policy_of
 
     cfg = VoxelConfig(**overrides)
     if cfg.prior_mean_deg is None:  # as build_map does
-        cfg.prior_mean_deg = PRIOR_MEAN_DEG.get(extractor, PRIOR_MEAN_DEG_OTHER)
+        cfg.prior_mean_deg = policy_of(extractor).view_prior_deg
     rays = dataclasses.replace(data["rays"], sizes=data["rays"].sizes * cfg.box_factor)
     t = time.process_time()
     grids = train_voxels(rays, cfg)

@@ -90,7 +90,7 @@ def register(sub):
     p.add_argument(
         "--quality",
         choices=("quick", "balanced", "fast", "reference"),
-        default=None,  # None: the extractor's (favormap.voxels.train.default_quality)
+        default=None,  # None: the extractor's (ExtractorPolicy.training_quality)
         help="voxel training preset: quick (closed-form descriptors at fixed, nearly opaque densities from 3x3 "
         "patches: fastest, slightly less accurate), balanced (SIFT's default; the same on 7x7 patches, pulled "
         "towards the track mean), fast (200 Adam iterations; the default of the learned extractors, whose "
@@ -163,7 +163,7 @@ def config_from_args(args):
     from ..build import BuildConfig
     from ..errors import InputError
     from ..voxels import VoxelConfig
-    from ..voxels.train import default_quality
+    from ..features import policy_of
 
     for name in (
         "min_track",
@@ -193,7 +193,7 @@ def config_from_args(args):
         iterations=args.iterations,
         patch_interp=False if getattr(args, "exact_patches", False) else None,
     )
-    quality = getattr(args, "quality", None) or default_quality(args.extractor)
+    quality = getattr(args, "quality", None) or policy_of(args.extractor).training_quality
     vox = VoxelConfig.preset(quality, **over)
     if args.iterations is not None and vox.solver != "adam":  # the closed form has no iterations to set
         raise InputError(

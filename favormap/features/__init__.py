@@ -8,9 +8,29 @@ from __future__ import annotations
 
 import importlib
 
-from .base import Extractor, Features, available, create, extractor_class, patch_offsets, register
+from .base import (
+    Extractor,
+    ExtractorPolicy,
+    Features,
+    available,
+    create,
+    extractor_class,
+    patch_offsets,
+    policy_of,
+    register,
+)
 
-__all__ = ["Extractor", "Features", "available", "create", "extractor_class", "patch_offsets", "register"]
+__all__ = [
+    "Extractor",
+    "ExtractorPolicy",
+    "Features",
+    "available",
+    "create",
+    "extractor_class",
+    "patch_offsets",
+    "policy_of",
+    "register",
+]
 
 _SUBMODULES = ("aliked", "aliked_net", "base", "disk", "heatmap", "packaged", "sift", "xfeat")
 

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..errors import FavormapError, InputError
-from .base import Extractor, Features, register
+from .base import Extractor, ExtractorPolicy, Features, register
 from .heatmap import local_maxima, subpixel_offsets
 from .packaged import packaged_file
 
@@ -64,8 +64,8 @@ class _AlikedState:
 class ALIKEDExtractor(Extractor):
     channels = 128
     uses_device = True
-    match_ratio = 1.0
-    match_threshold = 0.5  # DISK's (another learned 128-d descriptor); not tuned for ALIKED
+    # as DISK's (another learned 128-d descriptor with imprecise keypoints), except the epipolar floor
+    policy = ExtractorPolicy(align_patches=20, match_threshold=0.5)
     _models: dict = {}
 
     def __init__(

@@ -32,15 +32,46 @@ class Features:
         return len(self.keypoints)
 
 
+@dataclass(frozen=True)
+class ExtractorPolicy:
+    """How favormap builds and localizes with an extractor's features unless told otherwise.
+
+    Each extractor class states its own as ``Extractor.policy``; one registered without it gets
+    these defaults. The reasons for the built-in extractors' values are in
+    docs/implementation-notes.md."""
+
+    # the least epipolar limit of tracking (px at the working resolution; BuildConfig.max_epipolar_px):
+    # how precisely the detector places a keypoint
+    keypoint_precision_px: float = 1.0
+    # radius of the observation patches a build stores in the map (BuildConfig.align_patches; 0: none);
+    # > 0 also makes the map's localizer align the query keypoints to them (LocalizeConfig.align)
+    align_patches: int = 0
+    training_quality: str = "fast"  # the VoxelConfig preset a build trains with (favormap.voxels.QUALITY_PRESETS)
+    # VoxelConfig.prior_mean_deg: the angle over which an extrapolated view's target descriptor moves from the
+    # nearest training views to the track's mean (0: never)
+    view_prior_deg: float = 30.0
+    patch_interp: bool = False  # VoxelConfig.patch_interp: training patches described on a sub-grid
+    match_threshold: float = 0.7  # cosine threshold of the localizer's descriptor matching
+    match_ratio: float = 1.0  # Lowe ratio when a query is matched against the whole map (1: no ratio test)
+
+    def __post_init__(self):
+        if not self.keypoint_precision_px > 0:
+            raise InputError(f"keypoint_precision_px must be > 0, not {self.keypoint_precision_px!r}")
+        if not (isinstance(self.align_patches, int) and self.align_patches >= 0):
+            raise InputError(f"align_patches must be an integer >= 0, not {self.align_patches!r}")
+        if not (0 < self.match_ratio <= 1 and -1 <= self.match_threshold < 1):
+            raise InputError("match_ratio must lie in (0, 1] and match_threshold in [-1, 1)")
+
+
 class Extractor(ABC):
     name: str = ""
     channels: int = 0
-    match_ratio: float = 1.0  # default Lowe ratio for matching these descriptors (1: no ratio test)
-    # default cosine threshold of the localizer's descriptor matching (LocalizeConfig.match_threshold None)
-    match_threshold: float = 0.7
+    policy: ExtractorPolicy = ExtractorPolicy()
     # a torch model that runs on the build's device: one instance per device, shared by a build's threads
     # (inference does not change it); others (OpenCV's) get one instance per thread
     uses_device: bool = False
+    # sample() can run on a GPU (SIFT: favormap.features.sift_torch), so the training patches are GPU tasks there
+    samples_on_device: bool = False
 
     def __init__(self, max_keypoints: int = 2048, device: str | None = None):
         self.max_keypoints = int(max_keypoints)
@@ -119,6 +150,11 @@ def extractor_class(name: str) -> Callable[..., Extractor]:
 
 def create(name: str, **kwargs) -> Extractor:
     return extractor_class(name)(**kwargs)
+
+
+def policy_of(name: str) -> ExtractorPolicy:
+    """The policy of the extractor registered as ``name`` (:class:`ExtractorPolicy`)."""
+    return extractor_class(name).policy
 
 
 def check_patch(size: int, stride: int = 1, interp: bool = False) -> None:

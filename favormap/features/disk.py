@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import FavormapError, InputError
-from .base import Extractor, Features, register
+from .base import Extractor, ExtractorPolicy, Features, register
 from .heatmap import local_maxima, subpixel_offsets
 from .packaged import packaged_file
 
@@ -77,13 +77,10 @@ DESCRIBE_BLOCK = 8192
 class DISKExtractor(Extractor):
     channels = 128
     uses_device = True
-    match_ratio = 1.0  # Lowe ratio when matching against a whole map; see docs/accuracy.md
-    # cosine threshold of the localizer's matching. 0.5 instead of 0.7 (twenty-first session,
-    # tools/bench_accuracy.py --extractor disk, noise priors, seed-0 maps): fox extrapolation 20/20
-    # localized instead of 16/20 (median 0.0087; at 0.7 0.0067 over the 16 it kept, p90 0.0236 against
-    # 0.0554), hold-out 0.0025 against 0.0027, orbit 25/25 instead of 24/25 (p90 0.0030 against 0.0055);
-    # 0.6 and 0.4 lost on fox extrapolation (18/20, 0.0099; 20/20, 0.0102)
-    match_threshold = 0.5
+    # DISK places keypoints less precisely than SIFT's scale-space fit: a looser epipolar floor, and the
+    # observations' pixels stored so that the localizer aligns the query keypoints to them; its learned
+    # descriptors match at a lower cosine than SIFT's
+    policy = ExtractorPolicy(keypoint_precision_px=2.0, align_patches=20, match_threshold=0.5)
     _models: dict = {}
 
     def __init__(

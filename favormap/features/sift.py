@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .base import Extractor, Features, register
+from .base import Extractor, ExtractorPolicy, Features, register
 from .sift_octave import SIGMA, octave_of_size, unpack_octave
 
 
@@ -76,13 +76,12 @@ _ANCHOR_OCTAVE = (-1 & 255) | (1 << 8)
 @register("sift")
 class SIFTExtractor(Extractor):
     channels = 128
-    # Lowe's test when matching against a whole map (the localizer's prior-free step). 0.9 (was 0.8):
-    # tools/bench_accuracy.py --variants "rendered,rendered global-ratio-0.9" (2026-11-26, seventh
-    # session, with the confirmation of weak poses): fox extrapolation 19/20 localized instead of
-    # 18/20 in every prior mode, medians 0.0090-0.0095 instead of 0.0093-0.0097 units; hold-out and
-    # orbit unchanged; 0 false successes everywhere. At 0.8 the prior-free step found no pose for
-    # the wallpaper query 0073 (18 inliers); at 0.9 a correct one (0.028 units off, 39 inliers)
-    match_ratio = 0.9
+    samples_on_device = True
+    # A keypoint's descriptor takes the scale and orientation of the keypoint detected nearest to it, so
+    # beyond ~10 deg from the training views the track's mean predicts it better than the nearest view;
+    # describing one point at a time is half of a build, so the training patches are described on a
+    # sub-grid; the closed-form "balanced" training suits the descriptor's smooth view dependence.
+    policy = ExtractorPolicy(training_quality="balanced", view_prior_deg=10.0, patch_interp=True, match_ratio=0.9)
 
     def __init__(
         self,

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import FavormapError
-from .base import Extractor, Features, register
+from .base import Extractor, ExtractorPolicy, Features, register
 from .heatmap import subpixel_offsets
 
 
@@ -33,6 +33,9 @@ def _load_model(device: str):
 class XFeatExtractor(Extractor):
     channels = 64
     uses_device = True
+    # the dense descriptor field changes smoothly with the view: an extrapolated view is best predicted
+    # by the nearest training view, never blended to the track's mean
+    policy = ExtractorPolicy(view_prior_deg=0.0)
     _models: dict = {}
 
     def __init__(

@@ -330,9 +330,9 @@ class Localizer:
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
         configure_threads(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
         if self.config.global_ratio is None:
-            self.config = dataclasses.replace(self.config, global_ratio=self.extractor.match_ratio)
+            self.config = dataclasses.replace(self.config, global_ratio=self.extractor.policy.match_ratio)
         if self.config.match_threshold is None:
-            self.config = dataclasses.replace(self.config, match_threshold=self.extractor.match_threshold)
+            self.config = dataclasses.replace(self.config, match_threshold=self.extractor.policy.match_threshold)
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)

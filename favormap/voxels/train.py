@@ -17,16 +17,12 @@ Rays per landmark and iteration (see ``VoxelConfig``):
   ``prior_spread_deg`` away from the training views, with the descriptor of the nearest training
   view(s) as target (mixed with the mean descriptor further away for extractors where that predicts
   better, ``prior_mean_deg``). Without them the grid continues its fit beyond the training views
-  and overshoots; with them it extrapolates like the nearest view.
-
-Measured with ``tools/bench_novel_view.py`` (synthetic orbit, exact poses, queries extrapolated
-away from the mapping path, XFeat): mean cosine of the rendered to the truly extracted descriptor
-0.8886 with the former training (box S l/f, 200 x 32 patch rays; = the mean descriptor, 0.8890),
-0.9031 with the defaults (nearest training view 0.9008), at about the same training time.
+  and overshoots; with them it extrapolates like the nearest view (``tools/bench_novel_view.py``
+measures it; docs/implementation-notes.md).
 
 ``QUALITY_PRESETS`` / :meth:`VoxelConfig.preset`: "fast" (the dataclass's defaults: Adam, sized for a
 few CPU cores), "quick" and "balanced" (closed-form descriptors: speed first, or Adam's accuracy in a
-quarter of its time; "balanced" is what a SIFT build uses, ``DEFAULT_QUALITY``) and "reference" (the
+quarter of its time; "balanced" is what a SIFT build uses, ``ExtractorPolicy.training_quality``) and "reference" (the
 budget of the reference implementation, 2,000 iterations x 1,024 rays and a 12 l/f box; meant for a
 GPU).
 """
@@ -41,6 +37,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..features.base import ExtractorPolicy, policy_of
 from ..heap import reuse_freed_blocks
 from .render import composite, composite_uniform, ray_stencils, render, to_local
 
@@ -57,7 +54,7 @@ class VoxelConfig:
     patch_stride: int = 1
     # describe only some pixels of each patch (the centre 3 x 3, every second pixel beyond, the edges:
     # 25 of 49 for S = 7) and interpolate the others (favormap.features.base.patch_interpolation).
-    # None: per extractor, PATCH_INTERP (build_map resolves it, voxel_config_for)
+    # None: the extractor's (ExtractorPolicy.patch_interp; build_map resolves it, voxel_config_for)
     patch_interp: bool | None = None
     # the stored mean descriptor (the prior-free step's and the "mean" baseline's) averages the central
     # mean_patch x mean_patch pixels of each patch (0: the whole patch)
@@ -71,8 +68,7 @@ class VoxelConfig:
     # "lstsq" (the "quick" preset): densities stay at density_init and the node descriptors are
     # the closed-form least-squares fit of every patch ray and every virtual prior ray (one small
     # linear system per landmark; the fields below down to pervoxel_lr, and the loss weights, do
-    # not apply): fox build 38.8 s instead of 155.8 s, localization slightly less accurate
-    # (tools/bench_accuracy.py --solver lstsq,adam; figures in _train_lstsq)
+    # not apply): a fraction of Adam's time, nearly its accuracy (docs/implementation-notes.md)
     solver: str = "adam"
     lstsq_prior_weight: float = 2.0  # total weight of a landmark's virtual rays, its real rays weighing 1
     lstsq_ridge: float = 1e-3  # pull of every node towards the landmark's mean descriptor
@@ -97,7 +93,7 @@ class VoxelConfig:
     prior_weight: float = 1.0  # loss weight of a virtual ray relative to a real one
     # angle scale (deg) over which the prior's target moves from the nearest views to the landmark's
     # mean descriptor: weight of the views exp(-a / this), a = angle to the nearest training view.
-    # 0: never (pure nearest views); None: per extractor, PRIOR_MEAN_DEG (build_map resolves it)
+    # 0: never (pure nearest views); None: the extractor's (ExtractorPolicy.view_prior_deg; build_map resolves it)
     prior_mean_deg: float | None = None
     # -- execution ----------------------------------------------------------------------------
     max_batch_rays: int = 1 << 18  # rays rendered per forward pass (landmark groups; memory bound)
@@ -111,62 +107,31 @@ class VoxelConfig:
         return cls(**{**QUALITY_PRESETS[quality], **overrides})
 
 
-# prior_mean_deg per extractor (tools/bench_novel_view.py): XFeat's dense descriptor field changes
-# smoothly with the view, so the nearest view predicts an extrapolated view best (0: never blend to
-# the mean); the SIFT descriptor of a point takes the scale and orientation of whatever keypoint
-# is detected near it in each image, so beyond ~10 deg the track's mean predicts better.
-PRIOR_MEAN_DEG: dict[str, float] = {"xfeat": 0.0, "sift": 10.0}
-PRIOR_MEAN_DEG_OTHER = 30.0  # extractors not listed
-
-# patch_interp per extractor. SIFT describes one point at a time (~40 us per point per core on the fox
-# at 640 px: half of a build), so its default patches describe 25 of 49 pixels (the grid -3, -2, 0, 2,
-# 3: favormap.features.base.patch_interpolation). Twenty-fifth session, tools/bench_accuracy.py
-# --train-seeds 0,1,2 --priors noise,stream --build-variant "e2:patch_interp=true" against the
-# twenty-fourth session's grid (-3, -1, 0, 1, 3), paired query by query, seed-pooled: fox hold-out
-# 1.00x, extrapolation 1.04x [0.89, 1.25] per query and 0.89x [0.74, 1.03] as a stream (where the
-# former grid lost 1.12x to exact patches), orbit 0.97x. A dense extractor (XFeat, DISK) samples a
-# descriptor map bilinearly: nothing to save, and its patches stay exact.
-PATCH_INTERP: dict[str, bool] = {"sift": True}
-
-
-def voxel_config_for(cfg: VoxelConfig, extractor: str) -> VoxelConfig:
-    """``cfg`` with its per-extractor defaults (None fields: ``prior_mean_deg``, ``patch_interp``)
-    filled in for ``extractor``, as a build records them in the map's provenance."""
+def voxel_config_for(cfg: VoxelConfig, extractor: str | ExtractorPolicy) -> VoxelConfig:
+    """``cfg`` with its per-extractor defaults (None fields: ``prior_mean_deg``, ``patch_interp``) filled in
+    from the extractor's policy (a registered name, or the policy itself), as a build records them in the map's
+    provenance."""
+    policy = extractor if isinstance(extractor, ExtractorPolicy) else policy_of(extractor)
     if cfg.prior_mean_deg is None:
-        cfg = replace(cfg, prior_mean_deg=PRIOR_MEAN_DEG.get(extractor, PRIOR_MEAN_DEG_OTHER))
+        cfg = replace(cfg, prior_mean_deg=policy.view_prior_deg)
     if cfg.patch_interp is None:  # only a full patch (stride 1) of odd size has the pixels to interpolate from
         whole = cfg.patch_stride == 1 and cfg.patch_size % 2 == 1
-        cfg = replace(cfg, patch_interp=whole and PATCH_INTERP.get(extractor, False))
+        cfg = replace(cfg, patch_interp=whole and policy.patch_interp)
     return cfg
 
 
 QUALITY_PRESETS: dict[str, dict] = {
-    # the dataclass's defaults, 200 Adam iterations (the build default until the twenty-third session): the
-    # fox (40 frames, 3,000 landmarks) trains in ~1 minute on 2 CPU cores
+    # the dataclass's defaults: 200 Adam iterations; the fox (40 frames, 3,000 landmarks) trains in about a
+    # minute on 2 CPU cores
     "fast": {},
-    # closed-form descriptors at fixed densities from 3 x 3 patches: speed first (fox build 17.0 s on 2
-    # cores, tools/bench_build.py --quality quick; fast: 155.8 s). tools/bench_accuracy.py
-    # --solver lstsq (2026-11-26, medians / p90 in units): 7 x 7 patches hold-out 0.0016 / 0.0059,
-    # extrapolation 0.0080 / 0.0139, orbit 0.0005 / 0.0016; 3 x 3 patches 0.0015 / 0.0076, 0.0071 /
-    # 0.0168, 0.0005 / 0.0018 (Adam, fast: 0.0015 / 0.0042, 0.0074 / 0.0115, 0.0004 / 0.0016), and the
-    # patch descriptors, the build's largest stage, cost 5x less. Initial (= fixed) density 20 per voxel
-    # side instead of 1 (2026-11-26, seventh session): the cubes are nearly opaque, so a ray's
-    # descriptor interpolates the nodes on the side facing the camera and depends on the view. XFeat
-    # novel views (tests/test_voxels_view.py scene): rendered beats the nearest training view by
-    # +0.0020 at >= 10 deg (density 1: -0.0005; Adam: +0.0017); localization equal within a rebuild's
-    # noise (tools/bench_accuracy.py --build-variant, 20 extrapolation queries: hold-out 0.0015 /
-    # 0.0015, extrapolation 0.0101 / 0.0104, orbit 0.0006 / 0.0006 for density 20 / 1)
+    # closed-form descriptors at fixed densities from 3 x 3 patches: speed first. The initial (= fixed)
+    # density of 20 per voxel side makes the cubes nearly opaque, so a ray's descriptor interpolates the nodes
+    # on the side facing the camera and depends on the view
     "quick": dict(solver="lstsq", patch_size=3, density_init=20.0),
-    # the closed form on the full 7 x 7 patches, pulled towards the track mean (ridge 0.03 instead of
-    # 0.001: the nodes few rays constrain keep the mean instead of fitting them). Twenty-second session,
-    # tools/bench_accuracy.py --train-seeds 0,1,2, seed-pooled error / the fast preset's: fox hold-out
-    # 1.05 [1.01, 1.10], extrapolation 1.00 [0.92, 1.10], orbit 0.99 [0.96, 1.02]; ridge 0.001 (density 20):
-    # extrapolation 0.0075 against 0.0062 (seed 0); ridge 0.02: 1.04 / 1.05 / 0.98. Fox build 23.4-24.8 s on
-    # two cores against fast's 81-88 s (tools/bench_build.py --quality balanced; patches 12.3-13.3 s of it)
+    # the closed form on the full 7 x 7 patches, pulled towards the track mean (ridge 0.03 instead of 0.001:
+    # the nodes few rays constrain keep the mean instead of fitting them); localizes about as Adam does in a
+    # third of its time
     "balanced": dict(solver="lstsq", patch_size=7, density_init=20.0, lstsq_ridge=0.03),
-    # the reference implementation's budget (utiasSTARS/FaVoR configs/default_base.py: N_iters 2000,
-    # N_rand 1024, lr decay 0.1 per 10,000 steps, TV from step 1500; box side 4 * 3 px * l / f),
-    # keeping this implementation's ray mix (half the rays through the centre, prior rays half as many)
     "reference": dict(
         solver="adam",
         iterations=2000,
@@ -177,20 +142,6 @@ QUALITY_PRESETS: dict[str, dict] = {
         tv_from=0.75,
     ),
 }
-
-
-# the preset a build uses unless told otherwise, per extractor (favormap.build.BuildConfig, `favormap build
-# --quality`). SIFT: with the build's clean tracks (next 10 frames, 1 px) "balanced" localizes as well as
-# "fast" or better (twenty-third session, three training seeds, paired: fox hold-out 0.88x, extrapolation
-# 0.87x, orbit 1.01x). DISK's view-dependent descriptors want Adam: on the same tracks fox extrapolation
-# 0.0102 (p90 0.061) with "balanced" against 0.0082 with "fast" (twenty-first and twenty-third sessions)
-DEFAULT_QUALITY: dict[str, str] = {"sift": "balanced"}
-DEFAULT_QUALITY_OTHER = "fast"
-
-
-def default_quality(extractor: str) -> str:
-    """The quality preset a build with ``extractor`` uses unless told otherwise."""
-    return DEFAULT_QUALITY.get(extractor, DEFAULT_QUALITY_OTHER)
 
 
 @dataclass
@@ -338,7 +289,7 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
     angles to them and b = prior_kernel_deg, so that far from the training views it tends to the
     nearest view's descriptor (flat extrapolation) instead of whatever the grid's interpolation
     continues to; with prior_mean_deg = tau > 0 that blend is mixed with the mean descriptor,
-    weight exp(-a_min / tau) for the views. (prior_mean_deg None here: PRIOR_MEAN_DEG_OTHER.)"""
+    weight exp(-a_min / tau) for the views. (prior_mean_deg None here: ExtractorPolicy's default.)"""
     dev = centers.device
     L, V, P = len(centers), cfg.prior_bank, targets.shape[1]
     origins = torch.as_tensor(data.obs_origin, dtype=torch.float32, device=dev)
@@ -367,7 +318,7 @@ def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, m
             * valid[:, None, :]
         )
         tgt = F.normalize(torch.bmm(w, D), dim=-1)
-        tau = cfg.prior_mean_deg if cfg.prior_mean_deg is not None else PRIOR_MEAN_DEG_OTHER
+        tau = cfg.prior_mean_deg if cfg.prior_mean_deg is not None else ExtractorPolicy.view_prior_deg
         if tau > 0:
             beta = torch.exp(-ang.amin(-1, keepdim=True) / tau)  # (l, V, 1)
             tgt = F.normalize(beta * tgt + (1 - beta) * mean_desc[ls, None, :], dim=-1)
@@ -554,10 +505,7 @@ def _train_lstsq(
     S x S patch rays of every observation (a landmark's observations weigh the same; a patch's
     centre ray gets ``centre_rays`` of the patch's weight, as often as the sampled training draws
     it) and all ``prior_bank`` virtual rays of the extrapolation prior (``lstsq_prior_weight`` in
-    total). tools/bench_novel_view.py (SIFT, 600 landmarks, 12,704 pairs; mean cosine to the truth
-    0-10 / 10-20 / 20-40 / >40 deg / all): adam (200 iterations) .9130 .8627 .8263 .7560 .8745 in
-    66.6 CPU s; lstsq with prior weight 0.5 .9124 .8623 .8233 .7525 .8736, 1.0 .9129 .8640 .8258
-    .7558 .8750, 2.0 .9132 .8652 .8277 .7581 .8760 in ~4 CPU s."""
+    total; ``tools/bench_novel_view.py`` compares it with Adam)."""
     dev = torch.device(device)
     if dev.type == "cpu":
         reuse_freed_blocks()  # the chunks' large temporaries: reused heap blocks, not fresh mappings
