@@ -30,7 +30,7 @@ from .heap import release_free_memory, reuse_freed_blocks
 from .io import Camera, Sequence
 from .io.images import decode_and_prepare, patches_around, read_image_bytes
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
-from .threads import configure_threads, rebalance
+from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
@@ -95,7 +95,9 @@ class BuildConfig:
     # this, not on who runs the batches (LocalExecutor or Ray workers)
     train_batch: int = 1024
     voxel: VoxelConfig | None = None  # None: the preset ExtractorPolicy.training_quality names
-    threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule); not stored in the map
+    # CPU threads for torch/OpenCV: None leaves the process's pools (and heap policy) alone; "auto" applies
+    # favormap.threads' rule, a number fixes them (favormap.threads.thread_count); not stored in the map
+    threads: int | str | None = None
 
     def __post_init__(self):
         if self.voxel is None:
@@ -726,11 +728,12 @@ def build_map(
 
 
 def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
-    configure_threads(config.threads)  # the driver's pools (a Ray task sets its own from its CPUs)
-    # large temporaries (tracking's similarity blocks, the closed form's chunks) from reused heap blocks,
-    # not fresh mappings faulted in page by page (fox: training 3.2 -> 1.7-2.1 s on two cores)
-    reuse_freed_blocks()
-    if executor is None:  # this process: CPU stages on as many threads as configure_threads allows
+    if config.threads is not None:  # asked: the driver's pools and heap policy (a Ray task sets its own)
+        thread_count(config.threads)
+        # large temporaries (tracking's similarity blocks, the closed form's chunks) from reused heap blocks,
+        # not fresh mappings faulted in page by page (favormap.heap)
+        reuse_freed_blocks()
+    if executor is None:  # this process: CPU stages on favormap.threads.thread_count() threads
         with LocalExecutor(device) as ex:
             return _build(seq, config, progress, observer, ex, device, cache)
     pr = _Progress(progress)

@@ -83,7 +83,7 @@ class LocalExecutor(Executor):
     (torch uses its own threads); CPU-only tasks (SIFT extraction, descriptor patches) run on a pool
     of ``workers`` threads (OpenCV releases the GIL; its own pool is held at one thread meanwhile,
     favormap.threads.serial_pools, so each thread has one core; torch's too). ``workers`` None:
-    the thread count favormap.threads configured for this process; 1: one after the other.
+    favormap.threads.thread_count() (what the process configured, else its CPUs); 1: one after the other.
 
     Results are the same whatever the worker count (tests/test_feature_cache.py): each task is a
     pure function of its input and results are returned in task order. Measured on 16 cores (H200
@@ -117,9 +117,9 @@ class LocalExecutor(Executor):
     def _workers(self) -> int:
         if self.workers is not None:
             return self.workers
-        from .threads import configure_threads
+        from .threads import thread_count
 
-        return configure_threads()
+        return thread_count()
 
     def map(self, fn, tasks, total, gpu=False, progress=None):
         out: list = []

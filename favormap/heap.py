@@ -5,9 +5,11 @@ and unmaps it on ``free``: each new tensor of that size is faulted in page by pa
 Voxel training allocates and frees tensors of 40-190 MB at every iteration (the ray stencils of
 3,000 landmarks, the optimiser's temporaries), so on two CPU cores a third of its time went to page
 faults. :func:`reuse_freed_blocks` serves such blocks from the heap and keeps freed ones for reuse
-(fox, 3,000 landmarks: 0.61 -> 0.39 s per iteration, /tmp measurement in the issue-14 note);
-:func:`release_free_memory` hands the heap's free pages back at the end of a stage, so the
-resident memory between stages stays what the live arrays need.
+(docs/measurements.md); :func:`release_free_memory` hands the heap's free pages back at the end of a
+stage, so the resident memory between stages stays what the live arrays need.
+
+The policy is process-wide, so favormap sets it only when asked: the CLI's heavy commands, and
+``build_map`` when its ``BuildConfig.threads`` is given.
 """
 
 from __future__ import annotations

@@ -5,7 +5,9 @@ jobs, Ray workers) must not slow each other down. torch (OpenMP, libgomp) and Op
 size their pools to every core of the machine and OpenMP threads spin while they wait for work, so
 two processes that each take every core fight over them (tools/bench_load.py measures it).
 
-The rule (:func:`resolve_threads`), applied at the start of every heavy command:
+The rule (:func:`resolve_threads`), applied at the start of every heavy command of the CLI, and by the
+Python API only when asked (``threads="auto"`` or a count in ``BuildConfig`` / ``LocalizeConfig``;
+:func:`thread_count`): a program that embeds favormap keeps its own pool sizes otherwise.
 
 1. an explicit count (``--threads N``, ``threads=`` in the Python API) wins;
 2. else ``OMP_NUM_THREADS`` when it is set to a positive integer;
@@ -158,6 +160,7 @@ _lock = threading.Lock()
 _torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
 _serial = 0  # open serial_pools() blocks: OpenCV's, torch's and BLAS's pools stay at one thread meanwhile
 _blas_limits = None  # threadpoolctl's limit while a serial_pools() block is open
+_saved: tuple = (1, None)  # OpenCV's and torch's pool sizes when the outermost serial_pools() block began
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
 
@@ -205,10 +208,23 @@ def _resolve(threads):
     return n, True, now
 
 
+def thread_count(threads: int | str | None = None) -> int:
+    """The thread count a library call sizes its own worker pools by, applying ``threads`` to the process's
+    pools only when given. None leaves torch's and OpenCV's pools as they are and returns the count configured
+    earlier in this process, else ``OMP_NUM_THREADS``, else the CPUs this process may use (no load measurement);
+    "auto" applies the rule (:func:`configure_threads`), a number that count."""
+    if threads is None:
+        return _applied if _applied is not None else (_env_threads() or available_cpus())
+    if threads == "auto":
+        return configure_threads(None)
+    return configure_threads(threads)
+
+
 def configure_threads(threads: int | None = None) -> int:
     """Size torch's and OpenCV's thread pools by :func:`resolve_threads`; returns the count.
 
-    Call it once at the start of a heavy command (the CLI, ``build_map`` and ``Localizer`` do).
+    Call it once at the start of a heavy command (the CLI does; ``build_map`` and ``Localizer`` when their
+    ``threads`` is given).
     ``threads=None`` applies the rule the first time and afterwards keeps what was configured; an
     explicit count resizes the pools when it differs from the current one."""
     global _applied, _auto, _last
@@ -280,7 +296,7 @@ def serial_pools():
     slower for the rest of the process (fox: the build's training 2.0 -> 3.0 s, system time doubled,
     after one float16 conversion per patch task on two threads). A resize by the rule meanwhile
     (configure_threads, rebalance) takes effect on leaving; nested blocks restore when the last one ends."""
-    global _serial, _blas_limits
+    global _serial, _blas_limits, _saved
     import cv2
 
     with _lock:
@@ -291,6 +307,9 @@ def serial_pools():
             except ImportError:  # a dependency, but a copied tree (tools/gpu_check.sh) may run without it
                 threadpool_limits = None
             _blas_limits = threadpool_limits(1, user_api="blas") if threadpool_limits else None
+            torch = sys.modules.get("torch")
+            # the sizes to restore when nobody configured the pools (favormap.threads leaves them alone then)
+            _saved = (cv2.getNumThreads(), torch.get_num_threads() if torch is not None else None)
         cv2.setNumThreads(1)
         torch = sys.modules.get("torch")
         if torch is not None and torch.get_num_threads() != 1:
@@ -304,14 +323,14 @@ def serial_pools():
                 if _blas_limits is not None:  # first: threadpoolctl restores OpenMP's count of this thread too
                     _blas_limits.restore_original_limits()
                     _blas_limits = None
-                n = _applied if _applied is not None else resolve_threads()
-                cv2.setNumThreads(n)
+                n_cv, n_torch = (_applied, _applied) if _applied is not None else _saved
+                cv2.setNumThreads(n_cv)
                 torch = sys.modules.get("torch")
-                if torch is not None:
+                if torch is not None and n_torch is not None:  # (torch imported inside the block: left as it is)
                     # always: torch.get_num_threads() reads OpenMP's count, which threadpoolctl may have
                     # restored behind torch's back, while torch's MKL stayed at one thread (the build's
                     # training then ran its products on one core: 2.0 -> 2.5 s)
-                    torch.set_num_threads(n)
+                    torch.set_num_threads(n_torch)
 
 
 def _positive_int(s: str) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from .features import Features
 from .geometry import inverse
 from .io import Camera
-from .threads import configure_threads, serial_pools
+from .threads import serial_pools, thread_count
 
 
 @dataclass
@@ -268,7 +268,7 @@ def track_features(
     # torch's MKL: 1,740 x 1,740 x 128 on one core of this AMD EPYC, 12.7 against 18.1 ms. Fox, 345
     # pairs on two cores: 3.6 s (torch, one pair after the other) -> 2.9-3.1 s (torch, two threads)
     # -> 2.2-2.3 s
-    workers = configure_threads() if workers is None else int(workers)
+    workers = thread_count() if workers is None else int(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
         with serial_pools() if pool else nullcontext():

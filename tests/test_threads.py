@@ -172,7 +172,7 @@ def test_a_fresh_process_follows_the_rule():
     show = "print(n, torch.get_num_threads(), cv2.getNumThreads(), torch.get_num_interop_threads())"
     env = {k: v for k, v in ENV.items() if k != "OMP_NUM_THREADS"}
     # configure_threads does not import torch (a SIFT localization never needs it); a command that
-    # imports torch afterwards calls it again (build_map, the Localizer do) and torch's
+    # imports torch afterwards calls it again (the CLI's build_map and Localizer ask for it) and torch's
     # pools then follow the count already chosen
     code = (
         "import sys; from favormap.threads import configure_threads; n = configure_threads(); "
@@ -185,6 +185,35 @@ def test_a_fresh_process_follows_the_rule():
         [sys.executable, "-c", code], env=dict(env, OMP_NUM_THREADS="1"), capture_output=True, text=True, check=True
     )
     assert out.stdout.split() == ["1", "1", "1", "1"]
+
+
+def test_the_library_leaves_the_process_pools_and_heap_alone_unless_asked(small_map, small_sequence, tmp_path):
+    """A program that embeds favormap keeps its own torch/OpenCV pool sizes and malloc policy: a build and a
+    Localizer change neither unless given ``threads`` ("auto" or a count), in a fresh process."""
+    _, path = small_map
+    frame = small_sequence.frames[3]
+    code = f"""
+import cv2, torch, numpy as np
+torch.set_num_threads(3); cv2.setNumThreads(3)
+from favormap import heap
+from favormap.build import BuildConfig, build_map
+from favormap.io import read_sequence
+from favormap.localize import LocalizeConfig, Localizer
+from favormap.voxels import VoxelConfig
+seq = read_sequence({str(small_sequence.root)!r})
+build_map(seq, BuildConfig(max_keypoints=400, max_side=0, max_landmarks=100, voxel=VoxelConfig.preset("quick")))
+loc = Localizer({str(path)!r})
+res = loc.localize({str(frame.image_path)!r}, np.asarray({frame.cam_from_world.tolist()!r}))
+assert res.success, res.message
+print(torch.get_num_threads(), cv2.getNumThreads(), heap._reusing)
+Localizer({str(path)!r}, LocalizeConfig(threads=1))
+print(torch.get_num_threads(), cv2.getNumThreads())
+"""
+    out = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.split("\n")
+    assert lines[0].split() == ["3", "3", "False"], out.stdout
+    assert lines[1].split() == ["1", "1"], out.stdout
 
 
 def test_cli_threads_option(small_map, restore_pools, capsys):

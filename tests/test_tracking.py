@@ -294,10 +294,7 @@ def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks():
     each): the tracks and match counts are those of the serial run."""
     X, T, D, rng = _rig(n_frames=10, n_points=300)
     feats, _ = _features(X, T, D, rng, noise_px=0.6)
-    got = {
-        n: track_features(feats, T, [CAM] * len(T), min_track=3, window=4, workers=n)
-        for n in (1, 2, 3)
-    }
+    got = {n: track_features(feats, T, [CAM] * len(T), min_track=3, window=4, workers=n) for n in (1, 2, 3)}
     a = got[1]
     assert len(a) > 200
     for b in (got[2], got[3]):

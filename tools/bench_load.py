@@ -98,7 +98,7 @@ sys.path.insert(0, sys.argv[1])
 from tools.bench_load import load_queries, localize_all
 spec = json.loads(sys.argv[2])
 from favormap.localize import Localizer, LocalizeConfig
-loc = Localizer(spec["map"], LocalizeConfig(threads=spec["threads"]))
+loc = Localizer(spec["map"], LocalizeConfig(threads=spec["threads"] or "auto"))
 queries = load_queries(spec["queries"])
 localize_all(loc, queries[:1], 1)  # warm-up (first-call allocations, global descriptors)
 print("ready", flush=True)
@@ -209,7 +209,7 @@ sys.path.insert(0, sys.argv[1])
 from tools.bench_load import load_queries
 spec = json.loads(sys.argv[2])
 from favormap.localize import Localizer, LocalizeConfig
-loc = Localizer(spec["map"], LocalizeConfig(threads=spec["threads"]))
+loc = Localizer(spec["map"], LocalizeConfig(threads=spec["threads"] or "auto"))
 queries = load_queries(spec["queries"])
 print("ready", flush=True)
 sys.stdin.readline()
@@ -363,7 +363,7 @@ def main():
             _print_client(rows[-1], rows[0])
         from favormap.localize import LocalizeConfig, Localizer
 
-        loc = Localizer(map_path, LocalizeConfig(threads=args.threads))
+        loc = Localizer(map_path, LocalizeConfig(threads=args.threads or "auto"))
         queries = load_queries(str(qspec))
         localize_all(loc, queries[:1], 1)
         for k in ks:

@@ -311,8 +311,8 @@ def baselines(data) -> dict[str, tuple]:
 def run_variant(data, overrides: dict, extractor: str):
     import torch
 
-    from favormap.voxels import VoxelConfig, render_from_camera, train_voxels
     from favormap.features import policy_of
+    from favormap.voxels import VoxelConfig, render_from_camera, train_voxels
 
     cfg = VoxelConfig(**overrides)
     if cfg.prior_mean_deg is None:  # as build_map does

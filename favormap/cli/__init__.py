@@ -12,7 +12,10 @@ import logging
 import os
 import sys
 
-from .. import threads  # first: its CPU-load window starts at import (favormap.threads)
+from .. import (
+    heap,
+    threads,  # first: its CPU-load window starts at import (favormap.threads)
+)
 from ..errors import FavormapError, first_line
 
 # subcommand modules, in --help order
@@ -88,6 +91,7 @@ def main(argv=None) -> int:
         # measurement then spans its imports instead of waiting threads.MIN_WINDOW_S for it
         if hasattr(args, "threads") and (args.threads is not None or not getattr(args, "threads_by_api", False)):
             threads.configure_threads(args.threads)
+            heap.reuse_freed_blocks()  # large temporaries from reused heap blocks (favormap.heap)
         return int(args.func(args) or 0)
     except FavormapError as e:
         print(f"favormap {args.command}: error: {e}", file=sys.stderr)

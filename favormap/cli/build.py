@@ -162,8 +162,8 @@ def _given(**options) -> dict:
 def config_from_args(args):
     from ..build import BuildConfig
     from ..errors import InputError
-    from ..voxels import VoxelConfig
     from ..features import policy_of
+    from ..voxels import VoxelConfig
 
     for name in (
         "min_track",

@@ -246,7 +246,7 @@ def config_from_args(args):
         guided_radius_px=guided,
         guided_below_inliers=guided_below,
         device=auto_device(args.device),
-        threads=getattr(args, "threads", None),
+        threads=getattr(args, "threads", None) or "auto",  # the CLI sizes the pools (favormap.threads)
     )
 
 

@@ -32,7 +32,7 @@ from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
 from ..mapfile.model import map_aligns_by_default
-from ..threads import configure_threads, rebalance
+from ..threads import rebalance, thread_count
 from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
 from .matching import KeypointGroups, distinct_pairs, match_descriptors, match_near, pair_in, pair_similarity
@@ -328,7 +328,7 @@ class Localizer:
         )
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
-        configure_threads(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
+        thread_count(self.config.threads)  # when asked; after the extractor: sizes torch's pools too if it loaded torch
         if self.config.global_ratio is None:
             self.config = dataclasses.replace(self.config, global_ratio=self.extractor.policy.match_ratio)
         if self.config.match_threshold is None:
@@ -430,7 +430,7 @@ class Localizer:
     ) -> LocalizationResult:
         """Localize one query image. Without a prior, a coarse pose is found first by matching
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
-        rebalance()  # thread pools follow the machine's load (favormap.threads; at most every few seconds)
+        rebalance()  # pools sized by the rule follow the machine's load (favormap.threads; else a no-op)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         res = self._localize(image, prior, camera)
         res.prior = prior

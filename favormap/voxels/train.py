@@ -38,7 +38,6 @@ import torch
 import torch.nn.functional as F
 
 from ..features.base import ExtractorPolicy, policy_of
-from ..heap import reuse_freed_blocks
 from .render import composite, composite_uniform, ray_stencils, render, to_local
 
 
@@ -369,8 +368,6 @@ def train_voxels(
     if cfg.solver != "adam":
         raise ValueError(f"unknown VoxelConfig.solver {cfg.solver!r} (lstsq, adam)")
     dev = torch.device(device)
-    if dev.type == "cpu":
-        reuse_freed_blocks()  # the loop's large temporaries: reused heap blocks, not fresh mappings
     gen = BlockGenerator(seed_blocks or [len(data.centers)], cfg.seed)
     R, C = cfg.resolution, data.targets.shape[-1]
     L, P = len(data.centers), data.ray_dirs.shape[1]
@@ -507,8 +504,6 @@ def _train_lstsq(
     it) and all ``prior_bank`` virtual rays of the extrapolation prior (``lstsq_prior_weight`` in
     total; ``tools/bench_novel_view.py`` compares it with Adam)."""
     dev = torch.device(device)
-    if dev.type == "cpu":
-        reuse_freed_blocks()  # the chunks' large temporaries: reused heap blocks, not fresh mappings
     f32 = dict(dtype=torch.float32, device=dev)
     R, C = cfg.resolution, data.targets.shape[-1]
     R3, L, P = R**3, len(data.centers), data.ray_dirs.shape[1]
