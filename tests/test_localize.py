@@ -175,7 +175,6 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         landmark_covariances,
         mapping_pixel_sigma,
         refine_pose,
-        similarity_groups,
     )
 
     _, path = small_map
@@ -183,7 +182,6 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
     plain = Localizer(path, LocalizeConfig(landmark_sigma_px=0, guided_radius_px=0))
     weighted = Localizer(path, LocalizeConfig(guided_radius_px=0))
     fixed = Localizer(path, LocalizeConfig(guided_radius_px=0, refine_noise="fixed"))
-    by_sim = Localizer(path, LocalizeConfig(guided_radius_px=0, refine_noise="similarity", similarity_groups=3))
     cfg = weighted.config
     assert cfg.landmark_sigma_px == "landmark" and cfg.refine_noise == "estimated"
     moved = []
@@ -198,65 +196,22 @@ def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries)
         m = plain.map
         X, kp = m.positions[inl[:, 0]], a.keypoints[inl[:, 1]]
         cov = landmark_covariances(m, inl[:, 0], mapping_pixel_sigma(m, inl[:, 0]))
-        expect = refine_pose(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px, cfg.refine_loss_scale)
+        expect = refine_pose(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px)
         assert pose_error(c.cam_from_world, expect)[0] < 1e-9
         start, scale, sigma = estimate_noise(a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px)
-        expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma, cfg.refine_loss_scale)
+        expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma)
         assert pose_error(b.cam_from_world, expect)[0] < 1e-9
         noise = b.to_json()["uncertainty"]["noise_model"]  # the fitted factors come with the pose
         assert np.isclose(noise["landmark_scale"], scale) and np.isclose(noise["keypoint_sigma_px"], sigma)
         assert "noise_model" not in c.to_json()["uncertainty"]
-        # "similarity": the keypoint noise fitted per third of the inliers by descriptor similarity
-        d = by_sim.localize(img, prior)
-        assert d.success and pose_error(d.cam_from_world, T)[0] < 0.01
-        groups = similarity_groups(a.match_similarity[a.inlier_mask], 3)
-        assert groups.max() == 2
-        start, scale, sigma = estimate_noise(
-            a.cam_from_world, X, kp, q_cam.K, cov, cfg.keypoint_sigma_px, groups=groups
-        )
-        assert len(np.unique(sigma)) == 3
-        expect = refine_pose(start, X, kp, q_cam.K, scale * cov, sigma, cfg.refine_loss_scale)
-        assert pose_error(d.cam_from_world, expect)[0] < 1e-9
         moved.append(pose_error(a.cam_from_world, b.cam_from_world)[0])
     assert max(moved) > 1e-6  # the weighting did change the pose
     with pytest.raises(InputError, match="landmark_sigma_px"):
         LocalizeConfig(landmark_sigma_px="everywhere")
-    with pytest.raises(InputError, match="refine_loss_scale"):
-        LocalizeConfig(refine_loss_scale=0.0)
     with pytest.raises(InputError, match="keypoint_sigma_px"):
         LocalizeConfig(keypoint_sigma_px=0)
     with pytest.raises(InputError, match="refine_noise"):
         LocalizeConfig(refine_noise="guessed")
-    with pytest.raises(InputError, match="similarity_groups"):
-        LocalizeConfig(similarity_groups=0)
-
-
-def test_landmarks_with_two_descriptors_each_localize(small_map, queries):
-    """descriptors="rendered+mean": every visible landmark is matched through its rendered and its
-    mean descriptor; matches name landmarks (not descriptor rows), without repeated pairs."""
-    from favormap.localize.descriptors import StackedDescriptors, describe, make_source
-    from favormap.mapfile import Map
-
-    _, path = small_map
-    img, T = queries[3]
-    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(5))
-    loc = Localizer(path, LocalizeConfig(descriptors="rendered+mean"))
-    assert isinstance(loc.source, StackedDescriptors) and loc.source.name == "rendered+mean"
-    res = loc.localize(img, prior)
-    assert res.success, res.message
-    assert pose_error(res.cam_from_world, T)[0] < 0.01
-    assert res.matches[:, 0].max() < len(loc.map)  # landmark rows
-    pairs = {tuple(p) for p in res.matches.tolist()}
-    assert len(pairs) == len(res.matches)
-    # describe(): the descriptors of each source in turn, and the landmark of each
-    with Map.open(path) as m:
-        rows = np.array([5, 1, 7])
-        d, drows = describe(make_source("rendered+mean", m), rows, T, {})
-        np.testing.assert_array_equal(drows, [5, 1, 7, 5, 1, 7])
-        np.testing.assert_allclose(d[3:], make_source("mean", m)(rows, T, {}))
-        np.testing.assert_allclose(d[:3], make_source("rendered", m)(rows, T, {}))
-        single, srows = describe(make_source("mean", m), rows, T, {})
-        assert single.shape == (3, m.channels) and srows is not None and list(srows) == [5, 1, 7]
 
 
 def test_repeated_landmark_keypoint_pairs_are_dropped():
@@ -317,102 +272,6 @@ def test_matching_keeps_best_above_threshold():
     assert m.tolist() == [[0, 0], [1, 1]]
 
 
-def test_grouped_matching_treats_a_location_as_one_keypoint():
-    """KeypointGroups: descriptors at one position compete as one keypoint whose similarity is their
-    best; the pair names the member that reaches it (checked against a brute-force reference)."""
-    from favormap.localize.matching import KeypointGroups
-
-    rng = np.random.default_rng(0)
-    unit = lambda x: (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)  # noqa: E731
-    rend, query = unit(rng.normal(size=(60, 16))), unit(rng.normal(size=(90, 16)))
-    kp = rng.uniform(0, 100, size=(90, 2))
-    assert KeypointGroups.of(kp) is None  # every position unique: plain matching
-    kp[60:90] = kp[0:30]  # 30 locations with two descriptors each
-    groups = KeypointGroups.of(kp)
-    assert len(groups.starts) == 60
-    gid = np.unique(np.round(kp, 1), axis=0, return_inverse=True)[1].reshape(-1)
-    sim = rend @ query.T
-    gsim = np.full((60, 60), -np.inf)
-    np.maximum.at(gsim, (slice(None), gid), sim)
-    for ratio in (1.0, 0.9):
-        ref = []
-        for r in range(60):
-            order = np.sort(gsim[r])[::-1]
-            b = int(gsim[r].argmax())
-            if gsim[:, b].argmax() != r or (2 - 2 * order[0]) >= ratio**2 * (2 - 2 * order[1]) and ratio < 1:
-                continue
-            members = np.flatnonzero(gid == b)
-            ref.append((r, int(members[np.argmax(sim[r, members])])))
-        got = match_descriptors(rend, query, -1.0, mutual=True, ratio=ratio, groups=groups, chunk=16)
-        assert sorted(map(tuple, got.tolist())) == sorted(ref)
-        assert len(ref) > 10
-
-
-def test_a_sift_map_localizes_with_every_orientation_of_the_query(small_map, queries):
-    _, path = small_map
-    img, T = queries[4]
-    loc = Localizer(path, LocalizeConfig(sift_orientations="all"))
-    assert loc.extractor.orientations == "all"
-    res = loc.localize(img, perturb_pose(T, 0.3, 10.0, np.random.default_rng(6)))
-    assert res.success and pose_error(res.cam_from_world, T)[0] < 0.01, res.message
-    assert len(np.unique(np.round(res.keypoints, 1), axis=0)) < len(res.keypoints)  # groups were present
-    matched_at = np.round(res.keypoints[res.matches[:, 1]], 1)
-    assert len(np.unique(matched_at, axis=0)) == len(res.matches)  # a location is matched at most once
-
-
-def test_the_query_sift_contrast_is_an_option_of_the_localizer(small_map, queries):
-    """LocalizeConfig.sift_contrast: None keeps the map's threshold; a lower one extracts more query
-    keypoints and still localizes; a bad value is an input error."""
-    _, path = small_map
-    img, T = queries[4]
-    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(6))
-    default = Localizer(path)
-    low = Localizer(path, LocalizeConfig(sift_contrast=0.005))
-    assert default.extractor.contrast_threshold == 0.02 and low.extractor.contrast_threshold == 0.005
-    a, b = default.localize(img, prior), low.localize(img, prior)
-    assert len(b.keypoints) > len(a.keypoints)
-    assert b.success and pose_error(b.cam_from_world, T)[0] < 0.01, b.message
-    for bad in (0, -1.0, float("inf")):
-        with pytest.raises(InputError, match="sift_contrast"):
-            LocalizeConfig(sift_contrast=bad)
-
-
-def test_the_guided_step_alone_searches_the_weaker_query_keypoints(small_map, queries):
-    """LocalizeConfig.guided_sift_contrast: the query is extracted down to that threshold, the
-    keypoints of the default threshold first. Without a guided step the pose is exactly the default
-    localizer's on this image (the descriptor matching sees the same keypoints; where OpenCV gives
-    several orientations at a location, the one kept may differ between thresholds, which this image
-    does not show); with one, it searches them all."""
-    _, path = small_map
-    img, T = queries[4]
-    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(6))
-    off = dict(guided_below_inliers=0)
-    a = Localizer(path, LocalizeConfig(**off)).localize(img, prior)
-    b = Localizer(path, LocalizeConfig(guided_sift_contrast=0.005, **off)).localize(img, prior)
-    assert len(b.keypoints) > len(a.keypoints) and np.allclose(b.keypoints[: len(a.keypoints)], a.keypoints)
-    np.testing.assert_allclose(b.cam_from_world, a.cam_from_world, atol=1e-9)
-    on = dict(guided_below_inliers=100_000)
-    c = Localizer(path, LocalizeConfig(guided_sift_contrast=0.005, **on)).localize(img, prior)
-    assert c.success and c.iterations[-1].kind == "guided" and pose_error(c.cam_from_world, T)[0] < 0.01
-    assert len(c.keypoints) == len(b.keypoints)  # the guided step had the weaker keypoints to search
-    # the other way round: descriptor matching sees the weaker keypoints, the guided step does not
-    d = Localizer(path, LocalizeConfig(sift_contrast=0.005, guided_sift_contrast=0.02, **on)).localize(img, prior)
-    e = Localizer(path, LocalizeConfig(sift_contrast=0.005, **off)).localize(img, prior)
-    np.testing.assert_allclose(d.keypoints, b.keypoints)  # the same extraction and order
-    assert d.success and pose_error(d.cam_from_world, T)[0] < 0.01 and e.success
-    # the rendering iteration saw every keypoint (in another order), the guided step only the strong ones
-    assert (d.iterations[0].num_matches, d.iterations[0].num_inliers) == (
-        e.iterations[0].num_matches,
-        e.iterations[0].num_inliers,
-    )
-    assert d.by_projection is not None and d.by_projection.any()
-    assert d.matches[d.by_projection][:, 1].max() < len(a.keypoints)
-    with pytest.raises(InputError, match="guided_sift_contrast"):
-        LocalizeConfig(guided_sift_contrast=-1.0)
-    with pytest.raises(InputError, match="strongest"):
-        LocalizeConfig(guided_sift_contrast=0.01, sift_orientations="all")
-
-
 def test_search_by_projection_matches_like_full_matching_within_the_radius():
     """match_near compares only pairs within the radius: with a radius covering the image it gives
     exactly the mutual matches of the full similarity matrix; with a small one it keeps a pair only
@@ -438,18 +297,6 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     assert len(near) > 0.7 * L
     assert np.all(np.linalg.norm(kp[near[:, 1]] - uv[near[:, 0]], axis=1) <= 8.0)
     assert len(np.unique(near[:, 0])) == len(near) and len(np.unique(near[:, 1])) == len(near)
-
-
-def test_search_by_projection_localizes(small_map, queries):
-    _, path = small_map
-    rng = np.random.default_rng(0)
-    loc = Localizer(path, LocalizeConfig(iterations=3, search_radius_px=16.0))
-    errs = []
-    for img, T in queries:
-        res = loc.localize(img, perturb_pose(T, 0.3, 15.0, rng))
-        assert res.success, res.message
-        errs.append(pose_error(res.cam_from_world, T))
-    assert np.median(np.array(errs)[:, 0]) <= 0.005, errs
 
 
 def test_iterations_stop_once_the_estimate_stops_moving(small_map, queries):
@@ -590,7 +437,7 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     pose = tmp_path / "prior.txt"
     np.savetxt(pose, inverse(perturb_pose(fr.cam_from_world, 0.1, 5.0, np.random.default_rng(2))))
     args = ["localize", str(path), str(fr.image_path), "--prior", str(pose), "--json"]
-    assert main(args + ["--descriptors", "rendered+mean", "--sift-orientations", "all"]) == 0
+    assert main(args + ["--descriptors", "mean"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
     with pytest.raises(SystemExit):  # argparse: one usage line, exit 2
@@ -611,12 +458,6 @@ def test_cli_localize_with_the_extrapolation_options(small_map, small_sequence, 
     assert main(args + ["--landmark-sigma", "-1"]) != 0
     err = capsys.readouterr().err
     assert "--landmark-sigma" in err and "Traceback" not in err
-    assert main(args + ["--sift-contrast", "0.01"]) == 0  # the query's SIFT threshold
-    res = json.loads(capsys.readouterr().out)
-    assert res["success"] and pose_error(inverse(np.array(res["world_from_cam"])), fr.cam_from_world)[0] < 0.01
-    assert main(args + ["--sift-contrast", "0"]) != 0
-    err = capsys.readouterr().err
-    assert "--sift-contrast" in err and "Traceback" not in err
 
 
 def test_eval_reports_rendered_and_baseline(small_map, small_sequence, capsys):

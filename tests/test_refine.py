@@ -93,30 +93,6 @@ def test_the_pose_covariance_is_calibrated():
     assert set(cov.to_json()) == {"center_std", "rotation_std_deg", "center_covariance", "rotation_covariance"}
 
 
-def test_the_auto_loss_scale_follows_residuals_larger_than_the_model():
-    """When the residuals are 4x larger than the noise model says (as far from the mapping path,
-    where the mapping poses' errors show), a Cauchy loss at the model's scale treats most inliers as
-    half-outliers; ``loss_scale="auto"`` (the residuals' own robust scale) uses them fully and lands
-    closer to the true pose, and equals the fixed scale when the model is right."""
-    rng = np.random.default_rng(7)
-    fixed, auto, same = [], [], []
-    for i in range(20):
-        X, _ = _landmarks(rng)
-        gt = look_at(np.array([2.0, -0.5, -4.0]), np.zeros(3))
-        start = perturb_pose(gt, 0.05, 1.0, rng)
-        uv = project(CAM.K, gt, X) + rng.normal(0, 2.0, (len(X), 2))  # model: 0.5 px
-        fixed.append(pose_error(refine_pose(start, X, uv, CAM.K, None, 0.5, loss_scale=1.0), gt)[0])
-        auto.append(pose_error(refine_pose(start, X, uv, CAM.K, None, 0.5, loss_scale="auto"), gt)[0])
-        if i < 5:  # residuals as the model says: the auto scale stays at 1
-            uv = project(CAM.K, gt, X) + rng.normal(0, 0.4, (len(X), 2))
-            a = refine_pose(start, X, uv, CAM.K, None, 0.5, loss_scale="auto")
-            same.append(pose_error(a, refine_pose(start, X, uv, CAM.K, None, 0.5, loss_scale=1.0))[0])
-    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
-    assert rms(auto) < 0.95 * rms(fixed), (rms(auto), rms(fixed))
-    assert np.mean(np.array(auto) < np.array(fixed)) >= 0.6
-    assert max(same) < 1e-5  # the same optimum, up to the iterations' convergence
-
-
 def test_the_covariance_can_count_a_subset_of_the_correspondences():
     """covariance_mask: every correspondence refines the pose, only the masked ones count in its
     covariance (the localizer's guided matches, chosen near their predicted projections, are not
@@ -189,46 +165,3 @@ def test_the_noise_model_is_fitted_to_the_residuals():
     assert np.median(nees_fitted) < min(np.median(nees_fixed), 4.5), (np.median(nees_fitted), np.median(nees_fixed))
     for scale, sigma in right:
         assert 0.5 < scale < 2.0 and 0.4 < sigma < 0.6, (scale, sigma)
-
-
-def test_grouped_keypoint_noise_is_fitted_per_group_and_weights_the_pose():
-    """estimate_noise with ``groups``: half the keypoints with 0.3 px of noise, half with 1.5 px
-    (as matches of high and low descriptor similarity): each group's sigma is recovered, and the
-    pose under the grouped model is closer to the truth than under one sigma for all."""
-    from favormap.localize.refine import estimate_noise, similarity_groups
-
-    rng = np.random.default_rng(11)
-    gt = look_at(np.array([1.0, 0.3, -5.0]), np.zeros(3))
-    sig_fit, e_one, e_grouped = [], [], []
-    for _ in range(30):
-        X, m = _landmarks(rng, 240)
-        C = landmark_covariances(m, np.arange(len(X)), 0.2)
-        true_sigma = np.where(np.arange(len(X)) % 2 == 0, 0.3, 1.5)
-        kp = project(CAM.K, gt, X) + rng.normal(size=(len(X), 2)) * true_sigma[:, None]
-        # a similarity that ranks the noisy half below the precise one, with some overlap
-        similarity = 0.8 - 0.1 * (true_sigma > 1) + rng.normal(0.0, 0.04, len(X))
-        groups = similarity_groups(similarity, 2)
-        start = perturb_pose(gt, 0.02, 0.5, rng)
-        T1, _, s1 = estimate_noise(start, X, kp, CAM.K, C, 0.5)
-        T2, _, s2 = estimate_noise(start, X, kp, CAM.K, C, 0.5, groups=groups)
-        assert np.ndim(s1) == 0 and s2.shape == (len(X),)
-        sig_fit.append([np.median(s2[groups == 0]), np.median(s2[groups == 1])])
-        e_one.append(pose_error(T1, gt)[0])
-        e_grouped.append(pose_error(T2, gt)[0])
-    low, high = np.median(sig_fit, axis=0)
-    # the bins mix the groups (~10 % of each lands in the other): the precise bin's sigma is that of
-    # the mixture, ~0.55 px (measured 1.41 / 0.52)
-    assert 1.2 < low < 1.6 and 0.4 < high < 0.65, (low, high)
-    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
-    assert rms(e_grouped) < 0.9 * rms(e_one), (rms(e_grouped), rms(e_one))  # measured 0.75x
-
-
-def test_similarity_groups_are_equal_count_bins_by_rank():
-    from favormap.localize.refine import similarity_groups
-
-    s = np.array([0.9, 0.1, 0.5, 0.7, 0.3, 0.2, 0.8, 0.4, 0.6, 0.0, 0.95, 0.05])
-    g = similarity_groups(s, 2)
-    assert set(g[s < 0.5]) == {0} and set(g[s >= 0.5]) == {1}
-    assert (similarity_groups(s, 4) == g).all()  # 12 matches hold two groups of at least 6, not four
-    assert (similarity_groups(s[:5], 3) == 0).all()
-    assert (np.bincount(similarity_groups(np.arange(40.0), 4)) == 10).all()

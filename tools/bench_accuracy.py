@@ -73,8 +73,6 @@ VARIANTS = {
     "rendered": ("rendered", {}),
     "mean": ("mean", {}),
     "nearest-view": ("nearest", {}),
-    # each landmark matched through two descriptors (favormap.localize.descriptors.StackedDescriptors)
-    "rendered+mean": ("rendered+mean", {}),
     # the inliers' keypoints aligned to the mapping images through the landmark's plane before the final
     # refinement (LocalizeConfig.align, favormap.localize.align)
     "rendered align": ("rendered", {"align": True}),
@@ -117,32 +115,14 @@ VARIANTS = {
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
     "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
-    # the Cauchy scale of the weighted refinement (default 1; "auto": the residuals' own)
-    "rendered loss-auto": ("rendered", {"refine_loss_scale": "auto"}),
-    "rendered loss-2": ("rendered", {"refine_loss_scale": 2.0}),
     "rendered gated cos-0.6": ("rendered", {"guided_match_threshold": 0.6}),
     "rendered gated cos-0.5": ("rendered", {"guided_match_threshold": 0.5}),
     "rendered gated cos-0.8": ("rendered", {"guided_match_threshold": 0.8}),
     "rendered gated-2sigma 2-rounds": ("rendered", {"guided_rounds": 2, "guided_gate_sigma": 2.0}),
     "rendered gated below-800": ("rendered", {"guided_below_inliers": 800}),
-    # ... with the matches found only by projection weighed down by their larger residuals
-    "rendered gated reweighted": ("rendered", {"guided_reweight": True}),
-    "rendered gated every pose reweighted": ("rendered", {"guided_below_inliers": None, "guided_reweight": True}),
-    "rendered search-8px": ("rendered", {"search_radius_px": 8.0}),
-    "rendered search-16px": ("rendered", {"search_radius_px": 16.0}),
-    "rendered search-32px": ("rendered", {"search_radius_px": 32.0}),
     "rendered no-checks": ("rendered", {"checks": "none"}),
     "rendered inlier-ratio-20%": ("rendered", {"checks": {"min_inlier_ratio": 0.2}}),
     "rendered no-confirmation": ("rendered", {"checks": {"confirm_below_inliers": 0}}),
-    # SIFT maps: every orientation OpenCV finds at a query location, matched as one keypoint
-    "rendered all-orientations": ("rendered", {"sift_orientations": "all"}),
-    "rendered contrast-0.01": ("rendered", {"sift_contrast": 0.01}),
-    "mean contrast-0.01": ("mean", {"sift_contrast": 0.01}),
-    "rendered guided-contrast-0.01": ("rendered", {"guided_sift_contrast": 0.01}),
-    "mean guided-contrast-0.01": ("mean", {"guided_sift_contrast": 0.01}),
-    "rendered matching-contrast-0.01": ("rendered", {"sift_contrast": 0.01, "guided_sift_contrast": 0.02}),
-    "mean matching-contrast-0.01": ("mean", {"sift_contrast": 0.01, "guided_sift_contrast": 0.02}),
-    "rendered+mean all-orientations": ("rendered+mean", {"sift_orientations": "all"}),
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),
@@ -180,12 +160,6 @@ VARIANTS = {
     "rendered noise-fixed": ("rendered", {"refine_noise": "fixed"}),
     "mean noise-fixed": ("mean", {"refine_noise": "fixed"}),
     "nearest-view noise-fixed": ("nearest", {"refine_noise": "fixed"}),
-    # the keypoint noise fitted per quarter of the inliers by descriptor similarity (refine_noise
-    # "similarity")
-    "rendered sim-noise": ("rendered", {"refine_noise": "similarity"}),
-    "mean sim-noise": ("mean", {"refine_noise": "similarity"}),
-    "rendered align sim-noise": ("rendered", {"align": True, "refine_noise": "similarity"}),
-    "mean align sim-noise": ("mean", {"align": True, "refine_noise": "similarity"}),
 }
 DEFAULT_VARIANTS = (
     "rendered",
@@ -196,7 +170,6 @@ DEFAULT_VARIANTS = (
     "mean no-guided",
     "nearest-view no-guided",
     "rendered gated every pose",
-    "rendered loss-auto",
     "rendered noise-fixed",
     "mean noise-fixed",
     "rendered no-guided no-uncertainty",

@@ -43,28 +43,6 @@ def add_localize_options(p):
         "matching without a prior uses the extractor's: 0.9 for sift, off for xfeat)",
     )
     p.add_argument(
-        "--sift-orientations",
-        choices=["strongest", "all"],
-        default="strongest",
-        help="SIFT maps: keep the strongest orientation per query location, or all of them (matched as one "
-        "keypoint; measured better far from the mapping path before the guided step existed: docs/accuracy.md)",
-    )
-    p.add_argument(
-        "--sift-contrast",
-        type=float,
-        default=None,
-        help="SIFT maps: OpenCV contrast threshold of the query keypoints that descriptor matching uses (default: "
-        "the map's, 0.02; lower finds more, weaker ones. With --guided-sift-contrast 0.02, 0.01 localized as well "
-        "as the default, within 3 %%, on fox and the synthetic orbit: docs/accuracy.md)",
-    )
-    p.add_argument(
-        "--guided-sift-contrast",
-        type=float,
-        default=None,
-        help="SIFT maps: contrast threshold of the query keypoints the guided step searches (default: "
-        "--sift-contrast's; docs/accuracy.md)",
-    )
-    p.add_argument(
         "--landmark-sigma",
         default="landmark",
         help="final refinement weighted by each landmark's position uncertainty, for this keypoint noise of the "
@@ -167,10 +145,9 @@ def register(sub):
     p.add_argument("--camera", help="query camera: a COLMAP camera line or JSON (default: the map's camera)")
     p.add_argument(
         "--descriptors",
-        choices=["rendered", "mean", "rendered+mean"],
+        choices=["rendered", "mean"],
         default="rendered",
-        help="landmark descriptors: rendered from the voxels (FaVoR, default), the stored mean, or both "
-        "(each landmark matched through either; no gain on the benchmark since SIFT is uncapped: docs/accuracy.md)",
+        help="landmark descriptors: rendered from the voxels (FaVoR, default) or each landmark's stored mean",
     )
     add_localize_options(p)
     p.add_argument(
@@ -203,12 +180,6 @@ def config_from_args(args):
     guided_below = LocalizeConfig.guided_below_inliers if guided_below is None else guided_below
     if guided_below is not None and guided_below < 0:
         raise InputError("--guided-below must be a number of inliers >= 0")
-    contrast = getattr(args, "sift_contrast", None)
-    if contrast is not None and not 0 < contrast < float("inf"):
-        raise InputError("--sift-contrast must be a number > 0")
-    guided_contrast = getattr(args, "guided_sift_contrast", None)
-    if guided_contrast is not None and not 0 < guided_contrast < float("inf"):
-        raise InputError("--guided-sift-contrast must be a number > 0")
     sigma = getattr(args, "landmark_sigma", "landmark")
     if sigma not in ("landmark", "map"):
         try:
@@ -239,9 +210,6 @@ def config_from_args(args):
         ratio=args.ratio,
         global_fallback=not args.no_global,
         descriptors=getattr(args, "descriptors", "rendered"),
-        sift_orientations=args.sift_orientations,
-        sift_contrast=contrast,
-        guided_sift_contrast=guided_contrast,
         landmark_sigma_px=sigma,
         guided_radius_px=guided,
         guided_below_inliers=guided_below,

@@ -65,7 +65,7 @@ class _SiftState:
 
 
 # OpenCV's contrast threshold (its default 0.04 halved: more keypoints on low-texture surfaces); maps
-# are always built with it. A query may use a lower one (LocalizeConfig.sift_contrast)
+# and their queries are extracted with it
 CONTRAST_THRESHOLD = 0.02
 # a keypoint on the upsampled first octave (-1, layer 1): added to every compute() call so that
 # OpenCV always builds the pyramid from the upsampled image, as detection does, and a descriptor
@@ -100,9 +100,7 @@ class SIFTExtractor(Extractor):
         self.size = float(size)
         self.support_px = float(support_px)
         # OpenCV gives a location one keypoint per dominant orientation (peaks within 80 % of the
-        # highest): "strongest" keeps the strongest one (maps: one track node per location), "all"
-        # keeps them all (queries: the localizer matches such a group as one keypoint through
-        # whichever descriptor fits, favormap.localize.matching.KeypointGroups)
+        # highest): "strongest" keeps the strongest one (one track node per location), "all" keeps them all
         if orientations not in ("strongest", "all"):
             raise ValueError(f"orientations must be 'strongest' or 'all', not {orientations!r}")
         self.orientations = orientations

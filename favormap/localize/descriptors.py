@@ -8,8 +8,10 @@ A descriptor source turns landmark rows and the current pose estimate into unit 
 - ``nearest``: the descriptor observed in the mapping frame whose camera centre is nearest the
   current estimate (baseline: the best a map of stored descriptors could do without rendering). It
   needs the per-observation descriptors, which the map does not store; :func:`observation_descriptors`
-  computes them from the mapping images;
-- several joined by "+" (e.g. ``rendered+mean``): each landmark carries one descriptor from each.
+  computes them from the mapping images.
+
+A user's source may return several descriptors per landmark (k len(rows) rows, block by block);
+:func:`describe` then names each descriptor's landmark.
 """
 
 from __future__ import annotations
@@ -138,24 +140,10 @@ def observation_descriptors(map_: Map, sequence, extractor=None) -> np.ndarray:
     return out
 
 
-class StackedDescriptors:
-    """Several descriptors per landmark, one from each source: ``rows`` -> (k len(rows), C), source
-    by source (e.g. "rendered+mean": the rendered descriptors, then the mean ones). Matching then
-    lets each landmark meet the query through whichever of its descriptors fits best; see
-    :func:`describe` for the landmark row of each descriptor."""
-
-    def __init__(self, sources: list[DescriptorSource]):
-        self.sources = sources
-        self.name = "+".join(s.name for s in sources)
-
-    def __call__(self, rows, cam_from_world, timings):
-        return np.concatenate([s(rows, cam_from_world, timings) for s in self.sources])
-
-
 def describe(source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict):
     """(descriptors, their landmark rows): ``source``'s descriptors of ``rows`` and, per descriptor,
     its landmark (``rows`` itself for a source with one descriptor per landmark; repeated for a
-    :class:`StackedDescriptors`)."""
+    source that returns several per landmark, block by block)."""
     rows = np.asarray(rows, np.int64)
     d = source(rows, cam_from_world, timings)
     if len(rows) == 0 or len(d) == len(rows):
@@ -166,10 +154,7 @@ def describe(source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndar
 def make_source(
     name: str, map_: Map, device: str = "cpu", obs_descriptors: np.ndarray | None = None
 ) -> DescriptorSource:
-    """A descriptor source by name: rendered, mean, nearest, or several joined by "+" (one descriptor
-    per landmark from each, :class:`StackedDescriptors`)."""
-    if "+" in name:
-        return StackedDescriptors([make_source(n, map_, device, obs_descriptors) for n in name.split("+")])
+    """A descriptor source by name: rendered, mean or nearest."""
     if name == "rendered":
         return RenderedDescriptors(map_, device)
     if name == "mean":
@@ -178,4 +163,4 @@ def make_source(
         if obs_descriptors is None:
             raise ValueError("nearest-view descriptors need the observation descriptors (observation_descriptors())")
         return NearestViewDescriptors(map_, obs_descriptors)
-    raise ValueError(f"unknown descriptor source {name!r} (rendered, mean, nearest, or several joined by +)")
+    raise ValueError(f"unknown descriptor source {name!r} (rendered, mean, nearest)")

@@ -311,7 +311,7 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
     )
     desc, drows = describe(localizer.source, rows, gt, {})
     m = match_descriptors(
-        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=localizer.keypoint_groups(feats)
+        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio
     )
     pos = localizer.map.positions
     return diagnostics_from_matches(

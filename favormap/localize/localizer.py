@@ -33,9 +33,10 @@ from ..io.images import prepare_query
 from ..mapfile import Map
 from ..mapfile.model import map_aligns_by_default
 from ..threads import rebalance, thread_count
-from ..visibility import SpatialIndex, ViewLimits, visible_mask, visible_rows
+from ..visibility import SpatialIndex, visible_mask, visible_rows
+from .config import LocalizeConfig
 from .descriptors import DescriptorSource, describe, make_source, unit_rows
-from .matching import KeypointGroups, distinct_pairs, match_descriptors, match_near, pair_in, pair_similarity
+from .matching import distinct_pairs, match_descriptors, match_near, pair_in, pair_similarity
 from .refine import (
     PoseCovariance,
     estimate_noise,
@@ -44,187 +45,7 @@ from .refine import (
     mapping_pixel_sigma,
     projection_information,
     refine_pose,
-    similarity_groups,
 )
-
-
-@dataclass
-class SuccessChecks:
-    """What a pose must satisfy to be reported as a success (chosen on tools/bench_accuracy.py)."""
-
-    min_inliers: int = 20
-    # inliers / matches of the final iteration. 0.1 (was 0.2): at views extrapolated from the mapping
-    # path most mutual matches are wrong and correct poses have 12-20 % inliers (fox extrapolation: 2 of
-    # 10 correct poses refused at 0.2, none at 0.1, 0 false successes in every split and prior mode of
-    # tools/bench_accuracy.py); an image of another scene gets ~3 % (5-6 of ~190) and fails min_inliers
-    min_inlier_ratio: float = 0.1
-    max_iteration_change: tuple[float, float] = (0.05, 2.0)  # last two estimates: (x median landmark depth, deg)
-    min_visible_inliers: float = 0.8  # share of inlier landmarks visible from the final pose
-    # A pose with fewer inliers than this must be confirmed by the prior-free estimate (the query
-    # matched against all landmarks' mean descriptors, Lowe's test, PnP): refined from a prior, that
-    # estimate must exist and lie within max_iteration_change of the pose; refined from that estimate,
-    # the pose must have stayed that close to it. tools/bench_accuracy.py
-    # --extrap-step 1 (fox extrapolation, 20 queries, 2026-11-26): two queries converged from priors
-    # 0.3 units off to poses 6.8 units off with 51 and 57 consistent inliers (query keypoints on one
-    # flower of a repeated wallpaper pattern matched to landmarks on another; 1.2 px median
-    # reprojection error) and passed every other check; the
-    # prior-free step finds no pose for them, and confirms every correct pose of that split with
-    # fewer than 100 inliers (51-94). 0: never ask.
-    confirm_below_inliers: int = 100
-
-
-@dataclass
-class LocalizeConfig:
-    iterations: int = 3
-    # cosine similarity of descriptor matching and (unless guided_match_threshold) of the guided step;
-    # None: the extractor's (Extractor.match_threshold: 0.7, the paper's reference config; DISK 0.5)
-    match_threshold: float | None = None
-    mutual: bool = True  # also require the landmark to be the query feature's best
-    ratio: float = 1.0  # Lowe ratio on descriptor distances in the rendering iterations (1: off)
-    global_ratio: float | None = None  # Lowe ratio when matching against all landmarks (None: the extractor's)
-    max_keypoints: int = 4096
-    # SIFT maps: query keypoints per location, "strongest" orientation or "all" (grouped in matching,
-    # KeypointGroups)
-    sift_orientations: str = "strongest"
-    # SIFT maps: the OpenCV contrast threshold of the query keypoints that descriptor matching uses
-    # (None: the maps' own, features.sift.CONTRAST_THRESHOLD, 0.02); lower finds more, weaker ones.
-    # tools/bench_accuracy.py, three training seeds, noise priors, with guided_sift_contrast=0.02
-    # (variant "rendered matching-contrast-0.01"), paired with the default: fox extrapolation 1.02x
-    # [0.94, 1.13], hold-out 1.03x, orbit 1.00x (fourteenth session, uncapped SIFT; with the earlier
-    # capped SIFT it gained 7 % on fox extrapolation and lost 5 % on the orbit, both the orientation
-    # tie of features.sift). Not the default
-    sift_contrast: float | None = None
-    # SIFT maps: the contrast threshold of the query keypoints the guided step searches (None: the same
-    # as sift_contrast). One extraction at the lower of the two serves both steps. See docs/accuracy.md
-    guided_sift_contrast: float | None = None
-    ransac_max_error_px: float = 4.0  # at the working resolution of the map (max_side)
-    checks: SuccessChecks = field(default_factory=SuccessChecks)
-    # The guided step, after the rendering iterations (search by projection; the pose's last step
-    # before the weighted refinement): every landmark visible from the estimate is matched to the most
-    # similar query keypoint within guided_radius_px of its projection and within guided_gate_sigma
-    # standard deviations (Mahalanobis) of it under the noise model of the weighted refinement
-    # (landmark covariance projected into the query + keypoint noise, scaled up by the descriptor
-    # inliers' own residuals where those are larger), mutually and above match_threshold; then
-    # PnP-RANSAC at guided_ransac_px (None: the radius). It runs only for poses with fewer than
-    # guided_below_inliers inliers matched by descriptor (None: every pose): with few descriptor
-    # matches (far from the mapping path) the extra matches lower the pose's noise floor; with many
-    # the pose is at its floor already and the extra matches, chosen near the predicted projections,
-    # are noisier than the descriptor matches. tools/bench_accuracy.py (2026-11-26, ninth session,
-    # noise priors, medians hold-out / extrapolation / orbit, units): off 0.0014 / 0.0086 / 0.00047;
-    # gated 3 sigma 8 px for every pose 0.00155 / 0.0065 / 0.00069; below 400 inliers 0.0013 /
-    # 0.0065 / 0.00053 (orbit p90 0.0016 against 0.0024, beyond 40 deg 0.0011 against 0.0014);
-    # ungated 3 px for every pose 0.0014 / 0.0067 / 0.0006. guided_radius_px 0: off.
-    guided_radius_px: float = 8.0
-    guided_ransac_px: float | None = None
-    guided_gate_sigma: float = 3.0  # 0: the radius alone
-    guided_below_inliers: int | None = 400
-    guided_rounds: int = 1  # > 1: search again from the previous round's (weighted) pose
-    guided_match_threshold: float | None = None  # cosine threshold of the guided step (None: match_threshold)
-    # the weighted refinement after the guided step weighs the matches found only by projection down
-    # by how much larger their residuals are than those of the matches found by descriptor (median
-    # squared Mahalanobis residual of each group at the pose); off: see docs/accuracy.md
-    guided_reweight: bool = False
-    # > 0: after the first successful iteration, a landmark is matched only against query keypoints
-    # this close to its projection from the current estimate (search by projection; the first
-    # iteration, from the prior, searches the whole image). Off: tools/bench_accuracy.py (3,000
-    # landmarks) with 16 px localized fox extrapolation 10/10 instead of 8/10 and ~15 % faster, but the
-    # pose then depends on where the iterations start (extrapolation median 0.0047-0.0124 units across
-    # the four prior modes, against 0.0088-0.0102 with the whole-image search), and the hold-out
-    # median rose from 0.0015 to 0.0017 units (8 px: 0.0018, 32 px: 0.0016)
-    search_radius_px: float = 0.0
-    # the final pose is refined once more on its inliers with each residual weighted by how well its
-    # landmark is known (favormap.localize.refine: position covariance from the training views' spread
-    # and distance for a keypoint noise of the mapping images, projected into the query, plus
-    # keypoint_sigma_px of query keypoint noise). That noise in pixels, or "map" (estimated from the
-    # map's reprojection errors, one figure: their median) or "landmark" (each landmark's own);
-    # 0: RANSAC's refinement only. tools/bench_accuracy.py (2026-11-26, eighth session, noise priors,
-    # medians hold-out / extrapolation / orbit, units): 0 -> 0.0015 / 0.0090 / 0.0006 (orbit > 40 deg
-    # 0.0016); "landmark" 0.0014 / 0.0086 / 0.0005 (0.0014); "map" 0.0014 / 0.0086 / 0.0005 (0.0015);
-    # 1 px 0.0014 / 0.0082 / 0.0007 (0.0024: too loose for the synthetic orbit's 0.09 px map)
-    landmark_sigma_px: float | str = "landmark"
-    keypoint_sigma_px: float = 0.5  # query keypoint noise (px) of that refinement
-    # Cauchy scale of that refinement, in whitened units: a number, or "auto" (the residuals' robust
-    # scale, re-estimated at every iterate, at least 1: far from the mapping path the residuals are
-    # several times what the noise model says, and a scale of 1 treats most inliers as
-    # half-outliers). tools/bench_accuracy.py (2026-11-26, ninth session, noise priors, fox
-    # extrapolation): "auto" 0.0057 against 0.0065 units on the default (Adam) map, 13 of 19 queries
-    # better; but 0.0079 against 0.0071 on a quick map (8 of 20 better) and 0.0290 against 0.0167 on
-    # an XFeat map (7 of 17): not a robust gain, so an option; hold-out and orbit unchanged
-    refine_loss_scale: float | str = 1.0
-    # the noise model of that refinement: "fixed" (the map's landmark covariances and
-    # keypoint_sigma_px as they are) or "estimated" (both scaled to this query's inliers by maximum
-    # likelihood, favormap.localize.refine.estimate_noise, at every weighted refinement). Far from the
-    # mapping path the inliers' residuals lie mostly along their landmarks' depth and the fitted
-    # landmark scale is 4-7 (fox extrapolation): the covariances understate the depth errors.
-    # tools/bench_accuracy.py --train-seeds 0,1,2 (2026-11-27, twelfth session, noise priors, medians
-    # fixed -> estimated, units): fox extrapolation 0.0070 / 0.0067 / 0.0071 -> 0.0060 / 0.0068 /
-    # 0.0061, hold-out 0.00130 / 0.00128 / 0.00125 -> 0.00120 / 0.00119 / 0.00124, orbit 0.00053 /
-    # 0.00053 / 0.00051 -> 0.00049 / 0.00050 / 0.00048; median NEES far from the path 7.7-9.0 ->
-    # 5.1-5.8. Gating the guided step with the fitted model lost (extrapolation 0.0068 / 0.0073 /
-    # 0.0075), and so did a Cauchy scale of 2 with it (0.0065 / 0.0065 / 0.0069; orbit 0.00059)
-    refine_noise: str = "estimated"
-    # "similarity": as "estimated", but the keypoint noise is fitted separately for the inliers binned
-    # into similarity_groups equal-count groups by their descriptor similarity. A match whose query
-    # descriptor is far from the landmark's lies farther from its projection (fox extrapolation, SIFT
-    # map, true poses: median residual 1.35 px in the least similar quarter, 0.78 px in the most), yet
-    # the pose did not gain (thirty-fourth session, paired with "estimated", noise priors): SIFT map
-    # 1.05x [0.98, 1.15] rendered, 1.03x the mean; DISK map with align 1.01x [0.93, 1.08] / 1.04x. An
-    # option, off
-    similarity_groups: int = 4
-    # before that refinement, each inlier's keypoint is replaced by where its landmark's appearance in
-    # the mapping frame nearest in direction, carried through the landmark's local plane, lies in the
-    # query (favormap.localize.align; needs the mapping images: align_images, or None for the folder
-    # the map was built from). tools/bench_accuracy.py (twenty-ninth session, noise priors, paired with
-    # the detected keypoints): synthetic orbit 0.54x (0.20x on a map built with refine_window=9), fox
-    # hold-out 1.09x (1.08x), fox extrapolation 1.13x (1.33x): off for SIFT maps; None (the default) follows
-    # the map (mapfile.model.map_aligns_by_default): on for a map built for exact poses (BuildConfig.exact_poses)
-    # and for DISK and ALIKED maps, which store the patches it needs (build.localize_defaults)
-    align: bool | None = None
-    align_images: str | None = None
-    align_references: int = 1  # mapping frames each inlier is aligned to (AlignConfig.references)
-    global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
-    global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
-    # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
-    # (translation relative to the median landmark distance): rendering again from there gives the
-    # same descriptors. tools/bench_accuracy.py (2026-11-26, ninth session, noise priors): 5e-3 / 0.5
-    # deg localize as 1e-4 / 0.01 deg did (hold-out 0.0013, extrapolation 0.0065, orbit 0.00053
-    # units, every angle bin within 0.00002) and skip the third iteration of most queries: 25-35 %
-    # less time per query (hold-out 252 -> 164 ms, extrapolation 283 -> 206, orbit 331 -> 237)
-    stop_translation: float = 5e-3
-    stop_rotation_deg: float = 0.5
-    # "rendered" (FaVoR), "mean" or "nearest" (baselines), or several joined by "+" (each landmark then
-    # carries one descriptor from each; see .descriptors)
-    descriptors: str = "rendered"
-    # landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
-    # distances (tools/bench_accuracy.py, fox extrapolation: 3/5 localized with 15 deg / 0.5-2x, 5/5 with these)
-    view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
-    device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
-    seed: int = 0
-    threads: int | None = None  # CPU threads for torch/OpenCV (None: favormap.threads' rule)
-
-    def __post_init__(self):
-        v = self.landmark_sigma_px
-        if not (v in ("landmark", "map") or (isinstance(v, (int, float)) and 0 <= v < float("inf"))):
-            raise InputError(f"landmark_sigma_px must be 'landmark', 'map' or a number of pixels >= 0, not {v!r}")
-        if not (0 <= self.guided_radius_px < float("inf") and 0 <= self.guided_gate_sigma < float("inf")):
-            raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
-        if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
-            raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
-        for name in ("sift_contrast", "guided_sift_contrast"):
-            c = getattr(self, name)
-            if c is not None and not (isinstance(c, (int, float)) and 0 < c < float("inf")):
-                raise InputError(f"{name} must be a number > 0 (or None), not {c!r}")
-        if self.guided_sift_contrast is not None and self.sift_orientations != "strongest":
-            raise InputError("guided_sift_contrast needs sift_orientations='strongest'")
-        if self.refine_noise not in ("fixed", "estimated", "similarity"):
-            raise InputError(f"refine_noise must be 'fixed', 'estimated' or 'similarity', not {self.refine_noise!r}")
-        if not (isinstance(self.similarity_groups, int) and self.similarity_groups >= 1):
-            raise InputError(f"similarity_groups must be an integer >= 1, not {self.similarity_groups!r}")
-        c = self.refine_loss_scale
-        if not (c == "auto" or (isinstance(c, (int, float)) and 0 < c < float("inf"))):
-            raise InputError(f"refine_loss_scale must be 'auto' or a number > 0, not {c!r}")
-        if not (isinstance(self.keypoint_sigma_px, (int, float)) and 0 < self.keypoint_sigma_px < float("inf")):
-            raise InputError(f"keypoint_sigma_px must be a number of pixels > 0, not {self.keypoint_sigma_px!r}")
 
 
 @dataclass
@@ -315,7 +136,6 @@ class Localizer:
             self.map.extractor,
             max_keypoints=self.config.max_keypoints,
             device=None if self.config.device == "cpu" else self.config.device,
-            **(self._sift_options() if self.map.extractor == "sift" else {}),
         )
         self.index = SpatialIndex(self.map.positions)
         # landmark positions of the geometry (visibility, projections, PnP): the map's, or a stream's
@@ -347,45 +167,6 @@ class Localizer:
 
     def close(self):
         self.map.close()
-
-    def _contrasts(self) -> tuple[float, float]:
-        """The query's SIFT contrast thresholds of descriptor matching and of the guided step."""
-        from ..features.sift import CONTRAST_THRESHOLD
-
-        matching = self.config.sift_contrast or CONTRAST_THRESHOLD
-        return matching, self.config.guided_sift_contrast or matching
-
-    def _sift_options(self) -> dict:
-        """The query's SIFT settings (LocalizeConfig.sift_orientations; one extraction at the lower of
-        sift_contrast and guided_sift_contrast, split by _strong_first)."""
-        cfg = self.config
-        opts = {"orientations": cfg.sift_orientations}
-        if cfg.sift_contrast is not None or cfg.guided_sift_contrast is not None:
-            opts["contrast_threshold"] = min(self._contrasts())
-        return opts
-
-    def _strong_first(self, feats) -> tuple[object, int | None, int | None]:
-        """(features, matching_n, guided_n): where descriptor matching and the guided step use
-        different SIFT contrast thresholds, the query's keypoints reordered so that those passing the
-        higher one come first (features.sift_octave.min_response: the keypoints an extraction at that
-        threshold finds), and how many leading keypoints each step uses (None: all)."""
-        matching, guided = self._contrasts()
-        if matching == guided or self.map.extractor != "sift":
-            return feats, None, None
-        from ..features.sift_octave import min_response
-
-        strong = np.asarray(feats.scores) >= min_response(max(matching, guided))
-        order = np.r_[np.flatnonzero(strong), np.flatnonzero(~strong)]
-        f = dataclasses.replace(
-            feats, keypoints=feats.keypoints[order], scores=feats.scores[order], descriptors=feats.descriptors[order]
-        )
-        n = int(strong.sum())
-        return (f, n, None) if matching > guided else (f, None, n)
-
-    def keypoint_groups(self, feats) -> KeypointGroups | None:
-        """The query keypoints sharing a location, for an extractor that gives several descriptors
-        per location (SIFT with ``sift_orientations="all"``); None otherwise."""
-        return KeypointGroups.of(feats.keypoints) if getattr(self.extractor, "orientations", None) == "all" else None
 
     # -- inputs --------------------------------------------------------------------------------------
     def prepare(self, image, camera: Camera | None = None):
@@ -441,10 +222,10 @@ class Localizer:
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
-        feats, matching_n, guided_n = self._strong_first(self.extractor.extract(img))
+        feats = self.extractor.extract(img)
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
-        q = _Query(feats, qdesc, cam, self.keypoint_groups(feats), matching_n=matching_n, guided_n=guided_n)
+        q = _Query(feats, qdesc, cam)
         if cfg.align:
             q.image = img
 
@@ -547,7 +328,7 @@ class Localizer:
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
         m = match_descriptors(
-            d, q.match_desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio, groups=q.groups
+            d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio
         )
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.positions[rows[m[:, 0]]], m[:, 1], t)
@@ -591,13 +372,7 @@ class Localizer:
             rows = self._visible(q, pose, t)
             rend, drows = describe(self.source, rows, pose, t)
             s = time.perf_counter()
-            if cfg.search_radius_px > 0 and last is not None:
-                uv = project(q.cam.K, pose, self.positions[drows])
-                m = match_near(
-                    rend, q.match_desc, uv, q.match_keypoints, cfg.search_radius_px, cfg.match_threshold, cfg.mutual
-                )
-            else:
-                m = match_descriptors(rend, q.match_desc, cfg.match_threshold, cfg.mutual, cfg.ratio, groups=q.groups)
+            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
             m = distinct_pairs(m, drows, len(rows))
             sims = pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
@@ -726,29 +501,13 @@ class Localizer:
         s = time.perf_counter()
         Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
         ksig, scale = cfg.keypoint_sigma_px, None
-        if cfg.refine_noise != "fixed" and len(inl) >= 6:
-            groups = None
-            if cfg.refine_noise == "similarity" and last.get("similarity") is not None:
-                groups = similarity_groups(last["similarity"][last["inliers"]], cfg.similarity_groups)
-            it.cam_from_world, scale, ksig = estimate_noise(
-                it.cam_from_world, X, kp, q.cam.K, Xcov, ksig, groups=groups
-            )
+        if cfg.refine_noise == "estimated" and len(inl) >= 6:
+            it.cam_from_world, scale, ksig = estimate_noise(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
             Xcov = scale * Xcov
-        factor = None
         # the covariance counts the matches found by descriptor only: the guided step picks its extra
         # ones near where the pose predicts them, so their residuals are small by selection and their
-        # errors follow the pose's. Fox extrapolation (20 queries, /tmp script in the issue-11 note):
-        # median NEES 19.4 with every inlier, 8.0 with the descriptor ones (a right covariance: 2.37);
-        # hold-out 1.7 -> 1.1
+        # errors follow the pose's (docs/implementation-notes.md, covariances)
         by_desc = last["by_descriptor"][last["inliers"]] if "by_descriptor" in last else None
-        if cfg.guided_reweight and by_desc is not None and by_desc.sum() >= 6 and (~by_desc).any():
-            T1 = refine_pose(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
-            uv, info = projection_information(T1, X, q.cam.K, Xcov, ksig)
-            d2 = mahalanobis2(info, kp - uv)
-            m_desc = float(np.nanmedian(d2[by_desc]))
-            m_proj = float(np.nanmedian(d2[~by_desc]))
-            factor = np.where(by_desc, 1.0, max(m_proj / max(m_desc, 1e-12), 1.0))
-            it.cam_from_world = T1
         it.cam_from_world, cov = refine_pose(
             it.cam_from_world,
             X,
@@ -756,9 +515,7 @@ class Localizer:
             q.cam.K,
             Xcov,
             ksig,
-            loss_scale=cfg.refine_loss_scale,
             return_covariance=True,
-            variance_factor=factor,
             covariance_mask=by_desc if by_desc is not None and by_desc.sum() >= 6 else None,
         )
         if cov is not None and scale is not None:
@@ -827,9 +584,9 @@ class Localizer:
             uv = project(q.cam.K, pose, self.positions[drows])
         m = match_near(
             rend,
-            q.guided_desc,
+            q.desc,
             uv,
-            q.guided_keypoints,
+            q.feats.keypoints,
             cfg.guided_radius_px,
             cfg.match_threshold if cfg.guided_match_threshold is None else cfg.guided_match_threshold,
             mutual=True,
@@ -948,31 +705,10 @@ class _Query:
     feats: object
     desc: np.ndarray  # (N, C) float32 unit descriptors
     cam: Camera
-    groups: KeypointGroups | None = None  # query keypoints sharing a position (several orientations)
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
-    # descriptor matching / the guided step use the first n keypoints (None: all; LocalizeConfig.sift_contrast,
-    # guided_sift_contrast)
-    matching_n: int | None = None
-    guided_n: int | None = None
     image: np.ndarray | None = None  # the working image (LocalizeConfig.align)
     gray: np.ndarray | None = None  # its blurred grey version, once aligned
     aligned: np.ndarray | None = None  # (K, 2) the last final refinement's aligned keypoints by match
-
-    @property
-    def match_desc(self) -> np.ndarray:
-        return self.desc[: self.matching_n]
-
-    @property
-    def match_keypoints(self) -> np.ndarray:
-        return self.feats.keypoints[: self.matching_n]
-
-    @property
-    def guided_desc(self) -> np.ndarray:
-        return self.desc[: self.guided_n]
-
-    @property
-    def guided_keypoints(self) -> np.ndarray:
-        return self.feats.keypoints[: self.guided_n]
 
 
 def localize(

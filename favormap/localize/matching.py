@@ -1,41 +1,14 @@
 """Matching a query's descriptors to landmark descriptors: mutual nearest neighbours over the whole
-set (:func:`match_descriptors`, optionally with Lowe's ratio and keypoints that share a position
-grouped, :class:`KeypointGroups`) or only within a radius of each landmark's projection
+set (:func:`match_descriptors`, optionally with Lowe's ratio) or only within a radius of each landmark's projection
 (:func:`match_near`, the guided step, optionally gated by a Mahalanobis distance). NumPy and OpenCV's
 gemm; no torch, no Open3D."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
 from .refine import mahalanobis2
-
-
-@dataclass
-class KeypointGroups:
-    """Query keypoints that share a position: OpenCV's SIFT returns one keypoint per dominant
-    orientation, so a location can carry two or more descriptors. Matching treats a group as one
-    keypoint whose similarity to a landmark is the best of its descriptors, so that the extra
-    orientations add chances to match without competing with each other in the mutual and ratio
-    tests."""
-
-    order: np.ndarray  # (Q,) keypoint indices, sorted by group
-    starts: np.ndarray  # (G,) where each group starts in ``order``
-
-    @classmethod
-    def of(cls, keypoints: np.ndarray, decimals: int = 1) -> KeypointGroups | None:
-        """Groups of keypoints at the same position (rounded); None when every position is unique."""
-        kp = np.round(np.asarray(keypoints, np.float64).reshape(-1, 2), decimals)
-        if len(kp) == 0:
-            return None
-        _, inverse, counts = np.unique(kp, axis=0, return_inverse=True, return_counts=True)
-        if counts.max() == 1:
-            return None
-        inverse = inverse.reshape(-1)
-        return cls(np.argsort(inverse, kind="stable"), np.r_[0, np.cumsum(counts)[:-1]])
 
 
 def match_descriptors(
@@ -45,15 +18,11 @@ def match_descriptors(
     mutual: bool = False,
     ratio: float = 1.0,
     chunk: int = 8192,
-    groups: KeypointGroups | None = None,
 ) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
     query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
     rendered descriptor is also that query descriptor's most similar one, and when the best
     distance is below ``ratio`` times the second best (Lowe's test on unit vectors).
-
-    With ``groups`` the tests run on groups of query descriptors at one position (a group's
-    similarity: the best of its members) and the pair names the group's most similar member.
 
     NumPy, ``chunk`` rendered rows at a time: memory stays bounded when matching a query against a
     whole map (the prior-free step); ties go to the lower index."""
@@ -62,19 +31,15 @@ def match_descriptors(
     L, Q = len(rendered), len(query)
     if L == 0 or Q == 0:
         return np.zeros((0, 2), np.int64)
-    if groups is not None:
-        query = query[groups.order]
     query = np.ascontiguousarray(query)
-    G = Q if groups is None else len(groups.starts)
-    best = np.empty(L, np.int64)  # best column (group)
+    G = Q
+    best = np.empty(L, np.int64)  # best column
     best_sim = np.empty(L, np.float32)
     second = np.full(L, -np.inf, np.float32)
-    col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's (group's) best similarity
+    col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's best similarity
     for s in range(0, L, chunk):
         sim = _gemm_t(np.ascontiguousarray(rendered[s : s + chunk]), query)
         r = np.arange(len(sim))
-        if groups is not None:
-            sim = np.maximum.reduceat(sim, groups.starts, axis=1)
         if mutual:  # max along axis 0 is ~20x faster than argmax along it
             np.maximum(col_best, sim.max(0), out=col_best)
         b = sim.argmax(1)
@@ -91,16 +56,7 @@ def match_descriptors(
     if mutual:
         _, first = np.unique(best[idx], return_index=True)
         idx = idx[np.sort(first)]
-    if groups is None:
-        return np.stack([idx, best[idx]], 1).astype(np.int64)
-    # each kept row's group -> the member that reaches the group's similarity
-    size = np.diff(np.r_[groups.starts, Q])[best[idx]]
-    cols = groups.starts[best[idx]][:, None] + np.arange(size.max(initial=1))[None, :]
-    valid = cols < (groups.starts[best[idx]] + size)[:, None]
-    cols = np.where(valid, cols, cols[:, :1])  # positions in ``query`` (sorted by group)
-    sims = np.where(valid, np.einsum("kc,kwc->kw", rendered[idx], query[cols]), -np.inf)
-    member = groups.order[cols[np.arange(len(idx)), sims.argmax(1)]]
-    return np.stack([idx, member], 1).astype(np.int64)
+    return np.stack([idx, best[idx]], 1).astype(np.int64)
 
 
 def _gemm_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -19,9 +19,8 @@ gives the pose's covariance (:class:`PoseCovariance`) from the same noise model.
 covariances and the keypoint noise, by maximum likelihood): far from the mapping path the landmarks'
 depth errors are several times what their covariances say (LocalizeConfig.refine_noise).
 
-Measured (tools/bench_accuracy.py, the ``rendered no-uncertainty`` variant is the former refinement):
-see LocalizeConfig.landmark_sigma_px. The exact triangulation covariance (information summed over a
-landmark's stored observations) localized the same as this approximation (docs/accuracy.md).
+``tools/bench_accuracy.py`` (variant ``rendered no-uncertainty``: RANSAC's refinement only) measures what it
+gains; docs/implementation-notes.md has the figures.
 """
 
 from __future__ import annotations
@@ -178,20 +177,17 @@ def refine_pose(
     K: np.ndarray,
     point_cov: np.ndarray | None = None,
     keypoint_sigma_px: float = 0.5,
-    loss_scale: float | str = 1.0,
+    loss_scale: float = 1.0,
     iterations: int = 10,
     return_covariance: bool = False,
-    variance_factor: np.ndarray | None = None,
     covariance_mask: np.ndarray | None = None,
 ):
     """Gauss-Newton refinement of ``cam_from_world`` (4x4) from correspondences ``points`` (N, 3)
     -> ``keypoints`` (N, 2) (pixels, pinhole ``K``; the COLMAP pixel convention of both). Each
     residual is whitened by ``J point_cov J^T + keypoint_sigma_px^2 I`` (J: the projection's
     Jacobian at the current pose; ``point_cov`` None: the keypoint noise alone) and weighted by a
-    Cauchy loss of scale ``loss_scale`` (in those whitened units; "auto": the residuals' robust
-    scale, re-estimated at every iterate, at least 1). Points behind the camera are
-    left out. ``variance_factor`` (N,) scales each residual's covariance (a group of matches
-    known to be noisier than the model). Returns the refined pose (the input when fewer than 6
+    Cauchy loss of scale ``loss_scale`` (in those whitened units). Points behind the camera are
+    left out. Returns the refined pose (the input when fewer than 6
     points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
     (None when it cannot be computed); ``covariance_mask`` (N,) bool restricts the covariance to
     those correspondences (the evidence independent of the pose; all refine the pose)."""
@@ -215,14 +211,9 @@ def refine_pose(
         J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
         eye2 = keypoint_noise(keypoint_sigma_px, len(X), front)
         Si = _inverse2(_image_covariances(Jp, T[:3, :3], None if point_cov is None else point_cov[front], eye2))
-        if variance_factor is not None:
-            Si = Si / np.asarray(variance_factor, np.float64)[front, None, None]
         SiJ = Si @ J  # (n, 2, 6)
         chi2 = mahalanobis2(Si, r)  # squared whitened residual r^T S^-1 r
-        c = loss_scale
-        if loss_scale == "auto":  # the residuals' robust scale at this iterate (never below the model's)
-            c = max(float(np.sqrt(np.median(chi2) / (2 * np.log(2)))), 1.0)
-        w = 1.0 / (1.0 + chi2 / c**2)  # Cauchy IRLS weights
+        w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
         wSiJ = (w[:, None, None] * SiJ).reshape(-1, 6)  # sums over points and pixel rows as one product
         H = wSiJ.T @ J.reshape(-1, 6)
         g = wSiJ.T @ r.reshape(-1)
@@ -271,64 +262,39 @@ def estimate_noise(
     point_cov: np.ndarray,
     keypoint_sigma_px: float = 0.5,
     rounds: int = 6,
-    groups: np.ndarray | None = None,
-) -> tuple[np.ndarray, float, float | np.ndarray]:
+) -> tuple[np.ndarray, float, float]:
     """The noise model of :func:`refine_pose` fitted to one query's correspondences: the residual
     covariance ``landmark_scale * J point_cov J^T + keypoint_sigma^2 I`` with both factors estimated
     by maximum likelihood (variance-component estimation, Foerstner's fixed point: each factor is
     multiplied by sum r^T C^-1 V C^-1 r / sum tr(C^-1 V) of its component V), alternating with the
     pose's refinement. The landmark factor says how much the map's position covariances understate
     (> 1) or overstate (< 1) the landmarks' errors as this query sees them; the keypoint term is
-    what is left, isotropic. ``groups`` (N,) ints in [0, G) give each group of correspondences its
-    own keypoint term (G components instead of one; e.g. the matches binned by descriptor
-    similarity). Returns (cam_from_world refined under the fitted model, landmark_scale,
-    keypoint_sigma_px: one number, or with ``groups`` one per correspondence); the inputs are the
-    starting point."""
+    what is left, isotropic. Returns (cam_from_world refined under the fitted model, landmark_scale,
+    keypoint_sigma_px); the inputs are the starting point."""
     T = np.array(cam_from_world, np.float64)
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
     cov = np.asarray(point_cov, np.float64)
-    g = np.zeros(len(X), np.int64) if groups is None else np.asarray(groups, np.int64).reshape(-1)
-    if g.shape != (len(X),) or (len(g) and g.min() < 0):
-        raise ValueError("groups must hold one non-negative group index per correspondence")
-    n_groups = int(g.max()) + 1 if len(g) else 1
-    lam, sig2 = 1.0, np.full(n_groups, float(keypoint_sigma_px) ** 2)
+    lam, sig2 = 1.0, float(keypoint_sigma_px) ** 2
     for _ in range(rounds):
-        T = refine_pose(T, X, kp, K, lam * cov, np.sqrt(sig2[g]) if groups is not None else float(np.sqrt(sig2[0])))
+        T = refine_pose(T, X, kp, K, lam * cov, float(np.sqrt(sig2)))
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
         if front.sum() < 6:
             break
         r = project(K, T, X[front]) - kp[front]
-        gf = g[front]
         V = _image_covariances(_projection_jacobians(P[front], K), T[:3, :3], cov[front], np.zeros((2, 2)))
-        Ci = _inverse2(lam * V + sig2[gf, None, None] * np.eye(2))
+        Ci = _inverse2(lam * V + sig2 * np.eye(2))
         Cir = np.einsum("nij,nj->ni", Ci, r)
         lam_new = lam * np.einsum("ni,nij,nj->", Cir, V, Cir) / max(np.einsum("nij,nji->", Ci, V), 1e-300)
-        if groups is None:  # one component: the sums as one product each
-            num, den = np.array([np.einsum("ni,ni->", Cir, Cir)]), np.array([np.einsum("nii->", Ci)])
-        else:
-            num = np.bincount(gf, np.einsum("ni,ni->n", Cir, Cir), n_groups)
-            den = np.bincount(gf, np.einsum("nii->n", Ci), n_groups)
-        sig2_new = np.where(den > 0, sig2 * num / np.maximum(den, 1e-300), sig2)
-        lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), np.clip(sig2_new, 1e-4, 100.0)
-        done = abs(np.log(lam_new / lam)) < 0.01 and np.all(np.abs(np.log(sig2_new / sig2)) < 0.01)
+        num, den = np.einsum("ni,ni->", Cir, Cir), np.einsum("nii->", Ci)
+        sig2_new = sig2 * num / den if den > 0 else sig2
+        lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), float(np.clip(sig2_new, 1e-4, 100.0))
+        done = abs(np.log(lam_new / lam)) < 0.01 and abs(np.log(sig2_new / sig2)) < 0.01
         lam, sig2 = lam_new, sig2_new
         if done:
             break
-    sig = np.sqrt(sig2)
-    return T, lam, (float(sig[0]) if groups is None else sig[g])
-
-
-def similarity_groups(similarity: np.ndarray, n_groups: int) -> np.ndarray:
-    """(N,) group of each correspondence: its rank by ``similarity`` in ``n_groups`` equal-count
-    bins (0: the least similar), for :func:`estimate_noise`'s ``groups``. Ties keep their order;
-    fewer than 6 correspondences a group make fewer groups."""
-    s = np.asarray(similarity, np.float64).reshape(-1)
-    k = int(max(1, min(n_groups, len(s) // 6)))
-    rank = np.empty(len(s), np.int64)
-    rank[np.argsort(s, kind="stable")] = np.arange(len(s))
-    return (rank * k) // max(len(s), 1)
+    return T, lam, float(np.sqrt(sig2))
 
 
 @dataclass
