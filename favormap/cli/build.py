@@ -49,8 +49,8 @@ def register(sub):
         type=int,
         default=None,
         metavar="N",
-        help="tracking: match each frame with its next N frames (default 10: long, clean tracks; 3 tracks "
-        "2.5x faster, with landmarks less accurate far from the mapping path: README, Accuracy)",
+        help="tracking: match each frame with its next N frames (default 10: long, clean tracks; fewer track "
+        "faster, with landmarks less accurate far from the mapping path)",
     )
     p.add_argument(
         "--max-epipolar",
@@ -58,7 +58,8 @@ def register(sub):
         default=None,
         metavar="PX",
         help="tracking: largest distance of a match from its epipolar line, in px at the working resolution "
-        "(default: measured from the matches, 3x the median distance of the right ones, at least 1 px, DISK 2)",
+        "(default: measured from the matches, 3x the median distance of the right ones, no less than the "
+        "extractor's keypoint precision)",
     )
     p.add_argument(
         "--refine-window",
@@ -67,16 +68,14 @@ def register(sub):
         metavar="N",
         help="align each track's keypoints to its middle observation through the landmark's local "
         "plane (an N x N window, e.g. 9) and triangulate again (default 0: off). With exact poses the landmarks "
-        "lie closer to the surface and `localize --align` gains most (synthetic orbit 0.20x the error); on the "
-        "real fox sequence it lost: README, Accuracy",
+        "lie closer to the surface and `localize --align` gains most; with SfM poses it loses (docs/accuracy.md)",
     )
     p.add_argument(
         "--exact-poses",
         action="store_true",
         help="the poses are exact (a simulator, motion capture; not SLAM or SfM): align the tracks (--refine-window 9 "
         "unless given), store the observations' pixels (--align-patches 20 unless given) and make `localize` align "
-        "the inliers' keypoints by default. Synthetic orbit 0.00012 units against 0.00064 without; with poses "
-        "from COLMAP (the real fox) these settings lose 1.1-1.3x: README, Accuracy",
+        "the inliers' keypoints by default. With SfM or SLAM poses these settings lose (docs/accuracy.md)",
     )
     p.add_argument(
         "--align-patches",
@@ -237,12 +236,11 @@ def summary(m, path: Path) -> dict:
 
 
 # the build summary suggests a looser --max-epipolar when fewer than this share of the mutual matches within
-# 3x the limit lie within it (fox, accurate poses: 33 / 39 % = 0.85; its rotations perturbed by 0.25 deg:
-# 13 / 33 % = 0.39)
+# 3x the limit lie within it (accurate poses keep ~0.85, poses off by a fraction of a degree ~0.4)
 _EPIPOLAR_HINT = 0.6
 # ... and suggests --exact-poses when nearly every match within 3x the limit lies within it and the landmarks
-# reproject within this many px of their observations, as on synthetic scenes (the demo's room: 98 %, 0.096 px;
-# the real fox with COLMAP poses: 85 %, 0.335 px; LLFF fern: 78 %, 0.436 px; thirty-eighth session)
+# reproject within this many px of their observations, as on synthetic scenes (~0.1 px) and not on real
+# captures with SfM poses (0.3-0.45 px)
 _EXACT_HINT_SHARE = 0.95
 _EXACT_HINT_PX = 0.15
 

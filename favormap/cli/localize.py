@@ -70,9 +70,7 @@ def add_localize_options(p):
         default=None,
         help="before the final refinement, align each inlier's keypoint to the mapping image that saw its landmark "
         "from the nearest direction, through the landmark's local plane (needs the mapping images, or a map built "
-        "with --align-patches; measured on a "
-        "synthetic scene with exact poses 0.2-0.5x the error, on the real fox sequence 1.1-1.3x: docs/accuracy.md). "
-        "Default: what the map asks for (`favormap info`): on for maps built with --exact-poses and for DISK and "
+        "with --align-patches; docs/accuracy.md). Default: what the map asks for (`favormap info`): on for maps built with --exact-poses and for DISK and "
         "ALIKED maps, off for SIFT maps",
     )
     p.add_argument(
@@ -86,8 +84,7 @@ def add_localize_options(p):
         default=None,
         metavar="N",
         help="--align: align each inlier to its landmark's N mapping images nearest in direction and average "
-        "(default 1; 5 on the real fox: extrapolation 0.99x the error without --align instead of 1.13x, hold-out "
-        "1.31x instead of 1.09x: docs/accuracy.md)",
+        "(default 1)",
     )
     p.add_argument(
         "--no-global",

@@ -194,13 +194,8 @@ def patch_interpolation(size: int) -> tuple[np.ndarray, np.ndarray]:
     from it and the edges (S = 7: offsets -3, -2, 0, 2, 3 of -3..3; each odd offset below the edge
     lies midway between two described ones). Returns the (m*m, 2) offsets to describe, row-major as
     :func:`patch_offsets`, and the (S*S, m*m) bilinear weights that give every pixel's descriptor
-    from theirs (rows of the described pixels: one 1).
-
-    Measured on fox frames at 640 px (OpenCV SIFT, 900 patches around keypoints moved by up to
-    0.7 px, docs/benchmarks/s25-prototypes/interp_cos2.py): over the 7 x 7 patch, every pixel's
-    descriptor so made has a mean cosine of 0.989 to the pixel's own descriptor (5th percentile
-    0.91), the patch's mean descriptor 0.9994; 25 of 49 descriptors. The grid -3, -1, 0, 1, 3 (the
-    twenty-fourth session's, at the same cost): 0.979 (5th percentile 0.86), 0.9987."""
+    from theirs (rows of the described pixels: one 1). docs/implementation-notes.md ("Features") has
+    how close the interpolated descriptors come to the described ones."""
     check_patch(size, interp=True)
     h = (size - 1) // 2
     full = np.arange(size) - h

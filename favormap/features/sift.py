@@ -10,10 +10,9 @@ matches it), and a fixed upright ``size`` at the pyramid level of that size else
 there (:mod:`favormap.features.sift_torch`, ``torch_descriptors``); detection is always OpenCV's.
 
 Describing a keypoint at its own pyramid level instead of the first one (what OpenCV's ``compute``
-does with keypoints that carry no octave) keeps the descriptor scale-invariant; measured on fox
-frame pairs 15-20 frames apart (mutual + ratio 0.8, correct = within 2 px of the epipolar line,
-/tmp script in the issue-11 note): 36 -> 50 and 47 -> 74 correct matches per pair, and one pass
-instead of two per query image."""
+does with keypoints that carry no octave) keeps the descriptor scale-invariant (more correct matches
+between frames far apart: docs/implementation-notes.md), and takes one pass instead of two per query
+image."""
 
 from __future__ import annotations
 
@@ -111,8 +110,7 @@ class SIFTExtractor(Extractor):
         # OpenCV's own cap (KeyPointsFilter.retainBest, an nth_element) reorders keypoints of equal
         # response, and the orientations OpenCV finds at one location all share its response, so which
         # one "strongest" kept depended on how many keypoints the whole image had (2-12 % of the
-        # keypoints of fox and orbit images changed orientation between contrast thresholds;
-        # docs/benchmarks/s13-prototypes/orient.py). Uncapped, it is the first of OpenCV's orientation
+        # keypoints of fox and orbit images changed orientation between contrast thresholds). Uncapped, it is the first of OpenCV's orientation
         # histogram peaks: a function of the location's own appearance, the same in a map and a query
         self._sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=self.contrast_threshold)
 

@@ -2,8 +2,7 @@
 
 A SIFT keypoint's position moves with the view: where a blob is detected on a slanted textured
 surface shifts by a fraction of a pixel as the camera moves round it, and the inliers of one query,
-seen from one side, shift alike, which moves the pose (twenty-eighth / twenty-ninth sessions,
-docs/accuracy.md). This stage replaces each inlier's detected keypoint, before the final weighted
+seen from one side, shift alike, which moves the pose (docs/accuracy.md). This stage replaces each inlier's detected keypoint, before the final weighted
 refinement, by where the landmark's appearance in a mapping image lies in the query: the query's
 ``(2h+1)^2`` pixels around the landmark's predicted projection are carried through the plane through
 the landmark (normal from its nearest landmarks, :func:`favormap.triangulation.landmark_normals`)
@@ -18,18 +17,13 @@ from (its provenance), or another folder of the same sequence. Both give the sam
 stored pixels are the image's, blurred alike) wherever the template's footprint in the mapping frame
 lies inside the stored patch less the blur's reach; where it does not, the detected keypoint stays.
 
-Measured with tools/bench_accuracy.py (see docs/accuracy.md, twenty-ninth session): on the synthetic
-orbit with exact poses 0.54x the error of the detected keypoints, 0.20x on a map whose tracks were
-aligned the same way (``BuildConfig.refine_window``), 0.35x the pycolmap baseline's; on the real
-fox sequence, whose poses come from COLMAP, 1.1-1.3x worse: off for SIFT maps, on by default for a map built
-for exact poses (``BuildConfig.exact_poses``, ``favormap build --exact-poses``: its tracks aligned too and its
-observations' pixels stored; thirty-eighth session, orbit: 0.20x the default map's error) and for DISK and
-ALIKED maps, whose imprecise keypoints it corrects on the real fox too (fox hold-out 0.53-0.64x; the map's
-provenance records the choice, ``build.localize_defaults``). Aligned to
-one mapping frame, a keypoint inherits that frame's pose error; ``AlignConfig.references`` > 1
-aligns it to several frames nearest in direction, each alone, and averages the converged results
-(thirty-first session: with 5 the fox extrapolation error 0.99x the detected keypoints' instead of
-1.13x, the hold-out 1.31x instead of 1.09x, the orbit 0.54x either way).
+It helps where the mapping poses are exact (a map built with ``favormap build --exact-poses``, whose
+tracks are aligned the same way) and where the detector places keypoints imprecisely (DISK, ALIKED), and
+costs a little where SfM poses carry errors of their own (SIFT maps of real captures): so it is on by
+default for the maps whose build asks for it (their provenance records it, ``build.localize_defaults``)
+and off for SIFT maps; docs/accuracy.md has the figures. Aligned to one mapping frame, a keypoint
+inherits that frame's pose error; ``AlignConfig.references`` > 1 aligns it to several frames nearest in
+direction, each alone, and averages the converged results.
 """
 
 from __future__ import annotations

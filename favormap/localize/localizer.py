@@ -286,8 +286,7 @@ class Localizer:
 
         The inliers counted are those of the last rendering iteration (matched by descriptor): the
         guided step's (matched by projection) grow with any pose that lines a repeated pattern up,
-        and with ``guided_radius_px`` = 3 lifted both wallpaper queries above 100 inliers (2 false
-        successes, tools/bench_accuracy.py "rendered guided-3px", 2026-11-26 eighth session)."""
+        and at a 3 px radius lifted both wallpaper queries above 100 inliers (two false successes)."""
         c = self.config.checks
         render = [it.num_inliers for it in res.iterations if it.kind == "render"]
         evidence = render[-1] if render else res.num_inliers

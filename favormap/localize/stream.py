@@ -11,8 +11,7 @@ localized against the refined positions.
 - Only landmarks the frame sees as uncertain take its observations: those whose map covariance
   (favormap.localize.refine.landmark_covariances), projected into the frame, has a standard
   deviation of at least ``min_uncertainty_px`` (0.25 px). Landmarks the map already places well
-  would only take on the frame's own pose error: ungated, the synthetic orbit's exact map lost
-  30 % (0.00048 -> 0.00063 units); with the gate it holds (docs/accuracy.md, sixteenth session).
+  would only take on the frame's own pose error (docs/accuracy.md).
 - Only the geometry moves (visibility, projections, PnP): the voxel grids stay where they were
   trained, and a refined position that leaves its landmark's voxel box by more than
   ``max_move`` box sides is not taken (a wrong match cannot drag a landmark away).
