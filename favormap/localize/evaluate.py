@@ -310,9 +310,7 @@ def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radiu
         cfg.view_limits,
     )
     desc, drows = describe(localizer.source, rows, gt, {})
-    m = match_descriptors(
-        desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio
-    )
+    m = match_descriptors(desc, feats.descriptors, cfg.match_threshold, cfg.mutual, cfg.ratio)
     pos = localizer.map.positions
     return diagnostics_from_matches(
         cam, gt, pos[rows], feats.keypoints, pos[drows[m[:, 0]]], feats.keypoints[m[:, 1]], radius_px

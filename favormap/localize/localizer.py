@@ -326,9 +326,7 @@ class Localizer:
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         s = time.perf_counter()
-        m = match_descriptors(
-            d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio
-        )
+        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
         t["matching"] += time.perf_counter() - s
         ans = self._pnp(q, self.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
