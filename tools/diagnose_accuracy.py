@@ -435,6 +435,13 @@ def main() -> int:
     )
     ap.add_argument("--seed", type=int, default=0, help="seed of the noise priors")
     ap.add_argument("--oracle-px", default="1,2", help="ground-truth residual thresholds of the oracle PnP (px)")
+    ap.add_argument(
+        "--mapping-order",
+        choices=("reader", "natural"),
+        default="reader",
+        help="the order of the mapping frames given to both builds: the reader's (the benchmark's) or by the "
+        "numbers in their names (IMG_2 before IMG_10: the capture order of a video listed lexicographically)",
+    )
     ap.add_argument("--json", help="write the figures to this JSON file")
     args = ap.parse_args()
     try:
@@ -448,6 +455,10 @@ def main() -> int:
     from favormap.errors import FavormapError
 
     splits = bench.real_splits(names)
+    if args.mapping_order == "natural":  # the mapping frames in the order of their names' numbers
+        for sp in splits:
+            sp.mapping = sp.mapping.subset(bench._natural_order(sp.mapping))
+            sp.map_name = f"{sp.name}-natural"
     if not splits:
         print(f"error: none of the splits' sets found under {bench.DATA}", file=sys.stderr)
         return 1
