@@ -75,6 +75,8 @@ class QueryFit:
     points: np.ndarray  # (I,) point rows of the inliers
     keypoints: np.ndarray  # (I, 2) their query keypoints (working image, px)
     uv_gt: np.ndarray  # (I, 2) their points' projections at the ground-truth pose
+    gt: np.ndarray  # (4, 4) the ground-truth cam_from_world
+    K: np.ndarray  # (3, 3) the working pinhole intrinsics
     depth_ratio: np.ndarray  # (I,) depth in the query at the ground truth over the median inlier depth
     plain_t_err: float  # the same inliers, unweighted Levenberg-Marquardt from the estimate
     oracle: dict  # px threshold -> (inliers kept, translation error, rotation error)
@@ -160,6 +162,8 @@ def fit_query(name, gt, res, pts: PointSet, oracle_px, prior=None) -> QueryFit:
         inl[:, 0],
         kp,
         uv_gt,
+        np.asarray(gt, np.float64),
+        K,
         z_gt / max(float(np.median(z_gt)), 1e-12) if len(z_gt) else z_gt,
         plain,
         oracle,
@@ -242,6 +246,42 @@ def common_inliers(fav: list[QueryFit], bas: list[QueryFit], radius_px: float = 
     }
 
 
+def uncertainty_calibration(fits: list[QueryFit], m) -> dict:
+    """How well favormap's landmark uncertainty (what its final refinement weighs each inlier by) ranks
+    the inliers' errors at the truth: the residual per quartile of the projected standard deviation
+    (each landmark's own mapping noise, ``landmark_sigma_px="landmark"``, and the map's median, "map"),
+    and per quartile of the landmark's own mean mapping reprojection error, with Spearman's rank
+    correlations."""
+    from favormap.localize.refine import landmark_covariances, mapping_pixel_sigma, projected_std
+
+    fits = [f for f in fits if f.success and len(f.points)]
+    if not fits:
+        return {}
+    gt = np.concatenate([f.gt_px for f in fits])
+    sig_map = float(np.median(mapping_pixel_sigma(m)))
+    keys = {"std_landmark_sigma": [], "std_map_sigma": [], "own_mapping_error": []}
+    for f in fits:
+        rows = f.points.astype(np.int64)
+        X = np.asarray(m.positions[:], np.float64)[rows]
+        keys["std_landmark_sigma"].append(
+            projected_std(X, landmark_covariances(m, rows, mapping_pixel_sigma(m, rows)), f.gt, f.K)
+        )
+        keys["std_map_sigma"].append(projected_std(X, landmark_covariances(m, rows, sig_map), f.gt, f.K))
+        keys["own_mapping_error"].append(np.asarray(m.reproj_error, np.float64)[rows])
+    out = {}
+    for k, v in keys.items():
+        v = np.concatenate(v)
+        q = np.percentile(v, [25, 50, 75])
+        b = np.digitize(v, q)
+        rank = np.argsort(np.argsort(v)), np.argsort(np.argsort(gt))
+        out[k] = {
+            "quartile_edges": q.tolist(),
+            "median_gt_px": [float(np.median(gt[b == i])) for i in range(4)],
+            "spearman": float(np.corrcoef(*rank)[0, 1]),
+        }
+    return out
+
+
 def query_row(f: QueryFit) -> dict:
     return {
         "name": f.name,
@@ -293,15 +333,17 @@ def localize_split(split, args) -> dict:
         bres = base.localize(fr.image_path, cam)
         bas.append(fit_query(fr.name, fr.cam_from_world, bres, bpts, args.oracle_px))
     loc.close()
-    m.close()
-    return {
+    out = {
         "split": split.name,
         "units": split.units,
         "path_extent": split.path_extent,
         "favormap": {"landmarks": landmark_summary(fav, fpts), "queries": [query_row(f) for f in fav]},
         "baseline": {"landmarks": landmark_summary(bas, bpts), "queries": [query_row(f) for f in bas]},
         "common": common_inliers(fav, bas),
+        "calibration": uncertainty_calibration(fav, m),
     }
+    m.close()
+    return out
 
 
 def _f(v, spec=".2f") -> str:
@@ -423,6 +465,14 @@ def report(r: dict, oracle_px) -> str:
             f"{_f(c['baseline_p90_px'])} p90; keypoint offset {_f(c['keypoint_offset_median_px'])} px median; "
             f"the two 3D points {_f(c['point_offset_median_px'])} px apart at the truth (median).",
         ]
+    for k, v in (r.get("calibration") or {}).items():
+        out.append(
+            f"favormap inlier error at the truth by quartile of {k} (edges "
+            + ", ".join(f"{e:.3g}" for e in v["quartile_edges"])
+            + "): "
+            + " / ".join(f"{x:.2f}" for x in v["median_gt_px"])
+            + f" px, Spearman {v['spearman']:+.2f}"
+        )
     return "\n".join(out)
 
 
