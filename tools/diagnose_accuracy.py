@@ -76,6 +76,7 @@ class QueryFit:
     keypoints: np.ndarray  # (I, 2) their query keypoints (working image, px)
     uv_gt: np.ndarray  # (I, 2) their points' projections at the ground-truth pose
     gt: np.ndarray  # (4, 4) the ground-truth cam_from_world
+    est: np.ndarray  # (4, 4) the estimate
     K: np.ndarray  # (3, 3) the working pinhole intrinsics
     depth_ratio: np.ndarray  # (I,) depth in the query at the ground truth over the median inlier depth
     plain_t_err: float  # the same inliers, unweighted Levenberg-Marquardt from the estimate
@@ -163,6 +164,7 @@ def fit_query(name, gt, res, pts: PointSet, oracle_px, prior=None) -> QueryFit:
         kp,
         uv_gt,
         np.asarray(gt, np.float64),
+        np.asarray(est, np.float64),
         K,
         z_gt / max(float(np.median(z_gt)), 1e-12) if len(z_gt) else z_gt,
         plain,
@@ -282,6 +284,56 @@ def uncertainty_calibration(fits: list[QueryFit], m) -> dict:
     return out
 
 
+REFINEMENTS = (
+    "unweighted Cauchy 0.5 px",
+    "unweighted least squares",
+    "landmark covariances, Cauchy",
+    "landmark covariances, least squares",
+    "fitted noise model, Cauchy (the localizer's)",
+    "fitted noise model, least squares",
+    "map-median covariances fitted, Cauchy",
+)
+
+
+def refinement_ablation(fits: list[QueryFit], m, keypoint_sigma_px: float = 0.5) -> dict:
+    """favormap's final refinement taken apart: each localized query's final inliers refined again from
+    its estimate with favormap's refine_pose under each model of REFINEMENTS; per model the median
+    translation error and the geometric mean of its ratio to the localizer's own error."""
+    from favormap.geometry import pose_error
+    from favormap.localize.refine import estimate_noise, landmark_covariances, mapping_pixel_sigma, refine_pose
+
+    fits = [f for f in fits if f.success and len(f.points) >= 6]
+    sig_map = float(np.median(mapping_pixel_sigma(m)))
+    errs = {k: [] for k in REFINEMENTS}
+    scales = []
+    for f in fits:
+        rows = f.points.astype(np.int64)
+        X, kp = np.asarray(m.positions[:], np.float64)[rows], f.keypoints
+        cov = landmark_covariances(m, rows, mapping_pixel_sigma(m, rows))
+        T, scale, ksig = estimate_noise(f.est, X, kp, f.K, cov, keypoint_sigma_px)
+        Tm, scale_m, ksig_m = estimate_noise(f.est, X, kp, f.K, landmark_covariances(m, rows, sig_map))
+        scales.append((scale, float(np.median(ksig))))
+        poses = (
+            refine_pose(f.est, X, kp, f.K, None, keypoint_sigma_px),
+            refine_pose(f.est, X, kp, f.K, None, keypoint_sigma_px, loss_scale=1e9),
+            refine_pose(f.est, X, kp, f.K, cov, keypoint_sigma_px),
+            refine_pose(f.est, X, kp, f.K, cov, keypoint_sigma_px, loss_scale=1e9),
+            refine_pose(T, X, kp, f.K, scale * cov, ksig),
+            refine_pose(T, X, kp, f.K, scale * cov, ksig, loss_scale=1e9),
+            refine_pose(Tm, X, kp, f.K, scale_m * landmark_covariances(m, rows, sig_map), ksig_m),
+        )
+        for k, P in zip(REFINEMENTS, poses):
+            errs[k].append(pose_error(P, f.gt)[0])
+    own = np.array([f.t_err for f in fits])
+    out = {
+        k: {"median_t": float(np.median(v)), "ratio_to_localizer": _gmean_ratio(v, own)} for k, v in errs.items() if v
+    }
+    if scales:
+        out["median_landmark_scale"] = float(np.median([s for s, _ in scales]))
+        out["median_keypoint_sigma_px"] = float(np.median([k for _, k in scales]))
+    return out
+
+
 def query_row(f: QueryFit) -> dict:
     return {
         "name": f.name,
@@ -341,6 +393,7 @@ def localize_split(split, args) -> dict:
         "baseline": {"landmarks": landmark_summary(bas, bpts), "queries": [query_row(f) for f in bas]},
         "common": common_inliers(fav, bas),
         "calibration": uncertainty_calibration(fav, m),
+        "refinements": refinement_ablation(fav, m, cfg.keypoint_sigma_px),
     }
     m.close()
     return out
@@ -464,6 +517,20 @@ def report(r: dict, oracle_px) -> str:
             f"baseline {_f(c['baseline_median_px'])} px median, {_f(c['favormap_p90_px'])} / "
             f"{_f(c['baseline_p90_px'])} p90; keypoint offset {_f(c['keypoint_offset_median_px'])} px median; "
             f"the two 3D points {_f(c['point_offset_median_px'])} px apart at the truth (median).",
+        ]
+    ref = r.get("refinements") or {}
+    if ref:
+        out += [
+            "",
+            "favormap's final inliers refined again from its estimate (median t; geometric mean of t over the "
+            f"localizer's; fitted landmark scale {_f(ref.get('median_landmark_scale'))}, keypoint sigma "
+            f"{_f(ref.get('median_keypoint_sigma_px'))} px, medians): "
+            + "; ".join(
+                f"{k} {_f(ref[k]['median_t'], '.4f')} ({_f(ref[k]['ratio_to_localizer'], '.3f')})"
+                for k in REFINEMENTS
+                if k in ref
+            ),
+            "",
         ]
     for k, v in (r.get("calibration") or {}).items():
         out.append(
