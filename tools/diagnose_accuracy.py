@@ -75,6 +75,7 @@ class QueryFit:
     points: np.ndarray  # (I,) point rows of the inliers
     keypoints: np.ndarray  # (I, 2) their query keypoints (working image, px)
     uv_gt: np.ndarray  # (I, 2) their points' projections at the ground-truth pose
+    by_projection: np.ndarray  # (I,) bool: found by the guided step's search by projection, not by descriptor
     gt: np.ndarray  # (4, 4) the ground-truth cam_from_world
     est: np.ndarray  # (4, 4) the estimate
     K: np.ndarray  # (3, 3) the working pinhole intrinsics
@@ -131,6 +132,8 @@ def fit_query(name, gt, res, pts: PointSet, oracle_px, prior=None) -> QueryFit:
     X, kp = pts.positions[inl[:, 0]], np.asarray(res.keypoints, np.float64)[inl[:, 1]]
     cam = res.camera
     K = cam.K
+    proj = getattr(res, "by_projection", None)
+    proj = np.zeros(len(inl), bool) if proj is None else np.asarray(proj, bool)[np.asarray(res.inlier_mask, bool)]
     uv_gt, z_gt = project(K, gt, X, with_depth=True)
     gt_px = np.linalg.norm(uv_gt - kp, axis=1)
     est_px = np.linalg.norm(project(K, est, X) - kp, axis=1)
@@ -163,6 +166,7 @@ def fit_query(name, gt, res, pts: PointSet, oracle_px, prior=None) -> QueryFit:
         inl[:, 0],
         kp,
         uv_gt,
+        proj,
         np.asarray(gt, np.float64),
         np.asarray(est, np.float64),
         K,
@@ -197,6 +201,7 @@ def landmark_summary(fits: list[QueryFit], pts: PointSet) -> dict:
     gt = np.concatenate([f.gt_px for f in fits]) if fits else np.zeros(0)
     rows = np.concatenate([f.points for f in fits]).astype(np.int64) if fits else np.zeros(0, np.int64)
     depth = np.concatenate([f.depth_ratio for f in fits]) if fits else np.zeros(0)
+    proj = np.concatenate([f.by_projection for f in fits]) if fits else np.zeros(0, bool)
     used = np.isin(pts.mapping_point, np.unique(rows))
     out = {
         "points": int(len(pts.positions)),
@@ -206,6 +211,8 @@ def landmark_summary(fits: list[QueryFit], pts: PointSet) -> dict:
         if fits
         else None,
         "mapping_all": _stats(pts.mapping_error_px),
+        "query_gt_by_descriptor": _stats(gt[~proj]),
+        "query_gt_by_projection": _stats(gt[proj]),
         "mapping_of_inliers": _stats(pts.mapping_error_px[used]),
         "median_track_length_of_inliers": float(np.median(pts.track_length[rows])) if len(rows) else None,
         "median_angle_of_inliers_deg": float(np.median(pts.angle_deg[rows])) if len(rows) else None,
@@ -292,6 +299,8 @@ REFINEMENTS = (
     "fitted noise model, Cauchy (the localizer's)",
     "fitted noise model, least squares",
     "map-median covariances fitted, Cauchy",
+    "fitted noise model with a keypoint term per match kind (descriptor / projection), Cauchy",
+    "descriptor inliers only, fitted noise model, Cauchy",
 )
 
 
@@ -313,6 +322,15 @@ def refinement_ablation(fits: list[QueryFit], m, keypoint_sigma_px: float = 0.5)
         T, scale, ksig = estimate_noise(f.est, X, kp, f.K, cov, keypoint_sigma_px)
         Tm, scale_m, ksig_m = estimate_noise(f.est, X, kp, f.K, landmark_covariances(m, rows, sig_map))
         scales.append((scale, float(np.median(ksig))))
+        kind = f.by_projection.astype(np.int64)
+        Tk, scale_k, ksig_k = T, scale, ksig
+        if kind.min() == 0 and kind.max() == 1:
+            Tk, scale_k, ksig_k = estimate_noise(f.est, X, kp, f.K, cov, keypoint_sigma_px, groups=kind)
+        d = ~f.by_projection
+        Td = f.est
+        if d.sum() >= 6:
+            Td, scale_d, ksig_d = estimate_noise(f.est, X[d], kp[d], f.K, cov[d], keypoint_sigma_px)
+            Td = refine_pose(Td, X[d], kp[d], f.K, scale_d * cov[d], ksig_d)
         poses = (
             refine_pose(f.est, X, kp, f.K, None, keypoint_sigma_px),
             refine_pose(f.est, X, kp, f.K, None, keypoint_sigma_px, loss_scale=1e9),
@@ -321,6 +339,8 @@ def refinement_ablation(fits: list[QueryFit], m, keypoint_sigma_px: float = 0.5)
             refine_pose(T, X, kp, f.K, scale * cov, ksig),
             refine_pose(T, X, kp, f.K, scale * cov, ksig, loss_scale=1e9),
             refine_pose(Tm, X, kp, f.K, scale_m * landmark_covariances(m, rows, sig_map), ksig_m),
+            refine_pose(Tk, X, kp, f.K, scale_k * cov, ksig_k),
+            Td,
         )
         for k, P in zip(REFINEMENTS, poses):
             errs[k].append(pose_error(P, f.gt)[0])
@@ -341,6 +361,7 @@ def query_row(f: QueryFit) -> dict:
         "t_err": f.t_err,
         "r_err_deg": f.r_err_deg,
         "inliers": f.inliers,
+        "by_projection": int(f.by_projection.sum()),
         "cells": f.cells,
         "gt_px_median": float(np.median(f.gt_px)) if len(f.gt_px) else None,
         "est_px_median": float(np.median(f.est_px)) if len(f.est_px) else None,
@@ -433,6 +454,12 @@ def report(r: dict, oracle_px) -> str:
             f"{_cell(s['mapping_all'])} | {_f(s['median_track_length_of_inliers'], '.0f')} | "
             f"{_f(s['median_angle_of_inliers_deg'], '.1f')} |"
         )
+    s = r["favormap"]["landmarks"]
+    out += [
+        "",
+        f"favormap inliers at the truth, matched by descriptor: {_cell(s['query_gt_by_descriptor'])}; found by "
+        f"the guided step's search by projection: {_cell(s['query_gt_by_projection'])}",
+    ]
     for key, title in (
         ("by_track_length", "track length"),
         ("by_angle_deg", "triangulation angle (deg)"),
