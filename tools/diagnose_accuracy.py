@@ -202,6 +202,7 @@ def landmark_summary(fits: list[QueryFit], pts: PointSet) -> dict:
     rows = np.concatenate([f.points for f in fits]).astype(np.int64) if fits else np.zeros(0, np.int64)
     depth = np.concatenate([f.depth_ratio for f in fits]) if fits else np.zeros(0)
     proj = np.concatenate([f.by_projection for f in fits]) if fits else np.zeros(0, bool)
+    est = np.concatenate([f.est_px for f in fits]) if fits else np.zeros(0)
     used = np.isin(pts.mapping_point, np.unique(rows))
     out = {
         "points": int(len(pts.positions)),
@@ -213,6 +214,8 @@ def landmark_summary(fits: list[QueryFit], pts: PointSet) -> dict:
         "mapping_all": _stats(pts.mapping_error_px),
         "query_gt_by_descriptor": _stats(gt[~proj]),
         "query_gt_by_projection": _stats(gt[proj]),
+        "query_est_by_descriptor": _stats(est[~proj]),
+        "query_est_by_projection": _stats(est[proj]),
         "mapping_of_inliers": _stats(pts.mapping_error_px[used]),
         "median_track_length_of_inliers": float(np.median(pts.track_length[rows])) if len(rows) else None,
         "median_angle_of_inliers_deg": float(np.median(pts.angle_deg[rows])) if len(rows) else None,
@@ -457,8 +460,9 @@ def report(r: dict, oracle_px) -> str:
     s = r["favormap"]["landmarks"]
     out += [
         "",
-        f"favormap inliers at the truth, matched by descriptor: {_cell(s['query_gt_by_descriptor'])}; found by "
-        f"the guided step's search by projection: {_cell(s['query_gt_by_projection'])}",
+        f"favormap inliers matched by descriptor, at the truth: {_cell(s['query_gt_by_descriptor'])}, at the "
+        f"estimate: {_cell(s['query_est_by_descriptor'])}; found by the guided step's search by projection, at "
+        f"the truth: {_cell(s['query_gt_by_projection'])}, at the estimate: {_cell(s['query_est_by_projection'])}",
     ]
     for key, title in (
         ("by_track_length", "track length"),
