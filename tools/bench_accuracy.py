@@ -116,6 +116,8 @@ VARIANTS = {
     "rendered gated-2sigma every pose": ("rendered", {"guided_gate_sigma": 2.0, "guided_below_inliers": None}),
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
+    # the guided step's PnP at the rendering iterations' 4 px instead of its 8 px search radius
+    "rendered guided-ransac-4px": ("rendered", {"guided_ransac_px": 4.0}),
     "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
     # the Cauchy scale of the weighted refinement (default 1; "auto": the residuals' own)
     "rendered loss-auto": ("rendered", {"refine_loss_scale": "auto"}),
