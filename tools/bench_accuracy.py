@@ -114,6 +114,8 @@ VARIANTS = {
     "rendered gated-2sigma every pose": ("rendered", {"guided_gate_sigma": 2.0, "guided_below_inliers": None}),
     "rendered gated-3sigma-4px every pose": ("rendered", {"guided_radius_px": 4.0, "guided_below_inliers": None}),
     "rendered gated below-200": ("rendered", {"guided_below_inliers": 200}),
+    # the guided step's PnP at the rendering iterations' 4 px instead of its 8 px search radius
+    "rendered guided-ransac-4px": ("rendered", {"guided_ransac_px": 4.0}),
     "rendered gated 2-rounds": ("rendered", {"guided_rounds": 2}),
     "rendered gated cos-0.6": ("rendered", {"guided_match_threshold": 0.6}),
     "rendered gated cos-0.5": ("rendered", {"guided_match_threshold": 0.5}),
