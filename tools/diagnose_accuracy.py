@@ -302,7 +302,6 @@ REFINEMENTS = (
     "fitted noise model, Cauchy (the localizer's)",
     "fitted noise model, least squares",
     "map-median covariances fitted, Cauchy",
-    "fitted noise model with a keypoint term per match kind (descriptor / projection), Cauchy",
     "descriptor inliers only, fitted noise model, Cauchy",
 )
 
@@ -325,10 +324,6 @@ def refinement_ablation(fits: list[QueryFit], m, keypoint_sigma_px: float = 0.5)
         T, scale, ksig = estimate_noise(f.est, X, kp, f.K, cov, keypoint_sigma_px)
         Tm, scale_m, ksig_m = estimate_noise(f.est, X, kp, f.K, landmark_covariances(m, rows, sig_map))
         scales.append((scale, float(np.median(ksig))))
-        kind = f.by_projection.astype(np.int64)
-        Tk, scale_k, ksig_k = T, scale, ksig
-        if kind.min() == 0 and kind.max() == 1:
-            Tk, scale_k, ksig_k = estimate_noise(f.est, X, kp, f.K, cov, keypoint_sigma_px, groups=kind)
         d = ~f.by_projection
         Td = f.est
         if d.sum() >= 6:
@@ -342,7 +337,6 @@ def refinement_ablation(fits: list[QueryFit], m, keypoint_sigma_px: float = 0.5)
             refine_pose(T, X, kp, f.K, scale * cov, ksig),
             refine_pose(T, X, kp, f.K, scale * cov, ksig, loss_scale=1e9),
             refine_pose(Tm, X, kp, f.K, scale_m * landmark_covariances(m, rows, sig_map), ksig_m),
-            refine_pose(Tk, X, kp, f.K, scale_k * cov, ksig_k),
             Td,
         )
         for k, P in zip(REFINEMENTS, poses):

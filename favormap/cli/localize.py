@@ -70,7 +70,8 @@ def add_localize_options(p):
         default=None,
         help="before the final refinement, align each inlier's keypoint to the mapping image that saw its landmark "
         "from the nearest direction, through the landmark's local plane (needs the mapping images, or a map built "
-        "with --align-patches; docs/accuracy.md). Default: what the map asks for (`favormap info`): on for maps built with --exact-poses and for DISK and "
+        "with --align-patches; docs/accuracy.md). Default: what the map asks for (`favormap info`): on for maps "
+        "built with --exact-poses and for DISK and "
         "ALIKED maps, off for SIFT maps",
     )
     p.add_argument(

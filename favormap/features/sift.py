@@ -110,7 +110,8 @@ class SIFTExtractor(Extractor):
         # OpenCV's own cap (KeyPointsFilter.retainBest, an nth_element) reorders keypoints of equal
         # response, and the orientations OpenCV finds at one location all share its response, so which
         # one "strongest" kept depended on how many keypoints the whole image had (2-12 % of the
-        # keypoints of fox and orbit images changed orientation between contrast thresholds). Uncapped, it is the first of OpenCV's orientation
+        # keypoints of fox and orbit images changed orientation between contrast thresholds). Uncapped, it is
+        # the first of OpenCV's orientation
         # histogram peaks: a function of the location's own appearance, the same in a map and a query
         self._sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=self.contrast_threshold)
 

@@ -2,7 +2,8 @@
 
 A SIFT keypoint's position moves with the view: where a blob is detected on a slanted textured
 surface shifts by a fraction of a pixel as the camera moves round it, and the inliers of one query,
-seen from one side, shift alike, which moves the pose (docs/accuracy.md). This stage replaces each inlier's detected keypoint, before the final weighted
+seen from one side, shift alike, which moves the pose (docs/accuracy.md). This stage replaces each
+inlier's detected keypoint, before the final weighted
 refinement, by where the landmark's appearance in a mapping image lies in the query: the query's
 ``(2h+1)^2`` pixels around the landmark's predicted projection are carried through the plane through
 the landmark (normal from its nearest landmarks, :func:`favormap.triangulation.landmark_normals`)
