@@ -543,7 +543,7 @@ def test_local_pnp_refines_a_pose_on_its_own_inliers(small_map, small_sequence):
     from types import SimpleNamespace
 
     from favormap.geometry import project
-    from favormap.localize.localizer import _Query
+    from favormap.localize.result import Query as _Query
 
     m, path = small_map
     loc = Localizer(path, LocalizeConfig())

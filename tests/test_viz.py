@@ -239,7 +239,7 @@ def test_similarity_merge_and_prune_logging(built):
     """Per-match similarity (when the result carries ``match_similarity``) and the merge/prune
     helpers, through the Python API."""
     from favormap.io import read_rgb
-    from favormap.localize.localizer import IterationResult, LocalizationResult
+    from favormap.localize.result import IterationResult, LocalizationResult
     from favormap.mapfile import Map
     from favormap.viz.recording import Recording
 
