@@ -34,7 +34,7 @@ from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
-from .voxels.train import voxel_config_for
+from .voxels.config import voxel_config_for
 
 
 def default_max_epipolar(extractor: str) -> float:

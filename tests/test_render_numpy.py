@@ -107,8 +107,8 @@ def test_lazy_package_exports():
     for name in voxels.__all__:
         assert getattr(voxels, name) is not None
     from favormap.voxels import VoxelConfig, render_from_camera
+    from favormap.voxels.config import VoxelConfig as direct_cfg
     from favormap.voxels.render import render_from_camera as direct
-    from favormap.voxels.train import VoxelConfig as direct_cfg
 
     assert render_from_camera is direct and VoxelConfig is direct_cfg
     with pytest.raises(AttributeError):

@@ -295,7 +295,7 @@ def test_quality_presets_and_cli_flags():
     args = ap.parse_args(["build", "seq", "-o", "x.h5", "--quality", "quick"])
     assert cli_build.config_from_args(args).voxel.solver == "lstsq"
     # patch interpolation: per extractor (SIFT describes half of its full, odd patches), unless asked
-    from favormap.voxels.train import voxel_config_for
+    from favormap.voxels.config import voxel_config_for
 
     assert BuildConfig().voxel.patch_interp is None
     assert voxel_config_for(BuildConfig().voxel, "sift").patch_interp is True
@@ -354,7 +354,7 @@ def test_a_registered_extractor_states_its_own_policy(monkeypatch):
     from favormap.features import ExtractorPolicy
     from favormap.features.sift import SIFTExtractor
     from favormap.voxels import VoxelConfig
-    from favormap.voxels.train import voxel_config_for
+    from favormap.voxels.config import voxel_config_for
 
     monkeypatch.setattr(features.base, "_REGISTRY", dict(features.base._REGISTRY))
 

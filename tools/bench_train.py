@@ -76,7 +76,7 @@ def main():
     from favormap.executor import LocalExecutor
     from favormap.threads import configure_threads
     from favormap.voxels import VoxelConfig
-    from favormap.voxels.train import TrainingRays, voxel_config_for
+    from favormap.voxels.config import TrainingRays, voxel_config_for
 
     configure_threads()
     cfg = BuildConfig(**({"extractor": args.extractor} if args.extractor else {}))  # the extractor's defaults

@@ -1,8 +1,8 @@
 """voxels: per-landmark descriptor + density grids, trained and rendered in batch.
 
 The torch modules (``render``, ``train``) are imported lazily (PEP 562 ``__getattr__``), so that
-``favormap.voxels.render_numpy`` -- the localizer's torch-free renderer -- can be imported without
-paying for torch.
+``favormap.voxels.render_numpy`` -- the localizer's torch-free renderer -- and ``favormap.voxels.config``
+can be imported without paying for torch.
 """
 
 from __future__ import annotations
@@ -13,15 +13,16 @@ from typing import TYPE_CHECKING
 from .render_numpy import render_from_camera_numpy
 
 if TYPE_CHECKING:
+    from .config import QUALITY_PRESETS, TrainingRays, VoxelConfig, VoxelGrids
     from .render import render_from_camera
-    from .train import QUALITY_PRESETS, TrainingRays, VoxelConfig, VoxelGrids, render_training_rays, train_voxels
+    from .train import render_training_rays, train_voxels
 
 _LAZY = {
     "render_from_camera": ".render",
-    "QUALITY_PRESETS": ".train",
-    "TrainingRays": ".train",
-    "VoxelConfig": ".train",
-    "VoxelGrids": ".train",
+    "QUALITY_PRESETS": ".config",
+    "TrainingRays": ".config",
+    "VoxelConfig": ".config",
+    "VoxelGrids": ".config",
     "render_training_rays": ".train",
     "train_voxels": ".train",
 }
