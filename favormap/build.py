@@ -1,132 +1,95 @@
 """build: posed image sequence -> trained feature-voxel map (in memory; mapfile writes it).
 
-Stages: extract -> track -> triangulate -> select -> patches -> train. Each stage hands one
-dataclass to the next; ``build_map`` runs them and records timings and statistics.
+Stages: extract (:mod:`favormap.extraction`) -> track -> triangulate -> select -> patches
+(:mod:`favormap.voxels.rays`) -> train (:mod:`favormap.voxels.batches`). Each stage hands one dataclass to
+the next; ``build_map`` runs them and records timings and statistics.
 """
 
 from __future__ import annotations
 
 import tempfile
-import threading
 import time
 from collections.abc import Callable
-from collections.abc import Sequence as SequenceABC
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, fields, is_dataclass, replace
-from functools import lru_cache
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from . import features as feats_mod
+from .build_config import (
+    EXACT_POSES_PATCHES,
+    EXACT_POSES_REFINE_WINDOW,
+    BuildConfig,
+    default_align_patches,
+    default_max_epipolar,
+    localize_defaults,
+)
 from .errors import FavormapError, InputError, SequenceError
 from .executor import Executor, LocalExecutor
-from .features import Extractor, Features, patch_offsets
-from .features.base import check_patch, patch_interpolation
-from .features.cache import FeatureCache, source_stamp
-from .geometry import camera_centers, project, sum_by_group, unproject, view_geometry
+from .extraction import (
+    MAP_CHUNK,
+    ExtractorSpec,
+    ExtractTask,
+    FrameFeatures,
+    extract_frame,
+    extract_sequence,
+    map_into,
+)
+from .features import patch_offsets
+from .features.base import check_patch
+from .features.cache import FeatureCache
+from .geometry import camera_centers, sum_by_group, view_geometry
 from .heap import release_free_memory, reuse_freed_blocks
-from .io import Camera, Sequence
-from .io.images import decode_and_prepare, patches_around, read_image_bytes
+from .io import Sequence
+from .io.images import decode_and_prepare, patches_around
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
-from .voxels import TrainingRays, VoxelConfig, VoxelGrids, train_voxels
+from .voxels import TrainingRays
+from .voxels.batches import TrainTask, batch_bounds, rays_subset, train_batch, train_batches
 from .voxels.config import voxel_config_for
+from .voxels.rays import PatchLayout, PatchTask, patch_targets, sample_patches, training_rays
 
-
-def default_max_epipolar(extractor: str) -> float:
-    """The least epipolar limit of tracking for ``extractor`` (its policy's keypoint precision, px)."""
-    return feats_mod.policy_of(extractor).keypoint_precision_px
-
-
-def default_align_patches(extractor: str) -> int:
-    """The stored observation patches' radius a build of ``extractor`` uses when none is given (0: none)."""
-    return feats_mod.policy_of(extractor).align_patches
-
-
-# BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius
-EXACT_POSES_REFINE_WINDOW = 9
-EXACT_POSES_PATCHES = 20
-
-
-def localize_defaults(config: BuildConfig) -> dict:
-    """What a map built with ``config`` asks of the localizer unless told otherwise (stored in the map's
-    provenance as ``localize_defaults``; LocalizeConfig fields left None follow it): the keypoint alignment
-    where the poses are exact or the extractor's policy asks for it, with the stored patches it needs."""
-    aligning = feats_mod.policy_of(config.extractor).align_patches > 0
-    align = config.exact_poses or (aligning and config.align_patches > 0)
-    return {"align": bool(align)}
-
-
-@dataclass
-class BuildConfig:
-    """Settings of :func:`build_map`. Fields left None follow the extractor's policy
-    (:class:`favormap.features.ExtractorPolicy`) or are measured from the data; the reasons for the
-    defaults are in docs/implementation-notes.md."""
-
-    extractor: str = "sift"  # a registered feature extractor (favormap.features.available())
-    max_keypoints: int = 2048  # keypoints per mapping image
-    max_side: int = 640  # images are downscaled so that max(w, h) <= max_side (0: keep)
-    min_track: int = 3  # frames a track must span to become a landmark
-    match_window: int = 10  # each frame is matched with this many next frames
-    # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
-    # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
-    # no less than the extractor's keypoint precision (ExtractorPolicy.keypoint_precision_px)
-    max_epipolar_px: float | None = None
-    min_similarity: float = 0.7  # cosine similarity of a tracking match
-    # align each landmark's observations to its middle one through its local plane, then triangulate again
-    # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off)
-    refine_window: int = 0
-    # store each observation's (2r+1)^2 grey pixels in the map (optional dataset tracks/patch; 0: none), so
-    # that localize --align needs no mapping images (favormap.localize.align). None: ExtractorPolicy.align_patches
-    align_patches: int | None = None
-    # the mapping poses are exact (a simulator, motion capture; not SLAM or SfM): the tracks are aligned as
-    # refine_window does (EXACT_POSES_REFINE_WINDOW unless refine_window is given), each observation's pixels
-    # are stored (EXACT_POSES_PATCHES unless align_patches is given), and localization aligns each inlier's
-    # keypoint to them unless told otherwise (LocalizeConfig.align None: the map's choice)
-    exact_poses: bool = False
-    max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
-    min_angle_deg: float = 1.0  # a landmark's least triangulation angle
-    max_landmarks: int = 3000  # the longest tracks are kept
-    # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
-    # this, not on who runs the batches (LocalExecutor or Ray workers)
-    train_batch: int = 1024
-    voxel: VoxelConfig | None = None  # None: the preset ExtractorPolicy.training_quality names
-    # CPU threads for torch/OpenCV: None leaves the process's pools (and heap policy) alone; "auto" applies
-    # favormap.threads' rule, a number fixes them (favormap.threads.thread_count); not stored in the map
-    threads: int | str | None = None
-
-    def __post_init__(self):
-        if self.voxel is None:
-            self.voxel = VoxelConfig.preset(feats_mod.policy_of(self.extractor).training_quality)
-        if self.align_patches is None:
-            self.align_patches = default_align_patches(self.extractor)
-        if self.exact_poses:
-            self.refine_window = self.refine_window or EXACT_POSES_REFINE_WINDOW
-            self.align_patches = self.align_patches or EXACT_POSES_PATCHES
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d.pop("threads")
-        return d
-
-
-@dataclass
-class FrameFeatures:
-    """Stage boundary after extraction: features plus the working (undistorted, resized) cameras."""
-
-    features: SequenceABC[Features]  # a list, or the frames of a FeatureCache (read on access)
-    cameras: list[Camera]  # working pinhole camera per frame
-    cam_from_world: np.ndarray  # (M, 4, 4)
-    extracted: int | None = None  # frames extracted by this build (None: all; fewer from a feature cache)
-
-    def without_state(self) -> SequenceABC[Features]:
-        """The features without the sampling state where that saves reading (tracking needs none)."""
-        f = self.features
-        return f.without_state() if hasattr(f, "without_state") else f
+# the build's stages, importable from here whichever module holds them
+__all__ = [
+    "BuildConfig",
+    "BuildObserver",
+    "EXACT_POSES_PATCHES",
+    "EXACT_POSES_REFINE_WINDOW",
+    "ExtractTask",
+    "ExtractorSpec",
+    "FrameFeatures",
+    "MAP_CHUNK",
+    "MEMORY_FRAMES",
+    "PatchLayout",
+    "PatchTask",
+    "TrainTask",
+    "batch_bounds",
+    "build_map",
+    "check_build_input",
+    "default_align_patches",
+    "default_max_epipolar",
+    "extract_frame",
+    "extract_sequence",
+    "frame_gray",
+    "landmark_geometry",
+    "localize_defaults",
+    "map_into",
+    "observation_patches",
+    "patch_targets",
+    "rays_subset",
+    "refine_landmarks",
+    "sample_patches",
+    "select_landmarks",
+    "track_frames",
+    "track_mean_descriptors",
+    "train_batch",
+    "train_batches",
+    "training_rays",
+    "triangulate_tracks",
+]
 
 
 class BuildObserver:
@@ -160,169 +123,6 @@ class _Progress:
         t = time.perf_counter()
         yield
         self.timings[name] = round(time.perf_counter() - t, 3)
-
-
-@dataclass(frozen=True)
-class ExtractorSpec:
-    """A picklable recipe for an extractor (tasks on other processes or machines make their own)."""
-
-    name: str
-    max_keypoints: int = 2048
-
-    def create(self, device: str | None = None) -> Extractor:
-        """The extractor on ``device`` (None or "cpu": the CPU)."""
-        return _cached_extractor(self.name, self.max_keypoints, None if device in (None, "cpu") else device)
-
-    @property
-    def uses_device(self) -> bool:
-        """Whether the extractor runs on a torch device (a GPU helps)."""
-        return bool(getattr(feats_mod.extractor_class(self.name), "uses_device", False))
-
-    @property
-    def samples_on_device(self) -> bool:
-        """Whether sampling descriptors (the training patches) can run on a GPU (Extractor.samples_on_device)."""
-        return bool(getattr(feats_mod.extractor_class(self.name), "samples_on_device", False))
-
-
-@lru_cache(maxsize=64)
-def _cached_extractor(name: str, max_keypoints: int, device: str | None, thread: int = 0) -> Extractor:
-    return feats_mod.create(name, max_keypoints=max_keypoints, device=device)
-
-
-def _extractor(ex: Extractor | ExtractorSpec, device: str | None = None) -> Extractor:
-    if not isinstance(ex, ExtractorSpec):
-        return ex
-    if ex.uses_device:  # a torch model: one per device, shared by threads (inference does not change it)
-        return ex.create(device)
-    # OpenCV's extractor objects: one per thread (LocalExecutor's pool), they are cheap to create
-    on = None if device in (None, "cpu") else device  # SIFT on a GPU: its patch descriptors computed there
-    return _cached_extractor(ex.name, ex.max_keypoints, on, threading.get_ident())
-
-
-def _on_cpu(x):
-    """Torch tensors in a (nested tuple/list/dataclass of) extractor state moved to the CPU, so that a
-    result computed on a GPU worker can be read on a machine without one."""
-    if isinstance(x, torch.Tensor):
-        return x.cpu()
-    if isinstance(x, (tuple, list)):
-        return type(x)(_on_cpu(v) for v in x)
-    if is_dataclass(x) and not isinstance(x, type):
-        return replace(x, **{f.name: _on_cpu(getattr(x, f.name)) for f in fields(x) if f.init})
-    return x
-
-
-@dataclass
-class ExtractTask:
-    """One frame to extract: the image file's bytes (workers need no access to the sequence)."""
-
-    name: str  # the image path, for messages
-    data: bytes
-    camera: Camera
-    max_side: int
-    extractor: Extractor | ExtractorSpec
-    keep_image: bool = False
-
-
-@dataclass
-class ExtractedFrame:
-    features: Features
-    camera: Camera  # working pinhole camera
-    image: np.ndarray | None = None  # the working image, when asked for
-
-
-def extract_frame(task: ExtractTask, device: str | None = None, report=None) -> ExtractedFrame:
-    img, cam = decode_and_prepare(task.data, task.name, task.camera, task.max_side)
-    f = _extractor(task.extractor, device).extract(img)
-    if f.dense is not None:
-        f.dense = _on_cpu(f.dense)
-    return ExtractedFrame(f, cam, img if task.keep_image else None)
-
-
-# sequences longer than this keep their features in a temporary on-disk cache (build_map's feature_cache)
-MEMORY_FRAMES = 300
-MAP_CHUNK = 64  # tasks per executor.map call of a streamed stage (results held at once)
-
-
-def map_into(executor: Executor, fn, tasks, total: int, sink, gpu: bool = False, progress=None, chunk: int = MAP_CHUNK):
-    """``executor.map_each`` over ``tasks`` in chunks of ``chunk`` tasks, handing each result to
-    ``sink(i, result)`` (in order): at most one chunk of results is ever held (none by an executor
-    that hands each over as it completes)."""
-    it = iter(tasks)
-    done = 0
-    while done < total:
-        block = [t for _, t in zip(range(min(chunk, total - done)), it)]
-        if not block:
-            break
-        off = done
-        report = (lambda d, off=off: progress(off + d)) if progress else None
-        executor.map_each(fn, block, len(block), lambda k, r, off=off: sink(off + k, r), gpu=gpu, progress=report)
-        done += len(block)
-        del block
-
-
-def _image_key(path) -> str:
-    return str(Path(path).resolve())
-
-
-def extract_sequence(
-    seq: Sequence,
-    extractor: Extractor | ExtractorSpec,
-    max_side: int,
-    progress=None,
-    keep_images: list | None = None,
-    executor: Executor | None = None,
-    cache: FeatureCache | None = None,
-) -> FrameFeatures:
-    """Features of every frame (one task per frame; the image bytes are read here, lazily).
-
-    With ``cache``, each frame's features go to the cache as they arrive and the result reads them
-    back from it on access (memory stays flat in the number of frames); images the cache already
-    holds (same file size and time) are not extracted again."""
-    executor = executor or LocalExecutor()
-    gpu = isinstance(extractor, ExtractorSpec) and extractor.uses_device
-    poses = np.stack([f.cam_from_world for f in seq.frames])
-    if cache is None:
-        todo = list(seq.frames)
-    else:
-        keys = [_image_key(fr.image_path) for fr in seq.frames]
-        todo, stamps, seen = [], [], set()
-        for fr, k in zip(seq.frames, keys):
-            stamp = source_stamp(fr.image_path)  # before the bytes are read (a file changed meanwhile is redone)
-            if k not in seen and not cache.has(k, stamp):
-                todo.append(fr)
-                stamps.append(stamp)
-            seen.add(k)
-    tasks = (
-        ExtractTask(
-            str(fr.image_path),
-            read_image_bytes(fr.image_path),
-            seq.cameras[fr.camera_id],
-            max_side,
-            extractor,
-            keep_images is not None and cache is None,
-        )
-        for fr in todo
-    )
-    n = len(todo)
-    results: list = []
-
-    def sink(i, r: ExtractedFrame):
-        if cache is None:
-            results.append(r)
-        else:
-            cache.put(_image_key(todo[i].image_path), r.features, r.camera, stamps[i])
-
-    report = (lambda d: progress("extract", int(d), n)) if progress else None
-    map_into(executor, extract_frame, tasks, n, sink, gpu, report)
-    if cache is None:
-        if keep_images is not None:
-            keep_images.extend(r.image for r in results)
-        return FrameFeatures([r.features for r in results], [r.camera for r in results], poses)
-    if keep_images is not None:  # (an observer that shows the images: decoded again, not cached)
-        keep_images.extend(
-            decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], max_side)[0] for fr in seq.frames
-        )
-    return FrameFeatures(cache.view(keys), [cache.camera(k) for k in keys], poses, extracted=n)
 
 
 def track_frames(ff: FrameFeatures, config: BuildConfig) -> Tracks:
@@ -388,248 +188,14 @@ def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
     return lms.select(order[:max_landmarks])
 
 
-@dataclass
-class PatchLayout:
-    """How a frame's samples become its observations' S x S training patches (P = S * S pixels): the
-    extractor describes ``described`` pixels per observation, every pixel when ``blend`` is None;
-    else patch pixel ``copied[k]`` copies described pixel ``source[k]`` and the pixels ``blended``
-    are ``blend`` (len(blended), described) times the described ones, L2-normalised
-    (:func:`favormap.features.base.patch_interpolation`)."""
-
-    pixels: int
-    described: int
-    copied: np.ndarray | None = None
-    source: np.ndarray | None = None
-    blended: np.ndarray | None = None
-    blend: np.ndarray | None = None
-
-    @classmethod
-    def interpolated(cls, weights: np.ndarray) -> PatchLayout:
-        copied = np.flatnonzero(weights.max(1) == 1.0)
-        blended = np.setdiff1d(np.arange(len(weights)), copied)
-        return cls(len(weights), weights.shape[1], copied, weights[copied].argmax(1), blended, weights[blended])
-
-    def assemble(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(o * described, C) samples -> the (o, P, C) float16 patches (TrainingRays.targets) and
-        their (o, C) float32 means taken before the rounding (TrainingRays.target_means)."""
-        d = samples.reshape(-1, self.described, samples.shape[-1])
-        if self.blend is None:
-            full = d
-        else:
-            b = np.matmul(self.blend, d)
-            norm = np.sqrt(np.einsum("opc,opc->op", b, b))
-            b /= np.maximum(norm, 1e-12, out=norm)[..., None]
-            full = np.empty((len(d), self.pixels, d.shape[-1]), np.float32)
-            full[:, self.copied], full[:, self.blended] = d[:, self.source], b
-        import torch  # its float16 conversion (F16C): the same bits as NumPy's, 18x faster (16 -> 0.9 ms per fox frame)
-
-        return torch.from_numpy(np.ascontiguousarray(full)).half().numpy(), full.mean(1, dtype=np.float32)
-
-
-@dataclass
-class PatchTask:
-    """Descriptor samples at ``points`` (n, 2) of one frame (with ``layout``: its training patches)."""
-
-    extractor: Extractor | ExtractorSpec
-    features: Features
-    points: np.ndarray
-    layout: PatchLayout | None = None
-
-
-def sample_patches(task: PatchTask, device: str | None = None, report=None) -> np.ndarray:
-    return _extractor(task.extractor, device or "cpu").sample(task.features, task.points)
-
-
-def patch_targets(task: PatchTask, device: str | None = None, report=None) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's training patches, float16, and their float32 means: :meth:`PatchLayout.assemble` of
-    its samples, in the task (on the executor's threads or workers, not in the driver)."""
-    return task.layout.assemble(sample_patches(task, device, report))
-
-
-def training_rays(
-    lms: Landmarks,
-    ff: FrameFeatures,
-    extractor: Extractor | ExtractorSpec,
-    patch_size: int,
-    box_factor: float | None = None,
-    executor: Executor | None = None,
-    progress=None,
-    patch_stride: int = 1,
-    patch_interp: bool = False,
-) -> TrainingRays:
-    """Descriptor patches S x S around the projection of each landmark in each of its frames (every
-    ``patch_stride``-th pixel: features.patch_offsets), and the viewing rays of their pixels. One
-    ``extractor.sample`` task per frame. With ``patch_interp`` the extractor describes only the
-    pixels :func:`favormap.features.base.patch_interpolation` picks (25 of 49 for S = 7) and the
-    others are interpolated bilinearly from them (then L2-normalised, as every sampled descriptor).
-
-    Voxel side of landmark j: ``box_factor * min_i l_ij / f_i`` (paper eq. 2 uses the patch size S,
-    the reference code 12 for S = 7); ``box_factor`` None means S."""
-    tr = lms.tracks
-    tid = tr.track_of_obs
-    fi = tr.frame_idx
-    T = ff.cam_from_world
-    Ks = np.stack([c.K for c in ff.cameras])
-    X = lms.positions[tid]
-    uv = project(Ks[fi], T[fi], X)
-    offs = patch_offsets(patch_size, patch_stride)
-    pix = uv[:, None, :] + offs[None]  # (O, P, 2)
-    P = len(offs)
-    if patch_interp:
-        check_patch(patch_size, patch_stride, interp=True)
-        described, weights = patch_interpolation(patch_size)
-        spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
-        layout = PatchLayout.interpolated(weights)
-    else:
-        spix, layout = pix, PatchLayout(P, P)
-    order = np.argsort(fi, kind="stable")
-    bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
-    # the frames with most observations first: the pool's threads then finish together (the last
-    # tasks are the shortest) instead of one thread describing a large frame while the other idles
-    sizes = np.diff(bounds)
-    frames = [int(f) for f in np.argsort(-sizes, kind="stable") if sizes[f] > 0]
-    tasks = (
-        PatchTask(extractor, ff.features[f], spix[order[bounds[f] : bounds[f + 1]]].reshape(-1, 2), layout)
-        for f in frames
-    )
-    n = len(frames)
-    executor = executor or LocalExecutor()
-    held: list[np.ndarray] = []  # the (O, P, C) targets and (O, C) means, made when the first frame's arrive
-
-    def sink(k, result):
-        full, mean = result
-        if not held:
-            held.append(np.zeros((len(tid), P, full.shape[-1]), np.float16))  # TrainingRays.targets
-            held.append(np.zeros((len(tid), full.shape[-1]), np.float32))  # and their patch means
-        f = frames[k]
-        sel = order[bounds[f] : bounds[f + 1]]
-        held[0][sel], held[1][sel] = full, mean
-
-    map_into(
-        executor,
-        patch_targets,
-        tasks,
-        n,
-        sink,
-        # on a GPU where the extractor samples there (SIFT), else CPU tasks on the executor's threads
-        gpu=isinstance(extractor, ExtractorSpec) and extractor.samples_on_device and executor.has_gpu,
-        progress=(lambda d: progress("patches", int(d), n)) if progress else None,
-    )
-    targets, means = held if held else (np.zeros((len(tid), P, 0), np.float16), np.zeros((len(tid), 0), np.float32))
-    # ray directions in world
-    d_cam = unproject(Ks[fi][:, None], pix)
-    d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
-    centers = camera_centers(T)[fi]
-    # voxel size (paper eq. 2): s_j = min_i factor * l_ij / f
-    focal = 0.5 * (Ks[fi, 0, 0] + Ks[fi, 1, 1])
-    dist = np.linalg.norm(X - centers, axis=1)
-    sizes = np.full(len(lms), np.inf)
-    np.minimum.at(sizes, tid, (patch_size if box_factor is None else box_factor) * dist / focal)
-    return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets, means)
-
-
-@dataclass
-class TrainTask:
-    """Landmarks to train: one batch or several consecutive ones (``seed_blocks``: their sizes, batch k
-    of the task drawing from seed ``config.seed + k``; ``config.seed`` already the first batch's)."""
-
-    rays: TrainingRays
-    config: VoxelConfig
-    seed_blocks: tuple[int, ...] | None = None
-
-
-def train_batch(task: TrainTask, device: str | None = None, report=None) -> VoxelGrids:
-    cfg = task.config
-    iters = cfg.iterations
-    g = train_voxels(
-        task.rays,
-        cfg,
-        progress=(lambda it, loss, psnr: report((it + 1) / iters)) if report else None,
-        device=device or "cpu",
-        seed_blocks=task.seed_blocks,
-    )
-    return VoxelGrids(g.descriptors.cpu(), g.density.cpu(), g.psnr, g.cosine, g.history)
-
-
-def batch_bounds(n_landmarks: int, batch: int) -> np.ndarray:
-    """Landmark index bounds of the training batches: ceil(L / batch) batches of near-equal size."""
-    nb = max(1, -(-n_landmarks // max(1, batch)))
-    return np.round(np.linspace(0, n_landmarks, nb + 1)).astype(int)
-
-
-def rays_subset(rays: TrainingRays, lo: int, hi: int) -> TrainingRays:
-    """The training data of landmarks lo..hi-1 (landmark indices renumbered from 0): views of the
-    arrays where the observations are sorted by landmark (as the build makes them), else copies."""
-    ol = rays.obs_landmark
-    if np.all(ol[1:] >= ol[:-1]):
-        first, last = np.searchsorted(ol, [lo, hi])
-        sel = slice(int(first), int(last))
-    else:
-        sel = (ol >= lo) & (ol < hi)
-    return TrainingRays(
-        rays.centers[lo:hi],
-        rays.sizes[lo:hi],
-        rays.obs_landmark[sel] - lo,
-        rays.obs_origin[sel],
-        rays.ray_dirs[sel],
-        rays.targets[sel],
-        None if rays.target_means is None else rays.target_means[sel],
-    )
-
-
-def train_batches(
-    rays: TrainingRays, cfg: VoxelConfig, batch: int, executor: Executor | None = None, progress=None
-) -> VoxelGrids:
-    """All landmarks' voxels, trained in batches of ``batch`` landmarks (batch b seeded ``cfg.seed + b``;
-    one batch is exactly ``train_voxels(rays, cfg)``). History: landmark-weighted mean over the batches.
-
-    The executor may run several consecutive batches as one task (``Executor.train_group``: a local
-    GPU takes up to 16 at once); each batch still draws its own random rays, so the grids are the
-    same either way up to floating-point rounding (tests/test_core.py, tests/test_cuda.py)."""
-    executor = executor or LocalExecutor()
-    bounds = batch_bounds(len(rays.centers), batch)
-    nb = len(bounds) - 1
-    per = max(1, int(executor.train_group()))
-    starts = list(range(0, nb, per))
-    ends = [min(nb, b + per) for b in starts]
-    tasks = (
-        TrainTask(
-            rays_subset(rays, bounds[b0], bounds[b1]),
-            replace(cfg, seed=cfg.seed + b0),
-            tuple(int(n) for n in np.diff(bounds[b0 : b1 + 1])) if b1 - b0 > 1 else None,
-        )
-        for b0, b1 in zip(starts, ends)
-    )
-    total = nb * cfg.iterations
-
-    def report(d):  # d tasks done (fractional) -> batches done, in iterations
-        k = min(int(d), len(starts) - 1)
-        progress("train", int((starts[k] + (d - k) * (ends[k] - starts[k])) * cfg.iterations), total)
-
-    parts = executor.map(train_batch, tasks, len(starts), gpu=True, progress=report if progress else None)
-    bounds = bounds[[*starts, nb]]  # the tasks' landmark bounds
-    w = np.diff(bounds) / bounds[-1]
-    history = [
-        (
-            it,
-            float(sum(wi * p.history[k][1] for wi, p in zip(w, parts))),
-            float(sum(wi * p.history[k][2] for wi, p in zip(w, parts))),
-        )
-        for k, (it, _, _) in enumerate(parts[0].history)
-    ]
-    return VoxelGrids(
-        torch.cat([p.descriptors for p in parts]),
-        torch.cat([p.density for p in parts]),
-        np.concatenate([p.psnr for p in parts]),
-        np.concatenate([p.cosine for p in parts]),
-        history,
-    )
-
-
 def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
     """Viewing direction (unit, landmark -> cameras), angular radius (deg) and depth range of the
     training views of each landmark."""
     return view_geometry(lms.positions, lms.tracks.track_of_obs, camera_centers(cam_from_world)[lms.tracks.frame_idx])
+
+
+# builds of more frames keep their features in a temporary feature cache file (build_map's feature_cache)
+MEMORY_FRAMES = 300
 
 
 def check_build_input(seq: Sequence, config: BuildConfig) -> None:

@@ -304,7 +304,7 @@ def test_extractor_state_from_a_gpu_worker_comes_back_on_the_cpu(monkeypatch):
     state, in tuples (XFeat) or dataclasses (DISK), goes through .cpu()."""
     from dataclasses import dataclass
 
-    from favormap.build import _on_cpu
+    from favormap.extraction import _on_cpu
 
     moved = []
 

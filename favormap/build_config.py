@@ -1,0 +1,86 @@
+"""The settings of a build (:class:`BuildConfig`) and the defaults it takes from the extractor's policy.
+No torch import: the CLI reads the defaults from here."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from . import features as feats_mod
+from .voxels.config import VoxelConfig
+
+
+def default_max_epipolar(extractor: str) -> float:
+    """The least epipolar limit of tracking for ``extractor`` (its policy's keypoint precision, px)."""
+    return feats_mod.policy_of(extractor).keypoint_precision_px
+
+
+def default_align_patches(extractor: str) -> int:
+    """The stored observation patches' radius a build of ``extractor`` uses when none is given (0: none)."""
+    return feats_mod.policy_of(extractor).align_patches
+
+
+# BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius
+EXACT_POSES_REFINE_WINDOW = 9
+EXACT_POSES_PATCHES = 20
+
+
+def localize_defaults(config: BuildConfig) -> dict:
+    """What a map built with ``config`` asks of the localizer unless told otherwise (stored in the map's
+    provenance as ``localize_defaults``; LocalizeConfig fields left None follow it): the keypoint alignment
+    where the poses are exact or the extractor's policy asks for it, with the stored patches it needs."""
+    aligning = feats_mod.policy_of(config.extractor).align_patches > 0
+    align = config.exact_poses or (aligning and config.align_patches > 0)
+    return {"align": bool(align)}
+
+
+@dataclass
+class BuildConfig:
+    """Settings of :func:`build_map`. Fields left None follow the extractor's policy
+    (:class:`favormap.features.ExtractorPolicy`) or are measured from the data; the reasons for the
+    defaults are in docs/implementation-notes.md."""
+
+    extractor: str = "sift"  # a registered feature extractor (favormap.features.available())
+    max_keypoints: int = 2048  # keypoints per mapping image
+    max_side: int = 640  # images are downscaled so that max(w, h) <= max_side (0: keep)
+    min_track: int = 3  # frames a track must span to become a landmark
+    match_window: int = 10  # each frame is matched with this many next frames
+    # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
+    # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
+    # no less than the extractor's keypoint precision (ExtractorPolicy.keypoint_precision_px)
+    max_epipolar_px: float | None = None
+    min_similarity: float = 0.7  # cosine similarity of a tracking match
+    # align each landmark's observations to its middle one through its local plane, then triangulate again
+    # (triangulation.refine_observations: Lucas-Kanade in a window of this many pixels; 0: off)
+    refine_window: int = 0
+    # store each observation's (2r+1)^2 grey pixels in the map (optional dataset tracks/patch; 0: none), so
+    # that localize --align needs no mapping images (favormap.localize.align). None: ExtractorPolicy.align_patches
+    align_patches: int | None = None
+    # the mapping poses are exact (a simulator, motion capture; not SLAM or SfM): the tracks are aligned as
+    # refine_window does (EXACT_POSES_REFINE_WINDOW unless refine_window is given), each observation's pixels
+    # are stored (EXACT_POSES_PATCHES unless align_patches is given), and localization aligns each inlier's
+    # keypoint to them unless told otherwise (LocalizeConfig.align None: the map's choice)
+    exact_poses: bool = False
+    max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
+    min_angle_deg: float = 1.0  # a landmark's least triangulation angle
+    max_landmarks: int = 3000  # the longest tracks are kept
+    # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
+    # this, not on who runs the batches (LocalExecutor or Ray workers)
+    train_batch: int = 1024
+    voxel: VoxelConfig | None = None  # None: the preset ExtractorPolicy.training_quality names
+    # CPU threads for torch/OpenCV: None leaves the process's pools (and heap policy) alone; "auto" applies
+    # favormap.threads' rule, a number fixes them (favormap.threads.thread_count); not stored in the map
+    threads: int | str | None = None
+
+    def __post_init__(self):
+        if self.voxel is None:
+            self.voxel = VoxelConfig.preset(feats_mod.policy_of(self.extractor).training_quality)
+        if self.align_patches is None:
+            self.align_patches = default_align_patches(self.extractor)
+        if self.exact_poses:
+            self.refine_window = self.refine_window or EXACT_POSES_REFINE_WINDOW
+            self.align_patches = self.align_patches or EXACT_POSES_PATCHES
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("threads")
+        return d
