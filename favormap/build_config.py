@@ -1,22 +1,27 @@
 """The settings of a build (:class:`BuildConfig`) and the defaults it takes from the extractor's policy.
-No torch import: the CLI reads the defaults from here."""
+Neither numpy nor torch is imported with it: the CLI reads the defaults from here."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from . import features as feats_mod
 from .voxels.config import VoxelConfig
+
+
+def _policy(extractor: str):
+    from .features import policy_of  # numpy: imported on use, so that the CLI reads the defaults cheaply
+
+    return policy_of(extractor)
 
 
 def default_max_epipolar(extractor: str) -> float:
     """The least epipolar limit of tracking for ``extractor`` (its policy's keypoint precision, px)."""
-    return feats_mod.policy_of(extractor).keypoint_precision_px
+    return _policy(extractor).keypoint_precision_px
 
 
 def default_align_patches(extractor: str) -> int:
     """The stored observation patches' radius a build of ``extractor`` uses when none is given (0: none)."""
-    return feats_mod.policy_of(extractor).align_patches
+    return _policy(extractor).align_patches
 
 
 # BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius
@@ -28,7 +33,7 @@ def localize_defaults(config: BuildConfig) -> dict:
     """What a map built with ``config`` asks of the localizer unless told otherwise (stored in the map's
     provenance as ``localize_defaults``; LocalizeConfig fields left None follow it): the keypoint alignment
     where the poses are exact or the extractor's policy asks for it, with the stored patches it needs."""
-    aligning = feats_mod.policy_of(config.extractor).align_patches > 0
+    aligning = _policy(config.extractor).align_patches > 0
     align = config.exact_poses or (aligning and config.align_patches > 0)
     return {"align": bool(align)}
 
@@ -73,7 +78,7 @@ class BuildConfig:
 
     def __post_init__(self):
         if self.voxel is None:
-            self.voxel = VoxelConfig.preset(feats_mod.policy_of(self.extractor).training_quality)
+            self.voxel = VoxelConfig.preset(_policy(self.extractor).training_quality)
         if self.align_patches is None:
             self.align_patches = default_align_patches(self.extractor)
         if self.exact_poses:

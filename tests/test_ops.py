@@ -78,7 +78,7 @@ def voxels_of(path, rows=None):
 # -- streaming writer ---------------------------------------------------------------------------------
 def write_streaming(m, path, chunk=37, nan_at=None):
     from favormap.mapfile.writer import MapWriter
-    from favormap.ops.merge import write_frames_and_tracks, write_landmark_metadata
+    from favormap.ops.rewrite import write_frames_and_tracks, write_landmark_metadata
 
     header = {k: getattr(m, k) for k in MapWriter.HEADER_KEYS}
     header["provenance"] = m.provenance

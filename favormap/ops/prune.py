@@ -19,7 +19,7 @@ from ..errors import InputError
 from ..mapfile import Map
 from ..mapfile.fields import field_name, metadata_datasets
 from ..mapfile.writer import MapWriter, check_output_path
-from .merge import copy_voxels, write_frames_and_tracks, write_landmark_metadata
+from .rewrite import copy_voxels, write_frames_and_tracks, write_landmark_metadata
 
 REASONS = ("min_track", "min_quality", "bbox", "budget")
 

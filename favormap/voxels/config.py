@@ -1,18 +1,17 @@
 """The voxels' settings (:class:`VoxelConfig`, its quality presets and the per-extractor defaults) and
 the stage boundaries of training: the rays it trains on (:class:`TrainingRays`) and the trained grids
-(:class:`VoxelGrids`). No torch import: the CLI reads the defaults from here."""
+(:class:`VoxelGrids`). Neither numpy nor torch is imported: the CLI reads the defaults from here."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
-import numpy as np
-
-from ..features.base import ExtractorPolicy, policy_of
-
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # numpy and torch only in annotations: the CLI imports this module to show the defaults
+    import numpy as np
     import torch
+
+    from ..features.base import ExtractorPolicy
 
 
 @dataclass
@@ -84,6 +83,8 @@ def voxel_config_for(cfg: VoxelConfig, extractor: str | ExtractorPolicy) -> Voxe
     """``cfg`` with its per-extractor defaults (None fields: ``prior_mean_deg``, ``patch_interp``) filled in
     from the extractor's policy (a registered name, or the policy itself), as a build records them in the map's
     provenance."""
+    from ..features.base import ExtractorPolicy, policy_of
+
     policy = extractor if isinstance(extractor, ExtractorPolicy) else policy_of(extractor)
     if cfg.prior_mean_deg is None:
         cfg = replace(cfg, prior_mean_deg=policy.view_prior_deg)
@@ -94,16 +95,15 @@ def voxel_config_for(cfg: VoxelConfig, extractor: str | ExtractorPolicy) -> Voxe
 
 
 QUALITY_PRESETS: dict[str, dict] = {
-    # the dataclass's defaults: 200 Adam iterations; the fox (40 frames, 3,000 landmarks) trains in about a
-    # minute on 2 CPU cores
+    # the dataclass's defaults: Adam on the rendering loss (the learned extractors' preset)
     "fast": {},
     # closed-form descriptors at fixed densities from 3 x 3 patches: speed first. The initial (= fixed)
     # density of 20 per voxel side makes the cubes nearly opaque, so a ray's descriptor interpolates the nodes
     # on the side facing the camera and depends on the view
     "quick": dict(solver="lstsq", patch_size=3, density_init=20.0),
     # the closed form on the full 7 x 7 patches, pulled towards the track mean (ridge 0.03 instead of 0.001:
-    # the nodes few rays constrain keep the mean instead of fitting them); localizes about as Adam does in a
-    # third of its time
+    # the nodes few rays constrain keep the mean instead of fitting them); SIFT's preset: it localizes as Adam
+    # does in less time (docs/implementation-notes.md)
     "balanced": dict(solver="lstsq", patch_size=7, density_init=20.0, lstsq_ridge=0.03),
     "reference": dict(
         solver="adam",
@@ -138,6 +138,8 @@ class TrainingRays:
         """(O, C) float32 mean descriptor of each observation's patch (not normalised)."""
         if self.target_means is not None:
             return self.target_means
+        import numpy as np
+
         return self.targets.mean(1, dtype=np.float32)
 
 
