@@ -144,9 +144,9 @@ def extend_map(map_path, sequence, output, config: ExtendConfig | None = None, p
     t0 = time.perf_counter()
     with Map.open(map_path) as mp:
         build_cfg = map_build_config(mp.provenance)
+        seq = _read_sequence(sequence, config.format)  # a bad sequence fails before the map is read
         m = mp.load()
     timings["load"] = round(time.perf_counter() - t0, 3)
-    seq = _read_sequence(sequence, config.format)
     transform, alignment = config.transform, None
     if config.align:
         t = time.perf_counter()
