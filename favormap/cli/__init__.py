@@ -28,6 +28,7 @@ _COMMANDS = [
     "query",
     "align",
     "merge",
+    "extend",
     "prune",
     "export",
     "validate",

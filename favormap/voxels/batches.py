@@ -59,6 +59,8 @@ def rays_subset(rays: TrainingRays, lo: int, hi: int) -> TrainingRays:
         rays.ray_dirs[sel],
         rays.targets[sel],
         None if rays.target_means is None else rays.target_means[sel],
+        None if rays.init_descriptors is None else rays.init_descriptors[lo:hi],
+        None if rays.init_density is None else rays.init_density[lo:hi],
     )
 
 

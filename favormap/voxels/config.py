@@ -133,6 +133,10 @@ class TrainingRays:
     # (O, C) float32 mean of each observation's patch descriptors, as the build computed it from the
     # float32 descriptors before rounding the targets (None: patch_means computes it from the targets)
     target_means: np.ndarray | None = None
+    # (L, R^3, C) and (L, R^3) grids to start Adam from (fine-tuning trained landmarks; rows of NaN: the
+    # landmarks without, which start as VoxelConfig.init says). None: every landmark starts as init says
+    init_descriptors: np.ndarray | None = None
+    init_density: np.ndarray | None = None
 
     def patch_means(self) -> np.ndarray:
         """(O, C) float32 mean descriptor of each observation's patch (not normalised)."""

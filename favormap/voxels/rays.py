@@ -144,13 +144,36 @@ def training_rays(
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
     )
     targets, means = held if held else (np.zeros((len(tid), P, 0), np.float16), np.zeros((len(tid), 0), np.float32))
-    # ray directions in world
-    d_cam = unproject(Ks[fi][:, None], pix)
-    d_world = np.einsum("oji,opj->opi", T[fi, :3, :3], d_cam)
-    centers = camera_centers(T)[fi]
-    # voxel size (paper eq. 2): s_j = min_i factor * l_ij / f
-    focal = 0.5 * (Ks[fi, 0, 0] + Ks[fi, 1, 1])
-    dist = np.linalg.norm(X - centers, axis=1)
-    sizes = np.full(len(lms), np.inf)
-    np.minimum.at(sizes, tid, (patch_size if box_factor is None else box_factor) * dist / focal)
-    return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world.astype(np.float32), targets, means)
+    centers, d_world, reach = patch_rays(lms.positions, tid, fi, Ks, T, patch_size, patch_stride)
+    sizes = voxel_sizes(reach, tid, len(lms), patch_size if box_factor is None else box_factor)
+    return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world, targets, means)
+
+
+def patch_rays(
+    positions: np.ndarray,
+    obs_landmark: np.ndarray,
+    frame_idx: np.ndarray,
+    Ks: np.ndarray,
+    cam_from_world: np.ndarray,
+    patch_size: int,
+    patch_stride: int = 1,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The geometry of the training patches of observations (landmark ``obs_landmark``, frame
+    ``frame_idx``): each observation's camera centre (O, 3), the world directions (O, P, 3) float32
+    of its patch pixels around the landmark's projection, and the landmark's distance in focal
+    lengths (O,), from which :func:`voxel_sizes` takes the voxel side."""
+    X = positions[obs_landmark]
+    T, K = cam_from_world[frame_idx], Ks[frame_idx]
+    pix = project(K, T, X)[:, None, :] + patch_offsets(patch_size, patch_stride)[None]
+    d_world = np.einsum("oji,opj->opi", T[:, :3, :3], unproject(K[:, None], pix))
+    centers = camera_centers(T)
+    focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
+    return centers, d_world.astype(np.float32), np.linalg.norm(X - centers, axis=1) / focal
+
+
+def voxel_sizes(reach: np.ndarray, obs_landmark: np.ndarray, n_landmarks: int, box_factor: float) -> np.ndarray:
+    """Voxel side of each landmark (paper eq. 2): ``box_factor * min_i l_ij / f_i`` over its observations
+    (``reach``: l / f of each observation, :func:`patch_rays`)."""
+    sizes = np.full(n_landmarks, np.inf)
+    np.minimum.at(sizes, obs_landmark, box_factor * reach)
+    return sizes

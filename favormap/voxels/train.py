@@ -257,7 +257,15 @@ def train_voxels(
         init = mean_desc if cfg.init == "mean" else torch.zeros_like(mean_desc)
         desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
     raw0 = math.log(math.expm1(cfg.density_init))
-    dens = torch.full((L, R**3), raw0, **f32).requires_grad_(True)
+    dens = torch.full((L, R**3), raw0, **f32)
+    if data.init_descriptors is not None:  # fine-tuning: the landmarks with grids start from them
+        d0 = torch.as_tensor(np.asarray(data.init_descriptors, np.float32).reshape(L, R**3, C), device=dev)
+        s0 = torch.as_tensor(np.asarray(data.init_density, np.float32).reshape(L, R**3), device=dev)
+        has = torch.isfinite(d0).flatten(1).all(1) & torch.isfinite(s0).all(1)
+        with torch.no_grad():
+            desc[has] = d0[has]
+            dens[has] = s0[has]
+    dens.requires_grad_(True)
 
     if cfg.pervoxel_lr:
         vis = _visibility(data, origins_l, dirs_all, R, cfg, dev)
