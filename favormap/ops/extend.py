@@ -20,6 +20,9 @@
    to the current grids where the new frames add nothing;
 5. frames, cameras, tracks, view cones, provenance and the datasets' checksums are written as a new map
    (atomically: :class:`favormap.mapfile.MapWriter`); the input map is never written to.
+
+The stages above are used by the extension only and share its intermediate arrays, so they are kept in
+one module (over 450 lines) instead of spread over modules that nothing else imports.
 """
 
 from __future__ import annotations
