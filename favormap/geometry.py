@@ -106,6 +106,16 @@ def camera_centers(cam_from_world: np.ndarray) -> np.ndarray:
     return -np.einsum("...ji,...j->...i", R, t)
 
 
+def move_poses(cam_from_world: np.ndarray, new_from_old: np.ndarray) -> np.ndarray:
+    """Poses ``cam_from_world`` (..., 4, 4) of an old world frame in a new one, ``new_from_old`` a similarity
+    (x_new = s R x_old + t): ``cam_from_world @ new_from_old^-1`` with its top rows scaled by s, so that the
+    poses stay rigid and the cameras keep the new frame's units."""
+    T = np.asarray(new_from_old, np.float64)
+    P = np.asarray(cam_from_world, np.float64) @ np.linalg.inv(T)
+    P[..., :3, :] *= float(np.cbrt(np.linalg.det(T[:3, :3])))
+    return P
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply one 4x4 transform to (N,3) points."""
     return points @ T[:3, :3].T + T[:3, 3]

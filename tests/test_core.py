@@ -387,3 +387,19 @@ def test_plane_homographies_carry_pixels_as_the_plane_points_project():
                            np.repeat(Tb[None], N, 0), X, n)  # fmt: skip
     np.testing.assert_allclose(apply_homographies(H, pix), want, atol=1e-8)
     np.testing.assert_allclose(apply_homographies(H, project(K, Ta, X)[:, None])[:, 0], project(K, Tb, X), atol=1e-8)
+
+
+def test_moved_poses_see_moved_points_where_the_old_poses_saw_the_old_ones():
+    from favormap.geometry import is_rigid, look_at, move_poses, project, rotation_about, transform_points
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(20, 3)) + [0, 0, 5]
+    T = np.stack([look_at(np.array([x, 0.5, 0.0]), np.array([0.0, 0.0, 5.0])) for x in (-1.0, 0.0, 1.0)])
+    S = np.eye(4)
+    S[:3, :3] = 2.5 * rotation_about(np.array([0.3, 1.0, -0.2]), 0.7)
+    S[:3, 3] = (1.0, -2.0, 0.5)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    moved = move_poses(T, S)
+    for old, new in zip(T, moved):
+        assert is_rigid(new)
+        np.testing.assert_allclose(project(K, new, transform_points(S, X)), project(K, old, X), atol=1e-8)

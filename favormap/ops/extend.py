@@ -93,7 +93,8 @@ def _check_config(config: ExtendConfig) -> None:
         raise InputError("align and transform exclude each other")
 
 
-def _similarity(transform) -> tuple[np.ndarray, float]:
+def _similarity(transform) -> np.ndarray:
+    """``transform`` as a 4x4 similarity matrix; InputError when it is not one."""
     T = np.asarray(transform, np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError(f"the transform must be a finite 4x4 matrix, got shape {T.shape}")
@@ -104,20 +105,17 @@ def _similarity(transform) -> tuple[np.ndarray, float]:
     R = T[:3, :3] / s
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
         raise InputError("the transform is not a similarity (s R | t)")
-    return T, s
+    return T
 
 
 def moved_sequence(seq, transform):
     """``seq`` with its poses moved by the similarity ``transform`` (x_map = s R x_seq + t): each
     ``cam_from_world`` becomes ``cam_from_world @ transform^-1``, its rows scaled by s to stay rigid."""
-    T, s = _similarity(transform)
-    Tinv = np.linalg.inv(T)
-    frames = []
-    for fr in seq.frames:
-        P = fr.cam_from_world @ Tinv
-        P[:3, :] *= s
-        P[3] = (0, 0, 0, 1)
-        frames.append(dataclasses.replace(fr, cam_from_world=P))
+    from ..geometry import move_poses
+
+    T = _similarity(transform)
+    moved = move_poses(np.stack([fr.cam_from_world for fr in seq.frames]), T)
+    frames = [dataclasses.replace(fr, cam_from_world=P) for fr, P in zip(seq.frames, moved)]
     return dataclasses.replace(seq, frames=frames)
 
 

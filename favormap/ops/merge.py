@@ -303,8 +303,7 @@ def _frames(maps, sim: _Similarity | None):
         frame_cam.append(new_ids[np.searchsorted(old_ids, fc)] if len(fc) else np.zeros(0, np.int32))
         T_k = np.asarray(m.cam_from_world, np.float64)
         if k > 0 and sim is not None:
-            T_k = T_k @ np.linalg.inv(sim.T)
-            T_k[:, :3, :] *= sim.scale  # rotation block is R_b R^T / s: rescale the camera frame to stay rigid
+            T_k = geometry.move_poses(T_k, sim.T)
         cfw.append(T_k)
         frame_off.append(sum(len(n) for n in names))
         nm = [n if n not in seen_names else f"{k}/{n}" for n in m.frame_names]

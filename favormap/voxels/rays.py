@@ -101,7 +101,6 @@ def training_rays(
     X = lms.positions[tid]
     uv = project(Ks[fi], T[fi], X)
     offs = patch_offsets(patch_size, patch_stride)
-    pix = uv[:, None, :] + offs[None]  # (O, P, 2)
     P = len(offs)
     if patch_interp:
         check_patch(patch_size, patch_stride, interp=True)
@@ -109,7 +108,7 @@ def training_rays(
         spix = uv[:, None, :] + described[None]  # (O, Pd, 2): the pixels the extractor describes
         layout = PatchLayout.interpolated(weights)
     else:
-        spix, layout = pix, PatchLayout(P, P)
+        spix, layout = uv[:, None, :] + offs[None], PatchLayout(P, P)  # (O, P, 2)
     order = np.argsort(fi, kind="stable")
     bounds = np.searchsorted(fi[order], np.arange(len(ff.features) + 1))
     # the frames with most observations first: the pool's threads then finish together (the last
@@ -144,7 +143,7 @@ def training_rays(
         progress=(lambda d: progress("patches", int(d), n)) if progress else None,
     )
     targets, means = held if held else (np.zeros((len(tid), P, 0), np.float16), np.zeros((len(tid), 0), np.float32))
-    centers, d_world, reach = patch_rays(lms.positions, tid, fi, Ks, T, patch_size, patch_stride)
+    centers, d_world, reach = patch_rays(lms.positions, tid, fi, Ks, T, patch_size, patch_stride, uv)
     sizes = voxel_sizes(reach, tid, len(lms), patch_size if box_factor is None else box_factor)
     return TrainingRays(lms.positions, sizes, tid.astype(np.int64), centers, d_world, targets, means)
 
@@ -157,14 +156,17 @@ def patch_rays(
     cam_from_world: np.ndarray,
     patch_size: int,
     patch_stride: int = 1,
+    uv: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The geometry of the training patches of observations (landmark ``obs_landmark``, frame
     ``frame_idx``): each observation's camera centre (O, 3), the world directions (O, P, 3) float32
     of its patch pixels around the landmark's projection, and the landmark's distance in focal
-    lengths (O,), from which :func:`voxel_sizes` takes the voxel side."""
+    lengths (O,), from which :func:`voxel_sizes` takes the voxel side. ``uv``: the observations' landmark
+    projections (O, 2), when the caller has them already."""
     X = positions[obs_landmark]
     T, K = cam_from_world[frame_idx], Ks[frame_idx]
-    pix = project(K, T, X)[:, None, :] + patch_offsets(patch_size, patch_stride)[None]
+    uv = project(K, T, X) if uv is None else uv
+    pix = uv[:, None, :] + patch_offsets(patch_size, patch_stride)[None]
     d_world = np.einsum("oji,opj->opi", T[:, :3, :3], unproject(K[:, None], pix))
     centers = camera_centers(T)
     focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
