@@ -16,23 +16,12 @@ asks for them, so the localization path runs where Open3D is not installed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from .geometry import camera_centers, project, unproject
 from .io import Camera
 from .kdtree import KD_BACKENDS, morton_order  # noqa: F401  (morton_order: re-exported)
-
-
-@dataclass
-class ViewLimits:
-    """How far a query view may stray from the views a landmark was trained on."""
-
-    angle_margin_deg: float = 15.0  # on top of the landmark's own training view-angle radius
-    depth_scale: tuple[float, float] = (0.5, 2.0)  # allowed distance range, relative to the training range
-    image_margin_px: float = 0.0  # keep landmarks projecting at least this far inside the image
-
+from .view_limits import ViewLimits
 
 # Visibility queries group landmarks into tiers by reach (max training distance x depth_scale):
 # each tier is searched with the bounding sphere of a frustum as deep as the tier's largest reach,

@@ -29,3 +29,20 @@ def test_localize_options_left_out_give_the_localize_config_defaults():
     want.pop("threads")
     assert got == want
     assert {f.name for f in fields(LocalizeConfig)} - set(got) == {"threads"}
+
+
+def test_align_merge_and_query_options_left_out_give_their_settings_defaults():
+    from favormap.cli import align as cli_align
+    from favormap.cli import merge as cli_merge
+    from favormap.cli import query as cli_query
+    from favormap.ops.align_config import AlignConfig
+    from favormap.ops.merge_config import MergeConfig
+    from favormap.view_limits import ViewLimits
+
+    parser = make_parser()
+    assert cli_align.align_config(parser.parse_args(["align", "a.h5", "b.h5"])) == AlignConfig()
+    merge_args = parser.parse_args(["merge", "a.h5", "b.h5", "-o", "m.h5"])
+    assert cli_merge.merge_config(merge_args) == MergeConfig()
+    assert cli_align.align_config(merge_args) == AlignConfig()
+    query_args = parser.parse_args(["query", "map.h5", "--pose", "pose.txt"])
+    assert cli_query.view_limits(query_args) == ViewLimits()

@@ -433,7 +433,7 @@ def test_older_versions_are_migrated_in_memory(rmap, tmp_path, monkeypatch):
 def test_a_landmark_field_added_to_the_schema_is_carried_everywhere(tmp_path, monkeypatch):
     """The schema is the one list of landmark fields: a copy of it with one more per-landmark
     dataset is read, written, selected, merged and pruned without touching the code."""
-    from favormap.ops.merge import merge_maps
+    from favormap.ops.merge import MergeConfig, merge_maps
     from favormap.ops.prune import prune_map
 
     v1 = json.loads(json.dumps(load_schema(1)))
@@ -469,7 +469,7 @@ def test_a_landmark_field_added_to_the_schema_is_carried_everywhere(tmp_path, mo
             order = np.argsort(m.ids)
             np.testing.assert_array_equal(mp.sharpness[np.argsort(mp.ids)], sharp[order])
         # merge without dedup (every landmark twice) and prune by quality
-        both = merge_maps([a, a], tmp_path / "both.h5", dedup=False).path
+        both = merge_maps([a, a], tmp_path / "both.h5", MergeConfig(dedup=False)).path
         with Map.open(both) as mp:
             np.testing.assert_array_equal(mp.sharpness, np.concatenate([sharp, sharp]))
         keep = m.quality >= np.median(m.quality)

@@ -125,7 +125,7 @@ def test_merge_scales_track_pixels_to_the_first_maps_resolution(resized_map, tmp
     from favormap.geometry import project
     from favormap.mapfile import Map, write_map
     from favormap.mapfile.model import new_landmark_ids
-    from favormap.ops.merge import merge_maps
+    from favormap.ops.merge import MergeConfig, merge_maps
 
     m, path_a = resized_map
     other_side = 160
@@ -133,7 +133,7 @@ def test_merge_scales_track_pixels_to_the_first_maps_resolution(resized_map, tmp
     xy_b = project(wb.K, m.cam_from_world[m.track_frame], m.positions[m.track_landmark]).astype(np.float32)
     b = dataclasses.replace(m, max_side=other_side, track_xy=xy_b, ids=new_landmark_ids(m.num_landmarks, avoid=m.ids))
     path_b = write_map(b, tmp_path / "b.h5")
-    out = merge_maps([path_a, path_b], tmp_path / "ab.h5", dedup=False).path
+    out = merge_maps([path_a, path_b], tmp_path / "ab.h5", MergeConfig(dedup=False)).path
     wa = working_camera(DISTORTED, MAX_SIDE)
     with Map.open(out) as mm:
         assert mm.max_side == MAX_SIDE

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .common import print_json
+from ..ops.align_config import AlignConfig
+from .common import config_default, print_json
 
 
 def add_align_args(p) -> None:
@@ -14,20 +15,23 @@ def add_align_args(p) -> None:
         help="inlier distance in the first map's units (default: twice its median voxel size)",
     )
     p.add_argument(
-        "--min-inliers", type=int, default=12, metavar="N", help="refuse below N agreeing landmarks (default 12)"
+        "--min-inliers",
+        type=int,
+        default=config_default(AlignConfig, "min_inliers"),
+        metavar="N",
+        help="refuse below N agreeing landmarks (default %(default)s)",
     )
     p.add_argument(
         "--min-inlier-ratio",
         type=float,
-        default=0.15,
+        default=config_default(AlignConfig, "min_inlier_ratio"),
         metavar="F",
-        help="refuse when fewer than this fraction of landmark matches agree (default 0.15)",
+        help="refuse when fewer than this fraction of landmark matches agree (default %(default)s)",
     )
 
 
 def align_config(args):
     from ..errors import InputError
-    from ..ops.align import AlignConfig
 
     if args.min_inliers < 3:
         raise InputError(f"--min-inliers must be >= 3, got {args.min_inliers}")

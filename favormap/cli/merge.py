@@ -5,10 +5,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..ops.merge_config import MergeConfig
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
 from .align import add_align_args, align_config, summary_lines
-from .common import StageBars, human_size, print_json
+from .common import StageBars, config_default, human_size, print_json
 
 
 def register(sub):
@@ -31,8 +32,8 @@ def register(sub):
     p.add_argument(
         "--min-cosine",
         type=float,
-        default=0.8,
-        help="mean-descriptor cosine above which close landmarks are duplicates (default 0.8)",
+        default=config_default(MergeConfig, "min_cosine"),
+        help="mean-descriptor cosine above which close landmarks are duplicates (default %(default)s)",
     )
     p.add_argument("--no-dedup", action="store_true", help="keep every landmark")
     p.add_argument(
@@ -51,6 +52,10 @@ def register(sub):
     add_threads_arg(p)
     add_rerun_args(p)
     p.set_defaults(func=run)
+
+
+def merge_config(args) -> MergeConfig:
+    return MergeConfig(dedup=not args.no_dedup, dedup_radius=args.dedup_radius, min_cosine=args.min_cosine)
 
 
 def run(args) -> int:
@@ -82,10 +87,8 @@ def run(args) -> int:
         res = merge_maps(
             args.maps,
             args.output,
-            dedup_radius=args.dedup_radius,
+            merge_config(args),
             transform=T,
-            min_cosine=args.min_cosine,
-            dedup=not args.no_dedup,
             progress=bars,
         )
     finally:

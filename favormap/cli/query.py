@@ -7,7 +7,10 @@ import re
 import sys
 
 from ..threads import add_threads_arg
-from .common import print_json
+from ..view_limits import ViewLimits
+from .common import config_default, print_json
+
+_LIMIT = {name: config_default(ViewLimits, name) for name in ("angle_margin_deg", "depth_scale", "image_margin_px")}
 
 
 def register(sub):
@@ -38,20 +41,26 @@ def register(sub):
     p.add_argument(
         "--angle-margin",
         type=float,
-        default=15.0,
+        default=_LIMIT["angle_margin_deg"],
         metavar="DEG",
-        help="allowed viewing angle beyond each landmark's training range (default 15)",
+        help="allowed viewing angle beyond each landmark's training range (default %(default)s)",
     )
     p.add_argument(
         "--depth-scale",
         type=float,
         nargs=2,
-        default=(0.5, 2.0),
+        default=_LIMIT["depth_scale"],
         metavar=("LO", "HI"),
-        help="allowed distance range relative to each landmark's training range (default 0.5 2)",
+        help="allowed distance range relative to each landmark's training range (default "
+        + " ".join(f"{v:g}" for v in _LIMIT["depth_scale"])
+        + ")",
     )
     p.add_argument(
-        "--margin", type=float, default=0.0, metavar="PX", help="keep landmarks at least this far inside the image"
+        "--margin",
+        type=float,
+        default=_LIMIT["image_margin_px"],
+        metavar="PX",
+        help="keep landmarks at least this far inside the image (default %(default)s)",
     )
     p.add_argument("--limit", type=int, default=20, help="landmarks listed in the human output (default 20; 0: all)")
     p.add_argument("--json", action="store_true", help="one JSON object (visible_ids / ids, counts)")
@@ -79,6 +88,10 @@ def _load_mesh(path):
     return mesh
 
 
+def view_limits(args) -> ViewLimits:
+    return ViewLimits(args.angle_margin, tuple(args.depth_scale), args.margin)
+
+
 def run(args) -> int:
     import numpy as np
 
@@ -86,7 +99,6 @@ def run(args) -> int:
     from ..io.posefile import read_camera, read_pose
     from ..mapfile import Map
     from ..ops.query import query_near, query_pose
-    from ..visibility import ViewLimits
 
     if args.near is not None:
         if args.camera or args.mesh:
@@ -95,7 +107,8 @@ def run(args) -> int:
             raise InputError("--near needs exactly one of --radius R or --knn K")
     elif args.radius is not None or args.knn is not None:
         raise InputError("--radius and --knn go with --near")
-    lo, hi = args.depth_scale
+    limits = view_limits(args)
+    lo, hi = limits.depth_scale
     if not (0 <= lo <= hi) or not np.isfinite(hi) or args.angle_margin < 0 or args.margin < 0:
         raise InputError("--depth-scale needs 0 <= LO <= HI; --angle-margin and --margin must be >= 0")
     pose = read_pose(args.pose) if args.pose else None
@@ -103,7 +116,7 @@ def run(args) -> int:
     mesh = _load_mesh(args.mesh) if args.mesh else None
     with Map.open(args.map) as m:
         if pose is not None:
-            res = query_pose(m, pose, camera, mesh, ViewLimits(args.angle_margin, (lo, hi), args.margin))
+            res = query_pose(m, pose, camera, mesh, limits)
         else:
             res = query_near(m, args.near, args.radius, args.knn)
         positions = m.positions[res.rows]

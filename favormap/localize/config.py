@@ -7,19 +7,14 @@ in docs/implementation-notes.md ("Localization")."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from ..errors import InputError
-
-if TYPE_CHECKING:
-    from ..visibility import ViewLimits
+from ..view_limits import ViewLimits
 
 
 def _localizer_view_limits() -> ViewLimits:
     """Landmarks are tried from up to 60 deg beyond their training view cone and 0.25-4x their training
     distances."""
-    from ..visibility import ViewLimits  # numpy: imported on use, so that the CLI reads the defaults cheaply
-
     return ViewLimits(angle_margin_deg=60.0, depth_scale=(0.25, 4.0))
 
 

@@ -1,14 +1,15 @@
-"""ops: map operations (visibility, merge, prune, export, align)."""
+"""ops: map operations (visibility, merge, prune, export, align, extend)."""
 
-_ALIGN = ("AlignConfig", "AlignmentError", "MapAlignment", "align_maps")
+from ..lazy import lazy_exports
 
-
-def __getattr__(name):  # lazy: importing favormap.ops does not load the map reader
-    if name in _ALIGN:
-        from . import align
-
-        return getattr(align, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-__all__ = list(_ALIGN)
+_EXPORTS = {
+    "AlignConfig": ".align_config",
+    "AlignmentError": ".align",
+    "MapAlignment": ".align",
+    "align_maps": ".align",
+    "MergeConfig": ".merge_config",
+    "merge_maps": ".merge",
+}
+# lazy: importing favormap.ops does not load the map reader
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__all__ = list(_EXPORTS)

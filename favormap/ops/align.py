@@ -26,23 +26,11 @@ import numpy as np
 
 from ..errors import FavormapError, IncompatibleMapsError
 from ..mapfile import Map
+from .align_config import AlignConfig
 
 
 class AlignmentError(FavormapError):
     """Two maps whose overlap does not determine a transform between them."""
-
-
-@dataclass
-class AlignConfig:
-    ratio: float = 0.9  # descriptor distance ratio (nearest / second nearest) below which a match is kept
-    threshold: float | None = None  # inlier distance in a's units (None: 2x a's median voxel size)
-    iterations: int = 4000  # RANSAC hypotheses
-    min_matches: int = 12
-    min_inliers: int = 12
-    min_inlier_ratio: float = 0.15
-    min_spread: float = 0.05  # inliers' 2nd / 1st principal std in a; below: collinear (degenerate)
-    bootstrap: int = 200
-    seed: int = 0
 
 
 @dataclass

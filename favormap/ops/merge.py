@@ -17,7 +17,7 @@ Merge rules
   land on nodes), and approximate otherwise: a warning is returned.
 - Deduplication: a landmark of a later map closer than the dedup radius (default: the voxel size of
   the existing landmark it is compared with) to an existing landmark, whose mean descriptor has a
-  cosine similarity > ``min_cosine`` with it, is a duplicate. The one with the higher quality (PSNR)
+  cosine similarity > ``MergeConfig.min_cosine`` with it, is a duplicate. The one with the higher quality (PSNR)
   is kept, the other dropped with its observations. Ties keep the existing landmark, so merging a
   map with itself gives the same landmarks.
 - Frames and cameras are concatenated (camera ids renumbered 0..K-1 in source order, cameras equal in
@@ -41,6 +41,7 @@ from ..io import working_camera
 from ..mapfile import Map, new_landmark_ids
 from ..mapfile.fields import field_name, metadata_datasets
 from ..mapfile.writer import MapWriter, check_output_path
+from .merge_config import MergeConfig
 from .rewrite import copy_voxels, write_frames_and_tracks, write_landmark_metadata
 
 # attributes that must be equal for maps to be merged
@@ -115,15 +116,15 @@ def _frame_scale(cameras_b: dict, frame_cam_b: np.ndarray, max_side_b: int, max_
 def merge_maps(
     paths,
     out,
-    dedup_radius: float | None = None,
+    config: MergeConfig | None = None,
     transform: np.ndarray | None = None,
-    min_cosine: float = 0.8,
-    dedup: bool = True,
     chunk: int = 4096,
     progress=None,
 ) -> MergeResult:
     """Merge the maps at ``paths`` into ``out`` (atomic). ``transform``: 4x4 b_to_a (rigid or
     similarity) applied to the second and later maps. See the module docstring for the rules."""
+    config = MergeConfig() if config is None else config
+    dedup_radius, min_cosine, dedup = config.dedup_radius, config.min_cosine, config.dedup
     paths = [Path(p) for p in paths]
     if len(paths) < 2:
         raise InputError("merge needs at least two maps")
