@@ -73,6 +73,22 @@ def test_extend_grows_tracks_and_adds_landmarks(maps, halves):
         np.testing.assert_array_equal(me.voxels(untouched)[0], ma.voxels(untouched)[0])
         assert me.provenance["operation"] == "extend" and me.provenance["extensions"][-1]["frames_added"] == len(b)
         assert me.provenance["config"] == ma.provenance["config"]
+        # projections are trusted as far as the map's tracking trusted its poses
+        limit = ma.provenance["stats"]["max_epipolar_px"]
+        assert me.provenance["extensions"][-1]["match_radius_px"] == pytest.approx(limit)
+
+
+def test_the_match_radius_follows_the_map_unless_given(maps):
+    from favormap.ops.extend import map_build_config, match_radius
+
+    root, _ = maps
+    with Map.open(root / "a.h5") as m:
+        cfg = map_build_config(m.provenance)
+        measured = m.provenance["stats"]["max_epipolar_px"]
+        assert cfg.max_epipolar_px is None and match_radius(m, cfg, ExtendConfig()) == pytest.approx(measured)
+        cfg.max_epipolar_px = 2.5  # a build given its limit
+        assert match_radius(m, cfg, ExtendConfig()) == 2.5
+        assert match_radius(m, cfg, ExtendConfig(match_radius_px=0.75)) == 0.75
 
 
 def test_extended_map_localizes_held_out_frames_like_a_full_build(maps, halves):

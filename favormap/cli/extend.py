@@ -48,7 +48,8 @@ def register(sub):
         type=float,
         default=_DEFAULTS["match_radius_px"],
         metavar="PX",
-        help="a landmark takes a keypoint within PX of its projection (default %(default)s)",
+        help="a landmark takes a keypoint within PX of its projection (default: the epipolar limit of the map's "
+        "tracking)",
     )
     p.add_argument(
         "--min-similarity",

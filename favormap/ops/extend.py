@@ -6,8 +6,9 @@
    config) and tracked among themselves as a build tracks them (:func:`favormap.build.track_frames`);
 2. every landmark visible from a new frame (in the image, within its trained distance range and within
    ``view_cone_deg`` of its viewing cone) takes the keypoint within ``match_radius_px`` of its projection
-   whose descriptor is most similar to the landmark's (its mean descriptor, or the one its grids render
-   towards the new camera), above ``min_similarity``; each keypoint goes to one landmark at most;
+   (default: the epipolar limit of the map's tracking) whose descriptor is most similar to the landmark's
+   (its mean descriptor, or the one its grids render towards the new camera), above ``min_similarity``;
+   each keypoint goes to one landmark at most;
 3. a new track with such a keypoint joins that landmark (its majority, if several); the landmarks that
    gained observations are triangulated again from all their observations (observations that no longer
    fit are dropped; a landmark whose new observations all fail keeps what it had), and the other new
@@ -83,7 +84,7 @@ def map_build_config(provenance: dict):
 def _check_config(config: ExtendConfig) -> None:
     if not (config.view_cone_deg >= 0 and np.isfinite(config.view_cone_deg)):
         raise InputError(f"view cone must be a finite number of degrees >= 0, not {config.view_cone_deg}")
-    if not (config.match_radius_px > 0 and np.isfinite(config.match_radius_px)):
+    if config.match_radius_px is not None and not (config.match_radius_px > 0 and np.isfinite(config.match_radius_px)):
         raise InputError(f"match radius must be > 0 px, not {config.match_radius_px}")
     if config.min_similarity is not None and not -1 <= config.min_similarity <= 1:
         raise InputError(f"min similarity must be in [-1, 1], not {config.min_similarity}")
@@ -185,7 +186,23 @@ def _unit(x) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
 
-def match_landmarks(m, ff, config: ExtendConfig, min_similarity: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def match_radius(m, cfg, config: ExtendConfig) -> float:
+    """The projection matching radius (px): ExtendConfig's, else the epipolar limit of the map's tracking
+    (its build config's, else the one its build measured), else the extractor's keypoint precision."""
+    from ..build_config import default_max_epipolar
+
+    if config.match_radius_px is not None:
+        return float(config.match_radius_px)
+    measured = (m.provenance.get("stats") or {}).get("max_epipolar_px")
+    for r in (cfg.max_epipolar_px, measured):
+        if r is not None and np.isfinite(r) and r > 0:
+            return float(r)
+    return float(default_max_epipolar(cfg.extractor))
+
+
+def match_landmarks(
+    m, ff, config: ExtendConfig, min_similarity: float, radius_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keypoints of the new frames ``ff`` (FrameFeatures) that observe landmarks of the map ``m``
     (MapData): (landmark row, frame, keypoint) of each match, all landmarks of a frame at once."""
     from ..geometry import camera_centers, project
@@ -194,7 +211,7 @@ def match_landmarks(m, ff, config: ExtendConfig, min_similarity: float) -> tuple
 
     limits = ViewLimits(angle_margin_deg=config.view_cone_deg)
     mean_desc = _unit(m.mean_descriptor)
-    r2 = config.match_radius_px**2
+    r2 = radius_px**2
     out_l, out_f, out_k = [], [], []
     for f in range(len(ff.features)):
         feats = ff.features[f]
@@ -222,6 +239,8 @@ def match_landmarks(m, ff, config: ExtendConfig, min_similarity: float) -> tuple
         best = score.argmax(1)
         ok = np.isfinite(score[np.arange(len(rows)), best])
         lm, k, s = rows[ok], best[ok], score[np.arange(len(rows)), best][ok]
+        if not len(lm):
+            continue
         # a keypoint claimed by several landmarks goes to the most similar one
         o = np.lexsort((-s, k))
         first = np.r_[True, k[o][1:] != k[o][:-1]]
@@ -349,7 +368,8 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         tracks = track_frames(ff, cfg)
     with stage("match"):
         min_sim = cfg.min_similarity if config.min_similarity is None else config.min_similarity
-        match_l, match_f, match_k = match_landmarks(m, ff, config, min_sim)
+        radius = match_radius(m, cfg, config)
+        match_l, match_f, match_k = match_landmarks(m, ff, config, min_sim, radius)
         counts = np.array([len(f.keypoints) for f in ff.features], np.int64)
         base = np.concatenate([[0], np.cumsum(counts)])
         joined, (add_l, add_f, add_k) = attach_tracks(tracks, L0, base, match_l, match_f, match_k)
@@ -464,7 +484,7 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
             "observations_added": n_added_obs,
             "landmarks_added": n_new,
             "view_cone_deg": config.view_cone_deg,
-            "match_radius_px": config.match_radius_px,
+            "match_radius_px": radius,
             "min_similarity": float(min_sim),
             "timings": timings,
         }

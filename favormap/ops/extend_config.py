@@ -19,8 +19,10 @@ class ExtendConfig:
     # a new observation is attached to a landmark only within this many degrees beyond the landmark's existing
     # viewing cone (its view_angle around view_dir), and only within its trained distance range
     view_cone_deg: float = 15.0
-    # a landmark projected into a new frame takes the most similar keypoint within this many pixels
-    match_radius_px: float = 4.0
+    # a landmark projected into a new frame takes the most similar keypoint within this many pixels (None: the
+    # epipolar limit the map's tracking held its matches to, given or measured by its build: a projection is
+    # trusted as far as the poses were)
+    match_radius_px: float | None = None
     # least cosine similarity of that keypoint's descriptor with the landmark's mean descriptor
     # (None: the map's tracking threshold, BuildConfig.min_similarity)
     min_similarity: float | None = None
