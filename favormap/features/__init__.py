@@ -1,8 +1,9 @@
 """features: keypoints + descriptors sampled anywhere, behind one small interface.
 
-The built-in extractors (``aliked``, ``disk``, ``sift``, ``xfeat``) are imported on first use, so importing
-this package, and creating and using the SIFT extractor, never imports torch. Their modules stay
-reachable as attributes (``features.sift.octave_of_size``)."""
+The built-in extractors (``alike`` and its variants ``alike-t/s/n/l``, ``aliked``, ``disk``, ``sift``,
+``xfeat``) are imported on first use, so importing this package, and creating and using the SIFT
+extractor, never imports torch. Their modules stay reachable as attributes
+(``features.sift.octave_of_size``)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ __all__ = [
     "register",
 ]
 
-_SUBMODULES = ("aliked", "aliked_net", "base", "disk", "heatmap", "packaged", "sift", "xfeat")
+_SUBMODULES = ("alike", "alike_net", "aliked", "aliked_net", "base", "disk", "heatmap", "packaged", "sift", "xfeat")
 
 
 def __getattr__(name: str):  # PEP 562: load a built-in extractor's module (and torch, if it needs it) on use

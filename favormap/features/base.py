@@ -108,6 +108,11 @@ class Extractor(ABC):
 # The built-in extractors, by name -> "module:Class". Their modules are imported on first use
 # (create / extractor_class), so that e.g. SIFT never imports torch, which XFeat and DISK need.
 _BUILTIN: dict[str, str] = {
+    "alike": "favormap.features.alike:ALIKEExtractor",
+    "alike-l": "favormap.features.alike:ALIKELExtractor",
+    "alike-n": "favormap.features.alike:ALIKENExtractor",
+    "alike-s": "favormap.features.alike:ALIKESExtractor",
+    "alike-t": "favormap.features.alike:ALIKETExtractor",
     "aliked": "favormap.features.aliked:ALIKEDExtractor",
     "disk": "favormap.features.disk:DISKExtractor",
     "sift": "favormap.features.sift:SIFTExtractor",
