@@ -47,7 +47,9 @@ class BuildConfig:
     extractor: str = "sift"  # a registered feature extractor (favormap.features.available())
     max_keypoints: int = 2048  # keypoints per mapping image
     max_side: int = 640  # images are downscaled so that max(w, h) <= max_side (0: keep)
-    min_track: int = 3  # frames a track must span to become a landmark
+    # frames a track must span to become a landmark: two-view tracks fill the landmark budget that longer
+    # tracks leave (select_landmarks keeps the longest first)
+    min_track: int = 2
     match_window: int = 10  # each frame is matched with this many next frames
     # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
     # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
