@@ -372,6 +372,8 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         **({"epipolar_median_px": round(epipolar_median, 3)} if epipolar_median == epipolar_median else {}),
         "triangulated": int(n_triangulated),
         "landmarks": int(len(lms)),
+        "max_landmarks": int(config.max_landmarks),  # the budget
+        "two_view_landmarks": int((lms.tracks.lengths == 2).sum()),  # tracks of two frames among the landmarks
         "mean_track_length": float(lms.tracks.lengths.mean()),
         # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean
         # reprojection error over its observations, as stored (float32) in landmarks/reproj_error

@@ -287,6 +287,10 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
     print_summary({**base, **st, "exact_poses": True})
     out = capsys.readouterr().out
     assert "localize aligns by default" in out and "--exact-poses" not in out
+    # the landmark budget and how much of it two-view tracks fill
+    assert st["max_landmarks"] == 400 and st["two_view_landmarks"] == int((np.asarray(m.track_length) == 2).sum())
+    print_summary({**base, "max_landmarks": 3000, "two_view_landmarks": 2})
+    assert "landmarks           5  (triangulated 6; budget 3000, 2 of two views)" in capsys.readouterr().out
 
 
 def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks():
@@ -326,3 +330,29 @@ def test_connected_components_number_components_as_scipy_does():
         want = scipy_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)), directed=False)[1]
         np.testing.assert_array_equal(connected_components(n, a, b), want)
     assert connected_components(0, [], []).shape == (0,)
+
+
+def test_two_view_tracks_fill_only_the_budget_that_longer_tracks_leave():
+    """With the default shortest track (two frames), points seen in two frames become landmarks; the
+    selection keeps every longer track before any two-view one, so a budget that the longer tracks fill
+    holds no two-view landmark, and a larger one takes the two-view landmarks after all the longer ones."""
+    from favormap.build import select_landmarks
+    from favormap.build_config import BuildConfig
+
+    assert BuildConfig().min_track == 2
+    X, T, D, rng = _rig(n_points=90)
+    visible = np.ones((len(T), len(X)), bool)
+    visible[:, :30] = False
+    visible[2:4, :30] = True  # points 0..29 seen in frames 2 and 3 only
+    feats, owners = _features(X, T, D, rng, visible=visible)
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=BuildConfig().min_track, window=3)
+    lms = triangulate(tracks, T, np.stack([CAM.K] * len(T)), TriangulationConfig(min_track=2))
+    lengths = lms.tracks.lengths
+    two = {int(o[0]) for o, n in zip(_owners_of(lms.tracks, owners), lengths) if n == 2}
+    assert two == set(range(30))  # every two-view point triangulated, and only those are two-view tracks
+    n_long = int((lengths > 2).sum())
+    assert n_long == 60
+    full = select_landmarks(lms, n_long)
+    assert len(full) == n_long and full.tracks.lengths.min() > 2
+    more = select_landmarks(lms, n_long + 10)
+    assert (more.tracks.lengths == 2).sum() == 10 and (more.tracks.lengths > 2).sum() == n_long

@@ -307,7 +307,10 @@ def print_summary(s: dict) -> None:
         med = s.get("epipolar_median_px")
         line += f" (right matches' median distance {med:.2f} px)" if med is not None else " (too few matches: floor)"
     print(line)
-    print(f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']})")
+    line = f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']}"
+    if "max_landmarks" in s:  # longest tracks first; two-view tracks fill what the longer ones leave
+        line += f"; budget {s['max_landmarks']}, {s['two_view_landmarks']} of two views"
+    print(line + ")")
     print(f"mean track length   {s['mean_track_length']:.2f}")
     print(reproj_error_line(s["median_reproj_error_px"]))
     if s.get("exact_poses"):
