@@ -175,16 +175,24 @@ def _undistort_maps(model: str, width: int, height: int, params: tuple, K: tuple
 def prepare_image(img: np.ndarray, camera: Camera, max_side: int | None = 640) -> tuple[np.ndarray, Camera]:
     """Undistort (to the working camera, :func:`working_camera`) and resize an in-memory RGB image."""
     out_cam = working_camera(camera, max_side)
-    if (out_cam.width, out_cam.height) != (camera.width, camera.height):
-        # resize first (cheaper), then undistort with the camera scaled to the new size
-        img = cv2.resize(img, (out_cam.width, out_cam.height), interpolation=cv2.INTER_AREA)
-        camera = camera.scaled(out_cam.width, out_cam.height)
+    size = (out_cam.width, out_cam.height)
     if camera.is_fisheye or (camera.working_fov is not None and not camera.is_pinhole):
+        # undistort at the source's own resolution (into the working camera at that size), then shrink:
+        # towards its edges the pinhole working camera needs more pixels per radian than a fisheye image
+        # resized to the working size still has, and remapping that one would blur the periphery
+        full = full_working_camera(camera)
         mx, my = _undistort_maps(
-            camera.model, camera.width, camera.height, tuple(camera.params.tolist()), tuple(out_cam.K.ravel().tolist())
+            camera.model, camera.width, camera.height, tuple(camera.params.tolist()), tuple(full.K.ravel().tolist())
         )
         img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
-    elif not camera.is_pinhole:
+        if size != (camera.width, camera.height):
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(img), out_cam
+    if size != (camera.width, camera.height):
+        # resize first (cheaper), then undistort with the camera scaled to the new size
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        camera = camera.scaled(*size)
+    if not camera.is_pinhole:
         dist = camera.opencv_distortion()
         if np.any(dist != 0):
             # OpenCV's pixel-centre convention is COLMAP's minus 0.5.
