@@ -165,3 +165,31 @@ def test_fisheye_map_localizes_as_well_as_its_pinhole_working_camera(tmp_path):
         held_out = write_sequence(tmp_path / f"{name}_queries", camera=cam, poses=queries)
         median[name] = np.median(localize_perturbed(Localizer(path), held_out.frames)[:, 0])
     assert median["fisheye"] <= 1.2 * median["pinhole"], median
+
+
+def test_fisheye_frames_larger_than_the_working_size_keep_their_sharpness():
+    """A fisheye frame larger than the working size is undistorted at its own resolution and then
+    shrunk. Its working image keeps well over half of the sharpness (variance of the Laplacian) of the
+    same view rendered directly by the pinhole working camera with anti-aliasing; shrinking the frame
+    first and undistorting the small image stretches the periphery and loses a good part of that."""
+    from favormap.synthetic import camera_path, make_room
+    from favormap.synthetic.render import render
+
+    f = 320 / np.radians(65)
+    fisheye = Camera("OPENCV_FISHEYE", 640, 480, [f, f, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0])
+    pinhole = working_camera(fisheye, 320)
+    scene, pose = make_room(0), camera_path(12)[3]
+    direct, _ = render(scene, pinhole, pose, with_depth=False)
+    source, _ = render(scene, fisheye, pose, with_depth=False)
+    undistorted, cam = prepare_image(source, fisheye, 320)
+    np.testing.assert_allclose(cam.K, pinhole.K)
+
+    def sharpness(img):
+        lap = cv2.Laplacian(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32), cv2.CV_32F)
+        return float(lap[8:-8, 8:-8].var())  # the border, black outside the fisheye's view, left out
+
+    shrunk_first, _ = prepare_image(
+        cv2.resize(source, (320, 240), interpolation=cv2.INTER_AREA), fisheye.scaled(320, 240), 320
+    )
+    assert sharpness(undistorted) >= 0.45 * sharpness(direct)
+    assert sharpness(shrunk_first) <= 0.75 * sharpness(undistorted)
