@@ -49,8 +49,9 @@ def test_flat_folder_detected_with_its_intrinsics(tmp_path, caplog):
         np.testing.assert_allclose(f.cam_from_world, T, atol=1e-12)
     cam = seq.cameras[0]
     assert cam.model == "PINHOLE" and (cam.width, cam.height) == (W, H)
-    # the default policy keeps the file's focal, and says so in one line
-    expected = 58.5 if sevenscenes_flat.FOCAL_POLICY == "file" else 52.5
+    # the default policy replaces the published depth focal by the RGB camera's, and says so in one line
+    assert sevenscenes_flat.FOCAL_POLICY == "rgb"
+    expected = 52.5
     np.testing.assert_allclose(cam.params, [expected, expected, 32, 24])
     assert seq.extra["focal"]["fx"] == pytest.approx(expected)
     lines = [r.getMessage() for r in caplog.records if "focal" in r.getMessage()]

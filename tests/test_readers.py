@@ -250,9 +250,9 @@ def test_7scenes_axes_and_defaults(tmp_path):
     assert seq.format == "7scenes"
     np.testing.assert_array_equal(seq.frames[0].cam_from_world, T)
     cam = seq.cameras[0]
-    # default 585/320/240 at 640x480, rescaled to the 64x48 images
+    # default 525/320/240 at 640x480 (the RGB camera's focal), rescaled to the 64x48 images
     assert cam.model == "PINHOLE" and (cam.width, cam.height) == (W, H)
-    np.testing.assert_allclose(cam.params, [58.5, 58.5, 32, 24])
+    np.testing.assert_allclose(cam.params, [52.5, 52.5, 32, 24])
     assert_looks_at_origin(seq)
     assert_axes(seq, 0, right=(1, 0, 0), up=(0, -1, 0))
 

@@ -241,8 +241,9 @@ REAL_SPLITS = {
     "castle-holdout": ("castle", "holdout-3"),
     "dino-holdout": ("dino", "holdout-5"),
 }
-# 7-Scenes with the RGB focal (525 px) instead of the file's 585 px (not in a suite: the focal measurement)
-EXTRA_SPLITS = {"7scenes-holdout-f525": ("7scenes", "holdout-5"), "7scenes-sparse-f525": ("7scenes", "sparse")}
+# 7-Scenes with the focal its file holds (585 px, the depth camera's) instead of the reader's RGB focal
+# (525 px; not in a suite: the focal measurement)
+EXTRA_SPLITS = {"7scenes-holdout-f585": ("7scenes", "holdout-5"), "7scenes-sparse-f585": ("7scenes", "sparse")}
 SUITES = {
     "real": list(REAL_SPLITS),
     "real-quick": ["7scenes-holdout", "cup-holdout", "castle-holdout", "dino-holdout", "fern-holdout"],
@@ -278,10 +279,10 @@ def real_splits(which: list[str]) -> list[Split]:
         if not root.exists():
             print(f"(skipping {name}: {root} not found)", file=sys.stderr)
             continue
-        rgb = name.endswith("-f525")
-        if (key, rgb) not in cache:
-            cache[key, rgb] = sevenscenes_flat.read_with_focal(root, "rgb") if rgb else read_sequence(root)
-        seq = cache[key, rgb]
+        as_file = name.endswith("-f585")
+        if (key, as_file) not in cache:
+            cache[key, as_file] = sevenscenes_flat.read_with_focal(root, "file") if as_file else read_sequence(root)
+        seq = cache[key, as_file]
         n = len(seq)
         order = _natural_order(seq)
         if kind.startswith("holdout-"):

@@ -9,8 +9,9 @@
       TrainSplit.txt, TestSplit.txt  optional, lines ``sequence1`` -> seq-01
       camera.txt | intrinsics.txt    optional: a 3x3 K (9 numbers), or one COLMAP camera line
 
-Intrinsics: the 7-Scenes default is PINHOLE fx = fy = 585, cx = 320, cy = 240 for 640x480, unless a
-``camera.txt`` / ``intrinsics.txt`` is present. The image size is read from the first colour image;
+Intrinsics: PINHOLE fx = fy = 525, cx = 320, cy = 240 for 640x480 (the RGB camera's focal, as DSAC*,
+ACE and hloc use it; the 585 px that 7-Scenes publishes is the depth camera's), unless a ``camera.txt`` /
+``intrinsics.txt`` is present. The image size is read from the first colour image;
 a default (or COLMAP-line) camera of another size is rescaled to it.
 
 Every colour image needs its pose file and every pose file its colour image (SequenceError
@@ -45,7 +46,7 @@ from .common import (
 )
 
 NAME = "7scenes"
-DEFAULT_CAMERA = Camera("PINHOLE", 640, 480, [585.0, 585.0, 320.0, 240.0])
+DEFAULT_CAMERA = Camera("PINHOLE", 640, 480, [525.0, 525.0, 320.0, 240.0])
 CAMERA_FILES = ("camera.txt", "intrinsics.txt")
 _COLOR_RE = re.compile(r"^(frame-\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 _POSE_RE = re.compile(r"^(frame-\d+)\.pose\.txt$")

@@ -30,8 +30,10 @@ NAME = "7scenes-flat"
 INTRINSICS_FILE = "camera-intrinsics.txt"
 DEPTH_FOCAL_PX = 585.0  # the published 7-Scenes focal (640x480): the depth camera's
 RGB_FOCAL_PX = 525.0  # the RGB focal that DSAC*, ACE and hloc use (640x480)
-# "file": the focal in camera-intrinsics.txt; "rgb": RGB_FOCAL_PX where the file holds the depth focal
-FOCAL_POLICY = "file"
+# "file": the focal in camera-intrinsics.txt; "rgb": RGB_FOCAL_PX where the file holds the depth focal. The
+# RGB focal is the default: the tracks fit the poses better with it and more queries localize
+# (docs/accuracy.md, "7-Scenes focal length")
+FOCAL_POLICY = "rgb"
 log = logging.getLogger(__name__)
 
 
