@@ -22,6 +22,11 @@ FISHEYE = {
 }
 
 
+# a 640x480 equidistant fisheye seeing 130 degrees across (f = 320 px / 65 deg), for the map-level tests
+_F = 320 / np.radians(65)
+WIDE_FISHEYE = Camera("OPENCV_FISHEYE", 640, 480, [_F, _F, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0])
+
+
 def _image(path, w=160, h=120):
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.random.default_rng(0).integers(0, 255, (h, w, 3), np.uint8))
@@ -152,8 +157,7 @@ def test_fisheye_map_localizes_as_well_as_its_pinhole_working_camera(tmp_path):
     from favormap.mapfile import write_map
     from favormap.synthetic import camera_path, make_room, random_views_near, write_sequence
 
-    f = 320 / np.radians(65)
-    fisheye = Camera("OPENCV_FISHEYE", 640, 480, [f, f, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0])
+    fisheye = WIDE_FISHEYE
     pinhole = working_camera(fisheye, 320)
     poses = camera_path(12)
     queries = random_views_near(poses, 30, seed=3, max_trans=0.05, max_rot_deg=3.0, scene=make_room(0))
@@ -175,8 +179,7 @@ def test_fisheye_frames_larger_than_the_working_size_keep_their_sharpness():
     from favormap.synthetic import camera_path, make_room
     from favormap.synthetic.render import render
 
-    f = 320 / np.radians(65)
-    fisheye = Camera("OPENCV_FISHEYE", 640, 480, [f, f, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0])
+    fisheye = WIDE_FISHEYE
     pinhole = working_camera(fisheye, 320)
     scene, pose = make_room(0), camera_path(12)[3]
     direct, _ = render(scene, pinhole, pose, with_depth=False)
