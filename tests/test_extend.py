@@ -52,30 +52,54 @@ def maps(halves, tmp_path_factory):
     return root, summary
 
 
-def test_extend_grows_tracks_and_adds_landmarks(maps, halves):
+def test_extend_grows_tracks_and_adds_landmarks_within_the_budget(maps, halves):
     root, s = maps
     _, a, b, _ = halves
     assert s.landmarks_grown > 0 and s.observations_added >= s.landmarks_grown and s.landmarks_added > 0
     with Map.open(root / "a.h5") as ma, Map.open(root / "extended.h5") as me:
         assert me.num_frames == len(a) + len(b) == s.frames_before + s.frames_added
         assert me.frame_names[: len(a)] == ma.frame_names
-        assert len(me) == len(ma) + s.landmarks_added == s.landmarks_after
-        np.testing.assert_array_equal(me.ids[: len(ma)], ma.ids)  # existing landmarks keep their ids and rows
+        assert len(me) == len(ma) + s.landmarks_added - s.landmarks_removed == s.landmarks_after
+        # the map held its budget already: new landmarks replace its weakest ones, as a build would choose
+        budget = _config().max_landmarks
+        assert len(ma) == budget and s.landmarks_removed == s.landmarks_added and len(me) == budget
+        kept = len(ma) - s.landmarks_removed
+        row_in_a = {int(i): r for r, i in enumerate(ma.ids)}
+        rows = np.array([row_in_a[int(i)] for i in me.ids[:kept]])
+        assert (np.diff(rows) > 0).all()  # the map's landmarks keep their ids and order; the new ones follow
+        assert not np.isin(me.ids[kept:], ma.ids).any()
+        removed = np.setdiff1d(np.arange(len(ma)), rows)
+        assert ma.track_length[removed].max() <= me.track_length.min()  # the longest tracks are kept
         tl, tf, _ = me.tracks()
         per_lm_new = np.bincount(tl[tf >= len(a)], minlength=len(me))
-        assert (per_lm_new[: len(ma)] > 0).sum() == s.landmarks_grown
-        assert (per_lm_new[len(ma) :] >= 3).all()  # new landmarks: tracks among the new frames
+        assert (per_lm_new[:kept] > 0).sum() == s.landmarks_grown
+        assert (per_lm_new[kept:] >= _config().min_track).all()  # new landmarks: tracks among the new frames
         np.testing.assert_array_equal(np.bincount(tl, minlength=len(me)), me.track_length)
-        grown = per_lm_new[: len(ma)] > 0
-        assert np.mean(me.track_length[: len(ma)][grown]) > np.mean(ma.track_length[grown])
-        # untouched landmarks keep their grids; grown ones are fine-tuned
+        np.testing.assert_array_equal(np.bincount(tl[tf < len(a)], minlength=len(me))[kept:], 0)
+        grown = per_lm_new[:kept] > 0
+        assert np.mean(me.track_length[:kept][grown]) > np.mean(ma.track_length[rows[grown]])
+        # untouched landmarks keep their grids and observations; grown ones are fine-tuned
         untouched = np.flatnonzero(~grown)
-        np.testing.assert_array_equal(me.voxels(untouched)[0], ma.voxels(untouched)[0])
+        np.testing.assert_array_equal(me.voxels(untouched)[0], ma.voxels(rows[untouched])[0])
+        np.testing.assert_array_equal(me.track_length[untouched], ma.track_length[rows[untouched]])
         assert me.provenance["operation"] == "extend" and me.provenance["extensions"][-1]["frames_added"] == len(b)
+        assert me.provenance["extensions"][-1]["landmarks_removed"] == s.landmarks_removed
         assert me.provenance["config"] == ma.provenance["config"]
         # projections are trusted as far as the map's tracking trusted its poses
         limit = ma.provenance["stats"]["max_epipolar_px"]
         assert me.provenance["extensions"][-1]["match_radius_px"] == pytest.approx(limit)
+
+
+def test_a_budget_above_every_candidate_keeps_every_landmark_of_the_map(maps, halves, tmp_path):
+    root, s0 = maps
+    with Map.open(root / "a.h5") as ma:
+        n = len(ma)
+    s = extend_map(root / "a.h5", halves[2], tmp_path / "big.h5", ExtendConfig(max_landmarks=10**6))
+    assert s.landmarks_removed == 0 and s.landmarks_after == n + s.landmarks_added
+    assert s.landmarks_added > s0.landmarks_added  # the budget had left out new tracks too
+    assert s.landmarks_grown >= s0.landmarks_grown  # no grown landmark is left out either
+    with Map.open(root / "a.h5") as ma, Map.open(tmp_path / "big.h5") as me:
+        np.testing.assert_array_equal(me.ids[:n], ma.ids)
 
 
 def test_the_match_radius_follows_the_map_unless_given(maps):
@@ -137,7 +161,7 @@ def test_a_failure_while_writing_leaves_the_input_untouched_and_no_output(maps, 
 
     monkeypatch.setattr(writer.MapWriter, "put", failing_put)
     with pytest.raises(OSError, match="disk full"):
-        extend_map(src, halves[2], tmp_path / "out.h5", ExtendConfig(max_new_landmarks=20))
+        extend_map(src, halves[2], tmp_path / "out.h5", ExtendConfig(max_landmarks=200))
     assert _digest(src) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5"]  # no output, no partial file
 
@@ -156,7 +180,7 @@ def test_transform_moves_the_new_poses_into_the_map_frame(maps, halves, tmp_path
         root / "a.h5",
         b_other,
         tmp_path / "out.h5",
-        ExtendConfig(transform=np.linalg.inv(S).tolist(), max_new_landmarks=20),
+        ExtendConfig(transform=np.linalg.inv(S).tolist()),
     )
     with Map.open(tmp_path / "out.h5") as m:
         np.testing.assert_allclose(
@@ -208,9 +232,9 @@ def test_cli_defaults_are_the_configs():
     sub = next(a for a in make_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["extend"]
     d = {a.dest: a.default for a in sub._actions}
     c = ExtendConfig()
-    assert (d["view_cone"], d["match_radius"], d["min_similarity"], d["max_new_landmarks"]) == (
+    assert (d["view_cone"], d["match_radius"], d["min_similarity"], d["max_landmarks"]) == (
         c.view_cone_deg,
         c.match_radius_px,
         c.min_similarity,
-        c.max_new_landmarks,
+        c.max_landmarks,
     )

@@ -58,11 +58,12 @@ def register(sub):
         help="least descriptor cosine of such a keypoint (default: the map's tracking threshold)",
     )
     p.add_argument(
-        "--max-new-landmarks",
+        "--max-landmarks",
         type=int,
-        default=_DEFAULTS["max_new_landmarks"],
+        default=_DEFAULTS["max_landmarks"],
         metavar="N",
-        help="new landmarks at most (default: the map's landmark budget times the new frames' share of all frames)",
+        help="landmarks of the extended map at most, the longest tracks kept as a build keeps them (default: the "
+        "map's landmark budget, or its landmark count where that is larger)",
     )
     p.add_argument("--device", default=_DEFAULTS["device"], help="torch device of the training (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -88,7 +89,7 @@ def run(args) -> int:
         view_cone_deg=args.view_cone,
         match_radius_px=args.match_radius,
         min_similarity=args.min_similarity,
-        max_new_landmarks=args.max_new_landmarks,
+        max_landmarks=args.max_landmarks,
         format=args.format,
         device=auto_device(args.device),
     )
@@ -115,7 +116,8 @@ def run(args) -> int:
     print(f"frames              {s.frames_before} + {s.frames_added}")
     print(
         f"landmarks           {s.landmarks_before} -> {s.landmarks_after}  ({s.landmarks_grown} grown by "
-        f"{s.observations_added} observations, {s.landmarks_added} new)"
+        f"{s.observations_added} observations, {s.landmarks_added} new, {s.landmarks_removed} left out of the "
+        f"budget)"
     )
     print(f"file                {args.output}  ({human_size(d['file_size'])})")
     print("seconds per stage   " + ", ".join(f"{k} {v:.1f}" for k, v in s.timings.items()))

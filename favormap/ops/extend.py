@@ -12,7 +12,9 @@
 3. a new track with such a keypoint joins that landmark (its majority, if several); the landmarks that
    gained observations are triangulated again from all their observations (observations that no longer
    fit are dropped; a landmark whose new observations all fail keeps what it had), and the other new
-   tracks are triangulated into new landmarks (at most ``max_new_landmarks``, the longest tracks first);
+   tracks are triangulated into new landmarks; the extended map keeps the landmarks a build would keep
+   within its landmark budget (``max_landmarks``: the longest tracks, grown ones counted as grown, among
+   the map's landmarks and the new ones), so it holds as many landmarks as a build of all its frames;
 4. the grown landmarks' grids are fine-tuned and the new landmarks' trained, in one training
    (:func:`favormap.voxels.batches.train_batches`, the map's voxel settings): a grown landmark trains on
    the patches of its new observations, sampled from the new frames, and on those of its existing
@@ -53,6 +55,7 @@ class ExtendSummary:
     landmarks_grown: int  # existing landmarks that gained observations
     observations_added: int  # new observations of existing landmarks
     landmarks_added: int  # new landmarks from the new frames' own tracks
+    landmarks_removed: int  # the map's landmarks left out of the landmark budget (ExtendConfig.max_landmarks)
     landmarks_after: int
     transform: list | None = None  # the new_to_map similarity applied (None: none)
     alignment: dict | None = None  # the estimated alignment (ExtendConfig.align)
@@ -88,8 +91,8 @@ def _check_config(config: ExtendConfig) -> None:
         raise InputError(f"match radius must be > 0 px, not {config.match_radius_px}")
     if config.min_similarity is not None and not -1 <= config.min_similarity <= 1:
         raise InputError(f"min similarity must be in [-1, 1], not {config.min_similarity}")
-    if config.max_new_landmarks is not None and config.max_new_landmarks < 0:
-        raise InputError(f"max new landmarks must be >= 0, not {config.max_new_landmarks}")
+    if config.max_landmarks is not None and config.max_landmarks < 1:
+        raise InputError(f"max landmarks must be >= 1, not {config.max_landmarks}")
     if config.align and config.transform is not None:
         raise InputError("align and transform exclude each other")
 
@@ -206,12 +209,12 @@ def match_landmarks(
     """Keypoints of the new frames ``ff`` (FrameFeatures) that observe landmarks of the map ``m``
     (MapData): (landmark row, frame, keypoint) of each match, all landmarks of a frame at once."""
     from ..geometry import camera_centers, project
+    from ..localize.matching import radius_pairs
     from ..visibility import ViewLimits, visible_mask
     from ..voxels.render_numpy import render_from_camera_numpy
 
     limits = ViewLimits(angle_margin_deg=config.view_cone_deg)
     mean_desc = _unit(m.mean_descriptor)
-    r2 = radius_px**2
     out_l, out_f, out_k = [], [], []
     for f in range(len(ff.features)):
         feats = ff.features[f]
@@ -222,23 +225,31 @@ def match_landmarks(
         rows = np.flatnonzero(visible_mask(m.positions, cam, T, m.view_dir, m.view_angle, m.depth_range, limits))
         if not len(rows):
             continue
-        uv = project(cam.K, T, m.positions[rows])
+        # only the pairs within the radius are compared: the landmarks with a keypoint that near are rendered
+        li, kj = radius_pairs(project(cam.K, T, m.positions[rows]), kp, radius_px)
+        if not len(li):
+            continue
+        near, li = np.unique(li, return_inverse=True)
+        rows = rows[near]
         D = np.ascontiguousarray(feats.descriptors, np.float32)
         R3 = m.grid_resolution**3
-        rendered = render_from_camera_numpy(
-            np.asarray(m.descriptors[rows], np.float32).reshape(len(rows), R3, -1),
-            np.asarray(m.density[rows], np.float32).reshape(len(rows), R3),
-            np.asarray(m.positions[rows], np.float32),
-            np.asarray(m.voxel_size[rows], np.float32),
-            np.asarray(camera_centers(T), np.float32),
-            m.render_samples,
+        rendered = _unit(
+            render_from_camera_numpy(
+                np.asarray(m.descriptors[rows], np.float32).reshape(len(rows), R3, -1),
+                np.asarray(m.density[rows], np.float32).reshape(len(rows), R3),
+                np.asarray(m.positions[rows], np.float32),
+                np.asarray(m.voxel_size[rows], np.float32),
+                np.asarray(camera_centers(T), np.float32),
+                m.render_samples,
+            )
         )
-        sim = np.maximum(mean_desc[rows] @ D.T, _unit(rendered) @ D.T)  # (V, N)
-        d2 = ((uv[:, None, :] - kp[None, :, :]) ** 2).sum(-1)
-        score = np.where((d2 <= r2) & (sim >= min_similarity), sim, -np.inf)
-        best = score.argmax(1)
-        ok = np.isfinite(score[np.arange(len(rows)), best])
-        lm, k, s = rows[ok], best[ok], score[np.arange(len(rows)), best][ok]
+        sim = np.maximum(np.einsum("ij,ij->i", mean_desc[rows][li], D[kj]), np.einsum("ij,ij->i", rendered[li], D[kj]))
+        ok = sim >= min_similarity
+        li, kj, sim = li[ok], kj[ok], sim[ok]
+        # each landmark's most similar keypoint (ties: the lower keypoint index)
+        o = np.lexsort((kj, -sim, li))
+        first = np.r_[True, li[o][1:] != li[o][:-1]] if len(o) else np.zeros(0, bool)
+        lm, k, s = rows[li[o][first]], kj[o][first], sim[o][first]
         if not len(lm):
             continue
         # a keypoint claimed by several landmarks goes to the most similar one
@@ -296,6 +307,47 @@ def attach_tracks(tracks, n_landmarks: int, base: np.ndarray, match_l, match_f, 
 # -------------------------------------------------------------------------------------------------
 # the extension
 # -------------------------------------------------------------------------------------------------
+def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int):
+    """The landmarks of the extended map within ``budget``, chosen as a build chooses them
+    (:func:`favormap.build.select_landmarks`: the longest tracks, then the lowest mean reprojection error)
+    among the map's untouched landmarks, the grown ones (their tracks as grown) and the new ones.
+
+    Returns the grown landmarks kept (and their map rows), the new ones kept, and the sorted rows of the
+    map's landmarks left out (untouched or grown)."""
+    L0 = m.num_landmarks
+    untouched = np.ones(L0, bool)
+    untouched[grown_rows] = False
+    old = np.flatnonzero(untouched)
+    n_g = 0 if glms is None else len(glms)
+    n_n = 0 if nlms is None else len(nlms)
+    length = np.concatenate(
+        [
+            np.asarray(m.track_length, np.int64)[old],
+            glms.tracks.lengths if n_g else np.zeros(0, np.int64),
+            nlms.tracks.lengths if n_n else np.zeros(0, np.int64),
+        ]
+    )
+    error = np.concatenate(
+        [
+            np.asarray(m.reproj_error, np.float64)[old],
+            glms.mean_reproj_error if n_g else np.zeros(0),
+            nlms.mean_reproj_error if n_n else np.zeros(0),
+        ]
+    )
+    if len(length) <= budget:
+        return glms, grown_rows, nlms, np.zeros(0, np.int64)
+    keep = np.zeros(len(length), bool)
+    keep[np.lexsort((error, -length))[:budget]] = True
+    k_old, k_g, k_n = np.split(keep, [len(old), len(old) + n_g])
+    dropped = np.sort(np.concatenate([old[~k_old], grown_rows[~k_g]]))
+    if n_g:
+        glms = glms.select(np.flatnonzero(k_g)) if k_g.any() else None
+        grown_rows = grown_rows[k_g]
+    if n_n:
+        nlms = nlms.select(np.flatnonzero(k_n)) if k_n.any() else None
+    return glms, grown_rows, nlms, dropped
+
+
 class _Stages:
     def __init__(self, timings: dict, progress):
         self.timings, self.progress = timings, progress or (lambda *a: None)
@@ -342,7 +394,6 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         check_build_input,
         extract_sequence,
         landmark_geometry,
-        select_landmarks,
         track_frames,
         track_mean_descriptors,
         triangulate_tracks,
@@ -411,10 +462,9 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         keep_obs = np.isin(tracks.track_of_obs, free)
         ntr = tracks.select(keep_obs)
         nlms = triangulate_tracks(ntr, ff, cfg) if len(ntr) else None
-        budget = config.max_new_landmarks
-        if budget is None:
-            budget = int(round(cfg.max_landmarks * len(seq.frames) / max(M0 + len(seq.frames), 1)))
-        nlms = select_landmarks(nlms, budget) if nlms is not None and len(nlms) else None
+        nlms = nlms if nlms is not None and len(nlms) else None
+        budget = max(cfg.max_landmarks, L0) if config.max_landmarks is None else config.max_landmarks
+        glms, grown_rows, nlms, dropped = within_budget(m, glms, grown_rows, nlms, budget)
     n_grown = 0 if glms is None else len(glms)
     n_new = 0 if nlms is None else len(nlms)
     n_added_obs = 0 if glms is None else int((glms.tracks.frame_idx >= M0).sum())
@@ -463,12 +513,19 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         patches = None
         if m.track_patch is not None:
             patches = _patches(m, keep_old, all_lms, M0, seq, ff, cfg)
+        if len(dropped):  # the map's landmarks left out of the budget, with their observations
+            kept = np.ones(L0 + n_new, bool)
+            kept[dropped] = False
+            obs_kept = kept[tl]
+            tl, tf, txy = (np.cumsum(kept) - 1)[tl[obs_kept]].astype(np.int32), tf[obs_kept], txy[obs_kept]
+            patches = None if patches is None else patches[obs_kept]
+            arrays = {k: v[kept] for k, v in arrays.items()}
         o = np.argsort(tl, kind="stable")
         kw, extra = MapData.split_landmark_arrays(arrays)
         stats = dict(m.provenance.get("stats") or {})
         stats.update(
             frames=len(names),
-            landmarks=int(L0 + n_new),
+            landmarks=int(L0 + n_new - len(dropped)),
             mean_track_length=float(np.mean(arrays["track_length"])) if len(arrays["ids"]) else 0.0,
             median_reproj_error_px=median_landmark_reproj_error(arrays["reproj_error"].astype(np.float32)),
             median_psnr=float(np.median(arrays["quality"])) if len(arrays["ids"]) else float("nan"),
@@ -483,6 +540,7 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
             "landmarks_grown": n_grown,
             "observations_added": n_added_obs,
             "landmarks_added": n_new,
+            "landmarks_removed": len(dropped),
             "view_cone_deg": config.view_cone_deg,
             "match_radius_px": radius,
             "min_similarity": float(min_sim),
@@ -524,7 +582,8 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         landmarks_grown=n_grown,
         observations_added=n_added_obs,
         landmarks_added=n_new,
-        landmarks_after=L0 + n_new,
+        landmarks_removed=len(dropped),
+        landmarks_after=L0 + n_new - len(dropped),
         timings=timings,
         warnings=warnings,
     )
