@@ -27,6 +27,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_accuracy import paired_ratio  # noqa: E402, I001  (tools/, on the path above)
+
 FOX = ROOT.parent / "shared" / "data" / "fox"
 
 
@@ -99,6 +102,9 @@ def one_repeat(seq, args, k: int, work: Path) -> dict:
         row[f"{name}_localized"] = float(np.mean(np.isfinite(e[:, 0])))
         row[f"{name}_errors"] = e.tolist()
     row["error_ratio"] = row["extended_t"] / row["full_t"]
+    paired = paired_ratio(np.array(row["extended_errors"])[:, 0], np.array(row["full_errors"])[:, 0], seed=k)
+    row["paired_ratio"] = paired["ratio"] if paired else float("nan")
+    row["paired_ci95"] = paired["ci95"] if paired else [float("nan")] * 2
     row["time_ratio"] = row["extend_s"] / row["full_s"]
     return row
 
@@ -130,6 +136,11 @@ def table(rows: list[dict]) -> str:
     lines.append(
         f"median over {len(rows)} repeats: extended / full median translation error {med['error_ratio']:.3f} "
         f"(target <= 1.1), extend time / full build time {med['time_ratio']:.3f} (target <= 0.6)"
+    )
+    ci = rows[0]["paired_ci95"]
+    lines.append(
+        f"paired per query (repeat 0, queries both maps localize): extended / full translation error "
+        f"{rows[0]['paired_ratio']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] (geometric mean, 95 % bootstrap interval)"
     )
     return "\n".join(lines)
 
