@@ -252,6 +252,24 @@ def test_accuracy_benchmark_reuses_a_map_built_before_a_config_field_existed():
     assert not bench.same_build(stamp, key(now, ("a", "c")))
 
 
+def test_accuracy_benchmark_does_not_reuse_a_map_whose_cameras_were_read_otherwise(small_sequence):
+    """tools/bench_accuracy.py --reuse: the same frames read with another camera (a reader that changed a
+    focal length) make another map."""
+    import dataclasses
+
+    from favormap.build import BuildConfig
+
+    bench = _bench_accuracy()
+    cfg = BuildConfig()
+    key = bench.build_key(cfg, small_sequence)
+    assert bench.same_build(key, bench.build_key(cfg, small_sequence))
+    cams = {
+        i: dataclasses.replace(c, params=[1.1 * float(v) for v in c.params]) for i, c in small_sequence.cameras.items()
+    }
+    refocused = dataclasses.replace(small_sequence, cameras=cams)
+    assert not bench.same_build(key, bench.build_key(cfg, refocused))
+
+
 def test_accuracy_benchmark_rows_round_trip_plain_and_gzipped(tmp_path):
     """tools/bench_accuracy.py --json NAME.json.gz writes gzip-compressed rows (docs/benchmarks keeps them
     so), NAME.json plain JSON; --compare reads both, and the committed runs it points to."""

@@ -383,12 +383,25 @@ def same_build(stamp: str, key: str) -> bool:
     return stamp[end_old:] == key[end_new:] and with_defaults(defaults, old) == new
 
 
+def build_key(build_cfg, mapping) -> str:
+    """What identifies a map of the sequence ``mapping`` built with ``build_cfg`` (the stamp --reuse
+    compares, :func:`same_build`): the config's JSON, then the frames and their cameras as read (a map
+    built before a reader changed a camera, e.g. its focal length, is another map)."""
+    cams = sorted(
+        (int(i), c.model, int(c.width), int(c.height), [round(float(v), 6) for v in c.params], c.working_fov)
+        for i, c in mapping.cameras.items()
+    )
+    return (
+        json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in mapping.frames]) + str(cams)
+    )
+
+
 def build_or_load(split: Split, workdir: Path, build_cfg, reuse: bool, tag: str = "", device: str = "cpu"):
     from favormap.build import build_map
     from favormap.mapfile import write_map
 
     path = workdir / f"{split.files}{tag}.h5"
-    key = json.dumps(build_cfg.to_dict(), sort_keys=True, default=str) + str([f.name for f in split.mapping.frames])
+    key = build_key(build_cfg, split.mapping)
     stamp = path.with_suffix(".config")
     if reuse and path.exists() and stamp.exists() and same_build(stamp.read_text(), key):
         return path, None
