@@ -220,6 +220,8 @@ def test_bad_inputs_give_one_line_errors(maps, halves, tmp_path):
     assert "also an input" in _one_line_error(["extend", root / "a.h5", seq_root, "-o", root / "a.h5"], tmp_path)
     line = _one_line_error(["extend", root / "a.h5", seq_root, "-o", "out.h5", "--view-cone", "-3"], tmp_path)
     assert "view cone" in line
+    line = _one_line_error(["extend", root / "a.h5", seq_root, "-o", "out.h5", "--max-landmarks", "0"], tmp_path)
+    assert "max landmarks" in line
     line = _one_line_error(["extend", root / "a.h5", seq_root, "-o", "out.h5", "--align", "--transform", "x"], tmp_path)
     assert "exclude" in line
 
