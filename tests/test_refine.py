@@ -17,6 +17,7 @@ def _landmarks(rng, n=200):
     X = rng.uniform(-1.0, 1.0, size=(n, 3))
     m = SimpleNamespace(
         cameras={1: CAM},
+        max_side=640,
         depth_range=np.full((n, 2), 5.0),
         track_length=np.full(n, 5),
         view_angle=np.full(n, 5.0),
@@ -46,6 +47,18 @@ def test_covariances_are_long_along_the_training_views():
     assert np.allclose(np.sqrt(w[:2]), across)
     assert np.isclose(np.sqrt(w[2]), across / np.sin(np.radians(5.0)))
     assert abs(abs(v[2, 2]) - 1) < 1e-9  # the long axis is the viewing direction (z)
+
+
+def test_covariances_are_in_the_pixels_of_the_working_images():
+    """A map of 1920 x 1440 frames built at 640 px: the keypoint noise is in the working images'
+    pixels, so the covariances follow their focal length (a third of the full-size one)."""
+    rng = np.random.default_rng(0)
+    X, m = _landmarks(rng, 3)
+    small = landmark_covariances(m, np.arange(3), 1.0)
+    m.cameras = {1: Camera("PINHOLE", 1920, 1440, [1500.0, 1500.0, 960.0, 720.0])}
+    np.testing.assert_allclose(landmark_covariances(m, np.arange(3), 1.0), small, rtol=1e-9)
+    m.max_side = 0  # built at full size: the full focal length
+    np.testing.assert_allclose(landmark_covariances(m, np.arange(3), 1.0), small / 9, rtol=1e-9)
 
 
 def test_weighting_by_landmark_uncertainty_helps_far_from_the_mapping_views():

@@ -44,9 +44,14 @@ def mapping_pixel_sigma(map_: Map, rows: np.ndarray | None = None) -> np.ndarray
 
 def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray:
     """(len(rows), 3, 3) position covariances of landmarks ``rows`` (map units squared), for a
-    keypoint noise of ``pixel_sigma`` pixels in the mapping images (one value, or one per row)."""
+    keypoint noise of ``pixel_sigma`` pixels in the mapping images as the build saw them (the working
+    images of ``max_side``, whose pixels the reprojection errors and keypoints are measured in; one
+    value, or one per row)."""
+    from ..io.images import working_camera
+
     rows = np.asarray(rows, np.int64)
-    f = float(np.median([np.mean(c.focal) for c in map_.cameras.values()])) if map_.cameras else 1.0
+    focals = [np.mean(working_camera(c, map_.max_side).focal) for c in map_.cameras.values()]
+    f = float(np.median(focals)) if focals else 1.0
     return position_covariances(
         np.asarray(map_.depth_range[rows], np.float64).mean(axis=1),
         map_.track_length[rows],
