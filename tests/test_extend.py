@@ -78,16 +78,33 @@ def test_extend_grows_tracks_and_adds_landmarks_within_the_budget(maps, halves):
         np.testing.assert_array_equal(np.bincount(tl[tf < len(a)], minlength=len(me))[kept:], 0)
         grown = per_lm_new[:kept] > 0
         assert np.mean(me.track_length[:kept][grown]) > np.mean(ma.track_length[rows[grown]])
-        # untouched landmarks keep their grids and observations; grown ones are fine-tuned
+        # untouched landmarks keep their grids and observations; grown ones are fine-tuned unless their grids
+        # already render what the new frames saw
         untouched = np.flatnonzero(~grown)
         np.testing.assert_array_equal(me.voxels(untouched)[0], ma.voxels(rows[untouched])[0])
         np.testing.assert_array_equal(me.track_length[untouched], ma.track_length[rows[untouched]])
+        g = np.flatnonzero(grown)
+        same = np.all(me.voxels(g)[0] == ma.voxels(rows[g])[0], axis=tuple(range(1, me.voxels(g)[0].ndim)))
+        assert 0 < s.landmarks_retrained < s.landmarks_grown and (~same).sum() == s.landmarks_retrained
+        np.testing.assert_array_equal(me.cosine[g[same]], ma.cosine[rows[g[same]]])
         assert me.provenance["operation"] == "extend" and me.provenance["extensions"][-1]["frames_added"] == len(b)
         assert me.provenance["extensions"][-1]["landmarks_removed"] == s.landmarks_removed
         assert me.provenance["config"] == ma.provenance["config"]
         # projections are trusted as far as the map's tracking trusted its poses
         limit = ma.provenance["stats"]["max_epipolar_px"]
         assert me.provenance["extensions"][-1]["match_radius_px"] == pytest.approx(limit)
+
+
+def test_grids_that_do_not_render_the_new_views_are_retrained(maps, halves, tmp_path):
+    """A map whose landmarks claim a perfect fit (cosine 1) explains no new observation: every grown
+    landmark is trained again."""
+    root, s0 = maps
+    with Map.open(root / "a.h5") as ma:
+        m = ma.load()
+    m.cosine = np.ones_like(m.cosine)
+    write_map(m, tmp_path / "perfect.h5")
+    s = extend_map(tmp_path / "perfect.h5", halves[2], tmp_path / "out.h5", ExtendConfig())
+    assert s.landmarks_grown == s0.landmarks_grown and s.landmarks_retrained == s.landmarks_grown
 
 
 def test_a_budget_above_every_candidate_keeps_every_landmark_of_the_map(maps, halves, tmp_path):

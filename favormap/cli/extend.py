@@ -116,8 +116,8 @@ def run(args) -> int:
     print(f"frames              {s.frames_before} + {s.frames_added}")
     print(
         f"landmarks           {s.landmarks_before} -> {s.landmarks_after}  ({s.landmarks_grown} grown by "
-        f"{s.observations_added} observations, {s.landmarks_added} new, {s.landmarks_removed} left out of the "
-        f"budget)"
+        f"{s.observations_added} observations, {s.landmarks_retrained} of them retrained; {s.landmarks_added} new; "
+        f"{s.landmarks_removed} left out of the budget)"
     )
     print(f"file                {args.output}  ({human_size(d['file_size'])})")
     print("seconds per stage   " + ", ".join(f"{k} {v:.1f}" for k, v in s.timings.items()))

@@ -15,8 +15,10 @@
    tracks are triangulated into new landmarks; the extended map keeps the landmarks a build would keep
    within its landmark budget (``max_landmarks``: the longest tracks, grown ones counted as grown, among
    the map's landmarks and the new ones), so it holds as many landmarks as a build of all its frames;
-4. the grown landmarks' grids are fine-tuned and the new landmarks' trained, in one training
-   (:func:`favormap.voxels.batches.train_batches`, the map's voxel settings): a grown landmark trains on
+4. a grown landmark whose grids already render what the new frames saw of it (each new observation's
+   keypoint descriptor as close to the rendering towards its frame as the landmark's training patches were
+   to theirs) keeps them; the other grown landmarks' grids are fine-tuned and the new landmarks' trained, in
+   one training (:func:`favormap.voxels.batches.train_batches`, the map's voxel settings): a grown landmark trains on
    the patches of its new observations, sampled from the new frames, and on those of its existing
    observations as its current grids render them (the rays of the existing frames' patch pixels), and Adam
    starts from its current grids; so the mapping images need not be at hand, and the result stays close
@@ -53,6 +55,7 @@ class ExtendSummary:
     frames_added: int
     landmarks_before: int
     landmarks_grown: int  # existing landmarks that gained observations
+    landmarks_retrained: int  # grown landmarks whose grids were trained again (the others render what they see)
     observations_added: int  # new observations of existing landmarks
     landmarks_added: int  # new landmarks from the new frames' own tracks
     landmarks_removed: int  # the map's landmarks left out of the landmark budget (ExtendConfig.max_landmarks)
@@ -348,6 +351,41 @@ def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int):
     return glms, grown_rows, nlms, dropped
 
 
+def unexplained(m, glms, grown_rows: np.ndarray, M0: int, ff) -> np.ndarray:
+    """(len(glms),) bool: the grown landmarks whose grids must be trained again. A grown landmark keeps its
+    grids when they already render what the new frames saw of it: the descriptor of each of its new
+    observations' keypoints has at least the cosine with the descriptor its grids render towards that
+    frame that its training patches had with their renderings (``cosine``, its fit). Its position, track and
+    view cone are updated either way."""
+    from ..geometry import camera_centers
+    from ..voxels.render_numpy import render_from_camera_numpy
+
+    tr = glms.tracks
+    new = np.flatnonzero(tr.frame_idx >= M0)
+    j, f, k = tr.track_of_obs[new], tr.frame_idx[new] - M0, tr.keypoint_idx[new]
+    rows = grown_rows[j]
+    R3 = m.grid_resolution**3
+    ok = np.zeros(len(new), bool)
+    order = np.argsort(f, kind="stable")
+    bounds = np.searchsorted(f[order], np.arange(len(ff.features) + 1))
+    for frame in range(len(ff.features)):
+        sel = order[bounds[frame] : bounds[frame + 1]]
+        if not len(sel):
+            continue
+        r = rows[sel]
+        rendered = render_from_camera_numpy(
+            np.asarray(m.descriptors[r], np.float32).reshape(len(r), R3, -1),
+            np.asarray(m.density[r], np.float32).reshape(len(r), R3),
+            np.asarray(m.positions[r], np.float32),
+            np.asarray(m.voxel_size[r], np.float32),
+            np.asarray(camera_centers(ff.cam_from_world[frame]), np.float32),
+            m.render_samples,
+        )
+        seen = _unit(np.asarray(ff.features[frame].descriptors, np.float32)[k[sel]])
+        ok[sel] = np.einsum("ij,ij->i", rendered, seen) >= np.asarray(m.cosine, np.float32)[r]
+    return np.bincount(j[~ok], minlength=len(glms)) > 0
+
+
 class _Stages:
     def __init__(self, timings: dict, progress):
         self.timings, self.progress = timings, progress or (lambda *a: None)
@@ -471,12 +509,18 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
 
     # -- training: the grown landmarks fine-tuned, the new ones trained -----------------------------------
     with stage("train"):
-        upd = _training_set(m, glms, grown_rows, nlms, M0, ff, poses, Ks, cfg, extractor)
+        # a grown landmark whose grids already render what the new frames see of it keeps them
+        retrain = unexplained(m, glms, grown_rows, M0, ff) if n_grown else np.zeros(0, bool)
+        gtrain = glms.select(np.flatnonzero(retrain)) if retrain.any() else None
+        upd = _training_set(m, gtrain, grown_rows[retrain], nlms, M0, ff, poses, Ks, cfg, extractor)
         grids = train_batches(upd.rays, cfg.voxel, cfg.train_batch) if upd is not None else None
+    n_retrained = int(retrain.sum())
     # -- the output map ---------------------------------------------------------------------------
     with stage("write"):
         U = n_grown + n_new
         lm_rows = np.concatenate([grown_rows, np.arange(L0, L0 + n_new)]).astype(np.int64)
+        trained = np.concatenate([grown_rows[retrain], np.arange(L0, L0 + n_new)]).astype(np.int64)
+        T = len(trained)
         all_lms = _concat_landmarks(glms, nlms, M0)
         arrays = {k: np.array(getattr(m, k)) for k in MapData.landmark_names()}
         for k in list(arrays):
@@ -490,18 +534,19 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         if U:
             arrays["ids"][L0:] = new_landmark_ids(n_new, avoid=arrays["ids"][:L0])
             arrays["positions"][lm_rows] = all_lms.positions
-            arrays["voxel_size"][lm_rows] = upd.rays.sizes
             arrays["track_length"][lm_rows] = all_lms.tracks.lengths
             arrays["reproj_error"][lm_rows] = all_lms.mean_reproj_error
-            arrays["quality"][lm_rows] = grids.psnr
-            arrays["cosine"][lm_rows] = grids.cosine
             vd, va, dr = landmark_geometry(all_lms, poses)
             arrays["view_dir"][lm_rows], arrays["view_angle"][lm_rows], arrays["depth_range"][lm_rows] = vd, va, dr
-            arrays["mean_descriptor"][lm_rows] = track_mean_descriptors(
-                upd.rays, U, cfg.voxel.patch_size, cfg.voxel.mean_patch, cfg.voxel.patch_stride
+        if T:  # the trained landmarks' grids (the grown ones that kept theirs keep their voxel fields)
+            arrays["voxel_size"][trained] = upd.rays.sizes
+            arrays["quality"][trained] = grids.psnr
+            arrays["cosine"][trained] = grids.cosine
+            arrays["mean_descriptor"][trained] = track_mean_descriptors(
+                upd.rays, T, cfg.voxel.patch_size, cfg.voxel.mean_patch, cfg.voxel.patch_stride
             )
-            desc[lm_rows] = grids.descriptors.cpu().numpy().reshape(U, R, R, R, -1)
-            dens[lm_rows] = grids.density.cpu().numpy().reshape(U, R, R, R)
+            desc[trained] = grids.descriptors.cpu().numpy().reshape(T, R, R, R, -1)
+            dens[trained] = grids.density.cpu().numpy().reshape(T, R, R, R)
         arrays["descriptors"], arrays["density"] = desc, dens
         # observations: the untouched landmarks' as they were, then the updated landmarks'
         touched = np.zeros(L0 + n_new, bool)
@@ -538,6 +583,7 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
             "frames_added": len(seq.frames),
             "landmarks_before": L0,
             "landmarks_grown": n_grown,
+            "landmarks_retrained": n_retrained,
             "observations_added": n_added_obs,
             "landmarks_added": n_new,
             "landmarks_removed": len(dropped),
@@ -580,6 +626,7 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         frames_added=len(seq.frames),
         landmarks_before=L0,
         landmarks_grown=n_grown,
+        landmarks_retrained=n_retrained,
         observations_added=n_added_obs,
         landmarks_added=n_new,
         landmarks_removed=len(dropped),
