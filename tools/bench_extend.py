@@ -92,6 +92,7 @@ def one_repeat(seq, args, k: int, work: Path) -> dict:
         grown=s.landmarks_grown,
         added=s.landmarks_added,
         removed=s.landmarks_removed,
+        retrained=s.landmarks_retrained,
         observations_added=s.observations_added,
     )
     row["valid"] = validate(work / "ab.h5")
