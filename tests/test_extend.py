@@ -107,6 +107,15 @@ def test_grids_that_do_not_render_the_new_views_are_retrained(maps, halves, tmp_
     assert s.landmarks_grown == s0.landmarks_grown and s.landmarks_retrained == s.landmarks_grown
 
 
+def test_extending_a_map_with_its_own_frames_warns(maps, halves, tmp_path):
+    root, _ = maps
+    s = extend_map(root / "a.h5", halves[1], tmp_path / "twice.h5", ExtendConfig(max_landmarks=200))
+    n = len(halves[1])
+    assert len(s.warnings) == 1 and f"{n} of the {n} new frames are in the map" in s.warnings[0]
+    clean = extend_map(root / "a.h5", halves[2], tmp_path / "clean.h5", ExtendConfig(max_landmarks=200))
+    assert clean.warnings == []
+
+
 def test_a_budget_above_every_candidate_keeps_every_landmark_of_the_map(maps, halves, tmp_path):
     root, s0 = maps
     with Map.open(root / "a.h5") as ma:

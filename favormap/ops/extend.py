@@ -426,6 +426,17 @@ def _frames_and_cameras(m, seq):
     return cameras, names, cam_ids.astype(np.int32), poses
 
 
+def frames_in_map(m, seq) -> list[str]:
+    """Names of the frames of ``seq`` that the map ``m`` holds already: the same name and the same pose."""
+    index = {name: i for i, name in enumerate(m.frame_names)}
+    poses = np.asarray(m.cam_from_world, np.float64)
+    return [
+        f.name
+        for f in seq.frames
+        if f.name in index and np.allclose(poses[index[f.name]], f.cam_from_world, rtol=1e-5, atol=1e-6)
+    ]
+
+
 def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: dict) -> ExtendSummary:
     from ..build import (
         ExtractorSpec,
@@ -449,6 +460,12 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         raise InputError("the map's build configuration does not match the map (max_side, extractor)")
     stage = _Stages(timings, progress)
     warnings: list[str] = []
+    again = frames_in_map(m, seq)
+    if again:
+        warnings.append(
+            f"{len(again)} of the {len(seq.frames)} new frames are in the map already (the same name and pose, "
+            f"e.g. {again[0]}): they are added again and their observations count twice"
+        )
     L0, M0 = m.num_landmarks, m.num_frames
     extractor = ExtractorSpec(cfg.extractor, cfg.max_keypoints)
     with stage("extract"):
