@@ -164,6 +164,28 @@ def test_a_weak_pose_needs_the_prior_free_estimate_to_agree(small_map, queries):
     assert not res.success and "not confirmed" in res.message, res.message
 
 
+def test_a_prior_free_estimate_too_weak_to_localize_can_still_confirm(small_map, queries):
+    """SuccessChecks.confirm_min_inliers: a prior-free estimate with fewer inliers than min_inliers is no
+    pose to refine from, but one with at least confirm_min_inliers confirms a refined pose it agrees with."""
+    from favormap.localize import SuccessChecks
+
+    _, path = small_map
+    img, T = queries[2]
+    prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(4))
+    weak = dict(global_ratio=0.45)  # a strict ratio test: a prior-free estimate of few inliers
+    n = Localizer(path, LocalizeConfig(**weak)).localize(img).iterations[0].num_inliers  # the prior-free estimate's
+    res = Localizer(path, LocalizeConfig(checks=SuccessChecks(confirm_below_inliers=10**6, min_inliers=n + 1), **weak))
+    assert res.localize(img).iterations[0].success is False  # too weak to localize from
+    for confirm, confirmed in ((n, True), (n + 1, False), (0, False)):
+        checks = SuccessChecks(confirm_below_inliers=10**6, min_inliers=n + 1, confirm_min_inliers=confirm)
+        res = Localizer(path, LocalizeConfig(checks=checks, global_fallback=False, **weak)).localize(img, prior)
+        assert res.num_inliers > n and res.success is confirmed, (confirm, res.message)
+        if confirmed:
+            assert pose_error(res.cam_from_world, T)[0] < 0.01
+        else:
+            assert "without the prior no pose was found" in res.message
+
+
 def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries):
     """The default refines the last estimate on its inliers weighted by each landmark's position
     uncertainty (favormap.localize.refine), under a noise model fitted to those inliers

@@ -31,6 +31,8 @@ class SuccessChecking:
         if not res.success or evidence >= c.confirm_below_inliers:
             return
         coarse, it = self._global_pose(q, t)
+        if coarse is None and c.confirm_min_inliers and it.num_inliers >= c.confirm_min_inliers:
+            coarse = it.cam_from_world  # too few inliers to localize from, enough to agree with
         if coarse is not None:
             change = self._change(coarse, res.cam_from_world)
             res.checks["confirmation_change"], res.checks["confirmation_change_deg"] = change

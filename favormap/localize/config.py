@@ -34,6 +34,10 @@ class SuccessChecks:
     # close to it. This refuses poses that a repeated pattern lines up (keypoints on one copy matched to
     # landmarks on another). 0: never ask.
     confirm_below_inliers: int = 100
+    # The prior-free estimate confirms with this many inliers, fewer than a pose to report needs (min_inliers):
+    # it only has to agree with the refined pose, which is the evidence. 12: the structure baseline's success
+    # threshold. 0: only a prior-free estimate of min_inliers confirms.
+    confirm_min_inliers: int = 12
 
 
 @dataclass

@@ -229,7 +229,9 @@ class Localizer(SuccessChecking, FinalRefinement):
         ans = self._pnp(q, self.positions[rows[m[:, 0]]], m[:, 1], t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
-        pose = from_rigid3d(ans["cam_from_world"]) if ok else np.eye(4)
+        # a RANSAC pose below min_inliers is kept in the iteration: it may still confirm a refined pose
+        # (SuccessChecks.confirm_min_inliers), but it is no coarse pose to refine from
+        pose = from_rigid3d(ans["cam_from_world"]) if ans is not None else np.eye(4)
         return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
 
     def _visible(self, q: Query, pose: np.ndarray, t: dict) -> np.ndarray:
