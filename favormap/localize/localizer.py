@@ -84,6 +84,7 @@ class Localizer(SuccessChecking, FinalRefinement):
         if self.config.match_threshold is None:
             self.config = dataclasses.replace(self.config, match_threshold=self.extractor.policy.match_threshold)
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
+        self._map_focal = None  # the map's working focal length (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
         if self.config.align is None:

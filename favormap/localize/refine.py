@@ -42,16 +42,21 @@ def mapping_pixel_sigma(map_: Map, rows: np.ndarray | None = None) -> np.ndarray
     return reprojection_pixel_sigma(map_.reproj_error[rows], map_.track_length[rows])
 
 
-def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma) -> np.ndarray:
-    """(len(rows), 3, 3) position covariances of landmarks ``rows`` (map units squared), for a
-    keypoint noise of ``pixel_sigma`` pixels in the mapping images as the build saw them (the working
-    images of ``max_side``, whose pixels the reprojection errors and keypoints are measured in; one
-    value, or one per row)."""
+def working_focal(map_: Map) -> float:
+    """The median focal length (px) of the map's cameras in the images the build saw (the working
+    images of ``max_side``, whose pixels the reprojection errors and keypoints are measured in)."""
     from ..io.images import working_camera
 
-    rows = np.asarray(rows, np.int64)
     focals = [np.mean(working_camera(c, map_.max_side).focal) for c in map_.cameras.values()]
-    f = float(np.median(focals)) if focals else 1.0
+    return float(np.median(focals)) if focals else 1.0
+
+
+def landmark_covariances(map_: Map, rows: np.ndarray, pixel_sigma, focal: float | None = None) -> np.ndarray:
+    """(len(rows), 3, 3) position covariances of landmarks ``rows`` (map units squared), for a
+    keypoint noise of ``pixel_sigma`` pixels in the mapping images as the build saw them (one value, or
+    one per row). ``focal``: :func:`working_focal` of the map, computed here when not given."""
+    rows = np.asarray(rows, np.int64)
+    f = working_focal(map_) if focal is None else float(focal)
     return position_covariances(
         np.asarray(map_.depth_range[rows], np.float64).mean(axis=1),
         map_.track_length[rows],

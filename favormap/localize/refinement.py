@@ -3,8 +3,8 @@ refinement of the final pose under the landmarks' uncertainty (favormap.localize
 keypoint alignment (favormap.localize.align).
 
 :class:`FinalRefinement` is a part of :class:`favormap.localize.Localizer`: it uses the localizer's
-``config``, ``map``, ``positions``, ``source``, ``_aligner``, ``_map_sigma`` and its ``_visible`` and
-``_pnp`` steps."""
+``config``, ``map``, ``positions``, ``source``, ``_aligner``, ``_map_sigma``, ``_map_focal`` and its
+``_visible`` and ``_pnp`` steps."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from .refine import (
     mapping_pixel_sigma,
     projection_information,
     refine_pose,
+    working_focal,
 )
 from .result import IterationResult, Query
 
@@ -51,6 +52,13 @@ class FinalRefinement:
             cov = self._weighted(q, iters[-1], last, t)
         return last, cov
 
+    def _landmark_covariances(self, rows: np.ndarray) -> np.ndarray:
+        """Position covariances of landmarks ``rows`` under the mapping keypoint noise of
+        LocalizeConfig.landmark_sigma_px (the map's working focal length computed once)."""
+        if self._map_focal is None:
+            self._map_focal = working_focal(self.map)
+        return landmark_covariances(self.map, rows, self._landmark_sigma(rows), self._map_focal)
+
     def _landmark_sigma(self, rows: np.ndarray):
         """Mapping keypoint noise (px) behind landmarks ``rows``: LocalizeConfig.landmark_sigma_px."""
         v = self.config.landmark_sigma_px
@@ -71,7 +79,7 @@ class FinalRefinement:
         if cfg.align:
             kp = self._aligned(q, it.cam_from_world, last, kp, t)
         s = time.perf_counter()
-        Xcov = landmark_covariances(self.map, inl[:, 0], self._landmark_sigma(inl[:, 0]))
+        Xcov = self._landmark_covariances(inl[:, 0])
         ksig, scale = cfg.keypoint_sigma_px, None
         if cfg.refine_noise == "estimated" and len(inl) >= 6:
             it.cam_from_world, scale, ksig = estimate_noise(it.cam_from_world, X, kp, q.cam.K, Xcov, ksig)
@@ -117,7 +125,7 @@ class FinalRefinement:
             pose,
             self.positions[rows],
             q.cam.K,
-            landmark_covariances(self.map, rows, self._landmark_sigma(rows)),
+            self._landmark_covariances(rows),
             self.config.keypoint_sigma_px,
         )
 

@@ -180,7 +180,7 @@ class LandmarkRefinement:
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
         projected into the frame of ``result``."""
-        from .refine import landmark_covariances, projected_std
+        from .refine import projected_std
 
-        cov = landmark_covariances(self.localizer.map, rows, self.localizer._landmark_sigma(rows))
+        cov = self.localizer._landmark_covariances(rows)
         return projected_std(self.positions[rows], cov, result.cam_from_world, result.camera.K)
