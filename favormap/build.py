@@ -180,12 +180,50 @@ def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -
     return triangulate(tracks, ff.cam_from_world, np.stack([c.K for c in ff.cameras]), tri_cfg)
 
 
-def select_landmarks(lms: Landmarks, max_landmarks: int) -> Landmarks:
-    """Keep the most persistent (longest track), best triangulated (lowest error) landmarks."""
+def landmark_budget(
+    lengths: np.ndarray,
+    errors: np.ndarray,
+    obs_landmark: np.ndarray,
+    obs_frame: np.ndarray,
+    max_landmarks: int,
+    min_frame_landmarks: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which landmarks a map keeps: a bool mask, and the kept ones' indices best first.
+
+    The ``max_landmarks`` most persistent (longest track), best triangulated (lowest mean reprojection
+    error) landmarks; then each mapping frame that sees fewer than ``min_frame_landmarks`` of them gets its
+    best remaining ones up to that count (where its tracks allow). So the budget goes to the tracks
+    that see the most, and no stretch of the path is left with too few landmarks to localize a query
+    near it. ``obs_landmark``/``obs_frame``: the landmark and frame of every observation."""
+    n = len(lengths)
+    order = np.lexsort((errors, -np.asarray(lengths)))
+    keep = np.zeros(n, bool)
+    keep[order[:max_landmarks]] = True
+    if min_frame_landmarks > 0 and n > max_landmarks and len(obs_frame):
+        rank = np.empty(n, np.int64)
+        rank[order] = np.arange(n)
+        seen = np.bincount(obs_frame[keep[obs_landmark]], minlength=int(obs_frame.max()) + 1)
+        cand = np.flatnonzero(~keep[obs_landmark])
+        cand = cand[np.lexsort((rank[obs_landmark[cand]], obs_frame[cand]))]  # per frame, best first
+        frames = obs_frame[cand]
+        place = np.arange(len(cand)) - np.searchsorted(frames, frames)  # among the frame's candidates
+        keep[obs_landmark[cand[place < min_frame_landmarks - seen[frames]]]] = True
+    return keep, order[keep[order]]
+
+
+def select_landmarks(lms: Landmarks, max_landmarks: int, min_frame_landmarks: int = 0) -> Landmarks:
+    """The landmarks within the budget (:func:`landmark_budget`), best first."""
     if len(lms) <= max_landmarks:
         return lms
-    order = np.lexsort((lms.mean_reproj_error, -lms.tracks.lengths))
-    return lms.select(order[:max_landmarks])
+    _, order = landmark_budget(
+        lms.tracks.lengths,
+        lms.mean_reproj_error,
+        lms.tracks.track_of_obs,
+        lms.tracks.frame_idx,
+        max_landmarks,
+        min_frame_landmarks,
+    )
+    return lms.select(order)
 
 
 def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
@@ -325,7 +363,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         all_lms = triangulate_tracks(tracks, ff, config)
         if config.refine_window:
             all_lms = refine_landmarks(all_lms, seq, ff, config)
-        lms = select_landmarks(all_lms, config.max_landmarks)
+        lms = select_landmarks(all_lms, config.max_landmarks, config.min_frame_landmarks)
         n_tracks, n_triangulated = len(tracks), len(all_lms)
         epipolar_kept = tracks.epipolar_matches / max(tracks.matches, 1)
         epipolar_kept_3x = tracks.epipolar_matches_3x / max(tracks.matches, 1)
@@ -373,6 +411,9 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         "triangulated": int(n_triangulated),
         "landmarks": int(len(lms)),
         "max_landmarks": int(config.max_landmarks),  # the budget
+        "min_frame_landmarks": int(config.min_frame_landmarks),  # and the least a mapping frame keeps
+        # landmarks beyond the budget, kept for frames that would see fewer than min_frame_landmarks
+        "coverage_landmarks": max(int(len(lms)) - int(config.max_landmarks), 0),
         "two_view_landmarks": int((lms.tracks.lengths == 2).sum()),  # tracks of two frames among the landmarks
         "mean_track_length": float(lms.tracks.lengths.mean()),
         # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean

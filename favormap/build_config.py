@@ -27,6 +27,9 @@ def default_align_patches(extractor: str) -> int:
 # BuildConfig.exact_poses: the track alignment's window (px) and the stored observation patches' radius
 EXACT_POSES_REFINE_WINDOW = 9
 EXACT_POSES_PATCHES = 20
+# a mapping frame keeps at least this share of the landmark budget where its tracks allow
+# (BuildConfig.min_frame_landmarks): 300 of 3,000
+MIN_FRAME_SHARE = 0.1
 
 
 def localize_defaults(config: BuildConfig) -> dict:
@@ -70,6 +73,10 @@ class BuildConfig:
     max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
     min_angle_deg: float = 1.0  # a landmark's least triangulation angle
     max_landmarks: int = 3000  # the longest tracks are kept
+    # then every mapping frame that sees fewer landmarks than this gets its best remaining tracks up to
+    # this count (build.landmark_budget), so that queries near weakly covered frames find enough of them.
+    # None: a tenth of max_landmarks (MIN_FRAME_SHARE); 0: the budget alone
+    min_frame_landmarks: int | None = None
     # landmarks trained together in one task (seeded voxel.seed + batch index): the map depends on
     # this, not on who runs the batches (LocalExecutor or Ray workers)
     train_batch: int = 1024
@@ -79,6 +86,8 @@ class BuildConfig:
     threads: int | str | None = None
 
     def __post_init__(self):
+        if self.min_frame_landmarks is None:
+            self.min_frame_landmarks = int(self.max_landmarks * MIN_FRAME_SHARE)
         if self.voxel is None:
             self.voxel = VoxelConfig.preset(_policy(self.extractor).training_quality)
         if self.align_patches is None:

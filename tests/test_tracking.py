@@ -291,6 +291,11 @@ def test_build_reports_the_share_of_matches_within_the_epipolar_limit(small_map,
     assert st["max_landmarks"] == 400 and st["two_view_landmarks"] == int((np.asarray(m.track_length) == 2).sum())
     print_summary({**base, "max_landmarks": 3000, "two_view_landmarks": 2})
     assert "landmarks           5  (triangulated 6; budget 3000, 2 of two views)" in capsys.readouterr().out
+    print_summary(
+        {**base, "max_landmarks": 3000, "min_frame_landmarks": 300, "coverage_landmarks": 4, "two_view_landmarks": 2}
+    )
+    out = capsys.readouterr().out
+    assert "(triangulated 6; budget 3000 + 4 for frames that saw fewer than 300, 2 of two views)" in out
 
 
 def test_tracking_on_a_pool_of_threads_gives_the_serial_tracks():
@@ -356,3 +361,40 @@ def test_two_view_tracks_fill_only_the_budget_that_longer_tracks_leave():
     assert len(full) == n_long and full.tracks.lengths.min() > 2
     more = select_landmarks(lms, n_long + 10)
     assert (more.tracks.lengths == 2).sum() == 10 and (more.tracks.lengths > 2).sum() == n_long
+
+
+def test_frames_that_see_too_few_landmarks_keep_their_best_tracks_beyond_the_budget():
+    """The budget goes to the longest tracks; a frame that then sees fewer than min_frame_landmarks of
+    them gets its best remaining tracks (longer first) up to that count, where its tracks allow."""
+    from favormap.build import select_landmarks
+    from favormap.build_config import BuildConfig
+
+    assert BuildConfig().min_frame_landmarks == 300 and BuildConfig(max_landmarks=400).min_frame_landmarks == 40
+    X, T, D, rng = _rig(n_points=100)
+    visible = np.zeros((len(T), len(X)), bool)
+    visible[0:6, 0:50] = True  # six-view tracks, in frames 0-5
+    visible[5:8, 50:80] = True  # three-view tracks, in frames 5-7
+    visible[6:8, 80:100] = True  # two-view tracks, in frames 6-7
+    feats, owners = _features(X, T, D, rng, visible=visible)
+    tracks = track_features(feats, T, [CAM] * len(T), min_track=2, window=3)
+    lms = triangulate(tracks, T, np.stack([CAM.K] * len(T)), TriangulationConfig(min_track=2))
+    assert len(lms) == 100
+
+    def seen(sel):
+        return np.bincount(sel.tracks.frame_idx, minlength=len(T))
+
+    def points(sel):
+        return {int(o[0]) for o in _owners_of(sel.tracks, owners)}
+
+    budget_only = select_landmarks(lms, 50, 0)
+    assert points(budget_only) == set(range(50)) and seen(budget_only)[6:].tolist() == [0, 0]
+    covered = select_landmarks(lms, 50, 40)
+    assert seen(covered)[6:].tolist() == [40, 40]  # frames 6 and 7 reach 40: the 30 three-view tracks first
+    assert points(covered) >= set(range(80)) and len(points(covered) & set(range(80, 100))) == 10
+    kept_two = [e for e, n in zip(covered.mean_reproj_error, covered.tracks.lengths) if n == 2]
+    rest = [e for e, n in zip(lms.mean_reproj_error, lms.tracks.lengths) if n == 2]
+    assert max(kept_two) <= sorted(rest)[9] + 1e-12  # the two-view tracks of lowest error
+    assert (np.diff(covered.tracks.lengths) <= 0).all()  # best first, as the budget orders them
+    # a frame's tracks bound what it can reach; frames already above the count gain nothing
+    everything = select_landmarks(lms, 50, 1000)
+    assert len(everything) == 100 and seen(everything)[:5].tolist() == [50] * 5

@@ -69,6 +69,13 @@ def register(sub):
         "--max-landmarks", type=int, default=default("max_landmarks"), help="landmark budget (default %(default)s)"
     )
     p.add_argument(
+        "--min-frame-landmarks",
+        type=int,
+        default=None,
+        help="beyond the budget, each mapping frame keeps its best tracks up to this many landmarks "
+        "(0: the budget alone; default: a tenth of --max-landmarks)",
+    )
+    p.add_argument(
         "--max-reproj",
         type=float,
         default=default("max_reproj_px"),
@@ -221,6 +228,8 @@ def config_from_args(args):
             raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     if args.resize < 0:
         raise InputError("--resize must be >= 0")
+    if args.min_frame_landmarks is not None and args.min_frame_landmarks < 0:
+        raise InputError(f"--min-frame-landmarks must be >= 0, not {args.min_frame_landmarks}")
     if args.refine_window is not None and args.refine_window != 0 and args.refine_window < 3:
         raise InputError(f"--refine-window must be 0 (off) or at least 3 px, not {args.refine_window}")
     if args.align_patches is not None and not 0 <= args.align_patches <= 64:
@@ -244,6 +253,7 @@ def config_from_args(args):
     given = _given(
         min_track=args.min_track,
         max_landmarks=args.max_landmarks,
+        min_frame_landmarks=args.min_frame_landmarks,
         match_window=args.match_window,
         max_epipolar_px=args.max_epipolar,
         refine_window=args.refine_window,
@@ -309,7 +319,10 @@ def print_summary(s: dict) -> None:
     print(line)
     line = f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']}"
     if "max_landmarks" in s:  # longest tracks first; two-view tracks fill what the longer ones leave
-        line += f"; budget {s['max_landmarks']}, {s['two_view_landmarks']} of two views"
+        line += f"; budget {s['max_landmarks']}"
+        if s.get("coverage_landmarks"):
+            line += f" + {s['coverage_landmarks']} for frames that saw fewer than {s['min_frame_landmarks']}"
+        line += f", {s['two_view_landmarks']} of two views"
     print(line + ")")
     print(f"mean track length   {s['mean_track_length']:.2f}")
     print(reproj_error_line(s["median_reproj_error_px"]))

@@ -14,7 +14,8 @@
    fit are dropped; a landmark whose new observations all fail keeps what it had), and the other new
    tracks are triangulated into new landmarks; the extended map keeps the landmarks a build would keep
    within its landmark budget (``max_landmarks``: the longest tracks, grown ones counted as grown, among
-   the map's landmarks and the new ones), so it holds as many landmarks as a build of all its frames;
+   the map's landmarks and the new ones, then the best remaining tracks of frames that see fewer than the
+   map's ``min_frame_landmarks``), so it holds as many landmarks as a build of all its frames;
 4. a grown landmark whose grids already render what the new frames saw of it (each new observation's
    keypoint descriptor as close to the rendering towards its frame as the landmark's training patches were
    to theirs) keeps them; the other grown landmarks' grids are fine-tuned and the new landmarks' trained, in
@@ -310,24 +311,31 @@ def attach_tracks(tracks, n_landmarks: int, base: np.ndarray, match_l, match_f, 
 # -------------------------------------------------------------------------------------------------
 # the extension
 # -------------------------------------------------------------------------------------------------
-def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int):
+def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int, min_frame_landmarks: int, M0: int):
     """The landmarks of the extended map within ``budget``, chosen as a build chooses them
-    (:func:`favormap.build.select_landmarks`: the longest tracks, then the lowest mean reprojection error)
-    among the map's untouched landmarks, the grown ones (their tracks as grown) and the new ones.
+    (:func:`favormap.build.landmark_budget`: the longest tracks, then the lowest mean reprojection error,
+    then the best remaining tracks of frames that see fewer than ``min_frame_landmarks``) among the map's
+    untouched landmarks, the grown ones (their tracks as grown) and the new ones (of new frames, numbered
+    from ``M0``).
 
     Returns the grown landmarks kept (and their map rows), the new ones kept, and the sorted rows of the
     map's landmarks left out (untouched or grown)."""
+    from ..build import landmark_budget
+
     L0 = m.num_landmarks
     untouched = np.ones(L0, bool)
     untouched[grown_rows] = False
     old = np.flatnonzero(untouched)
     n_g = 0 if glms is None else len(glms)
     n_n = 0 if nlms is None else len(nlms)
+    if len(old) + n_g + n_n <= budget:
+        return glms, grown_rows, nlms, np.zeros(0, np.int64)
+    empty = np.zeros(0, np.int64)
     length = np.concatenate(
         [
             np.asarray(m.track_length, np.int64)[old],
-            glms.tracks.lengths if n_g else np.zeros(0, np.int64),
-            nlms.tracks.lengths if n_n else np.zeros(0, np.int64),
+            glms.tracks.lengths if n_g else empty,
+            nlms.tracks.lengths if n_n else empty,
         ]
     )
     error = np.concatenate(
@@ -337,10 +345,22 @@ def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int):
             nlms.mean_reproj_error if n_n else np.zeros(0),
         ]
     )
-    if len(length) <= budget:
-        return glms, grown_rows, nlms, np.zeros(0, np.int64)
-    keep = np.zeros(len(length), bool)
-    keep[np.lexsort((error, -length))[:budget]] = True
+    # every candidate's observations: (candidate, frame of the extended map)
+    old_tl, old_tf = np.asarray(m.track_landmark, np.int64), np.asarray(m.track_frame, np.int64)
+    pos = np.full(L0, -1, np.int64)
+    pos[old] = np.arange(len(old))
+    on_old = pos[old_tl] >= 0
+    obs_lm = np.concatenate(
+        [
+            pos[old_tl[on_old]],
+            glms.tracks.track_of_obs + len(old) if n_g else empty,
+            nlms.tracks.track_of_obs + len(old) + n_g if n_n else empty,
+        ]
+    )
+    obs_frame = np.concatenate(
+        [old_tf[on_old], glms.tracks.frame_idx if n_g else empty, nlms.tracks.frame_idx + M0 if n_n else empty]
+    )
+    keep, _ = landmark_budget(length, error, obs_lm, obs_frame, budget, min_frame_landmarks)
     k_old, k_g, k_n = np.split(keep, [len(old), len(old) + n_g])
     dropped = np.sort(np.concatenate([old[~k_old], grown_rows[~k_g]]))
     if n_g:
@@ -518,8 +538,8 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
         ntr = tracks.select(keep_obs)
         nlms = triangulate_tracks(ntr, ff, cfg) if len(ntr) else None
         nlms = nlms if nlms is not None and len(nlms) else None
-        budget = max(cfg.max_landmarks, L0) if config.max_landmarks is None else config.max_landmarks
-        glms, grown_rows, nlms, dropped = within_budget(m, glms, grown_rows, nlms, budget)
+        budget = cfg.max_landmarks if config.max_landmarks is None else config.max_landmarks
+        glms, grown_rows, nlms, dropped = within_budget(m, glms, grown_rows, nlms, budget, cfg.min_frame_landmarks, M0)
     n_grown = 0 if glms is None else len(glms)
     n_new = 0 if nlms is None else len(nlms)
     n_added_obs = 0 if glms is None else int((glms.tracks.frame_idx >= M0).sum())

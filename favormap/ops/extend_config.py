@@ -26,9 +26,9 @@ class ExtendConfig:
     # least cosine similarity of that keypoint's descriptor with the landmark's mean descriptor
     # (None: the map's tracking threshold, BuildConfig.min_similarity)
     min_similarity: float | None = None
-    # landmarks of the extended map at most, chosen as a build chooses them (the longest tracks first) among
-    # the map's landmarks, grown by the new frames, and the new frames' own tracks. None: the map's landmark
-    # budget (its build's max_landmarks), or its landmark count where that is larger (a merged map)
+    # the extended map's landmark budget, chosen as a build chooses them (the longest tracks first, then the
+    # best remaining tracks of frames that see fewer than the build's min_frame_landmarks) among the map's
+    # landmarks, grown by the new frames, and the new frames' own tracks. None: the map's build budget
     max_landmarks: int | None = None
     format: str | None = None  # the new sequence's format (None: detected)
     device: str = "cpu"  # torch device of the voxel training
