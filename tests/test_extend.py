@@ -266,3 +266,29 @@ def test_cli_defaults_are_the_configs():
         c.min_similarity,
         c.max_landmarks,
     )
+
+
+def test_an_extension_keeps_each_frame_covered_as_a_build_would(halves, tmp_path):
+    """Beyond the budget, every frame of the extended map, old or new, sees at least the map's
+    min_frame_landmarks landmarks, or as many as the candidates allow (an extension that keeps them all):
+    the landmarks a build's choice keeps among all the candidates."""
+    from favormap.build import build_map, landmark_budget
+
+    cfg = small_build_config(max_landmarks=50, min_frame_landmarks=500, voxel=_config().voxel)
+    write_map(build_map(halves[1], cfg), tmp_path / "a.h5")
+    s = extend_map(tmp_path / "a.h5", halves[2], tmp_path / "small.h5", ExtendConfig())
+    extend_map(tmp_path / "a.h5", halves[2], tmp_path / "all.h5", ExtendConfig(max_landmarks=10**6))
+    with Map.open(tmp_path / "small.h5") as ms, Map.open(tmp_path / "all.h5") as mall:
+        n = ms.num_frames
+        seen = np.bincount(ms.tracks()[1], minlength=n)
+        tl, tf, _ = mall.tracks()
+        allowed = np.bincount(tf, minlength=n)
+        assert s.landmarks_after == len(ms) > 50 and s.landmarks_added > 0
+        assert (seen >= np.minimum(500, allowed)).all() and (seen < allowed).any()
+        keep, _ = landmark_budget(mall.track_length, mall.reproj_error, tl, tf, 50, 500)
+
+        # new landmarks get fresh ids in each extension: compare positions
+        def where(m, rows):
+            return {tuple(p) for p in np.round(np.asarray(m.positions)[rows], 5).tolist()}
+
+        assert where(mall, np.flatnonzero(keep)) == where(ms, np.arange(len(ms)))
