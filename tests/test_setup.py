@@ -250,6 +250,11 @@ def test_accuracy_benchmark_reuses_a_map_built_before_a_config_field_existed():
     other.voxel.seed = 1
     assert not bench.same_build(stamp, key(other))
     assert not bench.same_build(stamp, key(now, ("a", "c")))
+    # a field whose default changed the maps: a stamp without it was built without it
+    del old["min_frame_landmarks"]
+    stamp = json.dumps(old, sort_keys=True, default=str) + str(["a", "b"])
+    assert not bench.same_build(stamp, key(now))
+    assert bench.same_build(stamp, key(BuildConfig(min_frame_landmarks=0)))
 
 
 def test_accuracy_benchmark_does_not_reuse_a_map_whose_cameras_were_read_otherwise(small_sequence):

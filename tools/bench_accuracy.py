@@ -360,10 +360,15 @@ def orbit_split(workdir: Path, n_map: int, width: int, height: int, dense: bool 
     return Split(name, mapping, queries, nearest_view_angle(queries, mapping), map_name="orbit")
 
 
+# BuildConfig fields added with a default that changed the maps: their value in a stamp that lacks them
+BEFORE_FIELD = {"min_frame_landmarks": 0}
+
+
 def same_build(stamp: str, key: str) -> bool:
     """Whether a map built with ``stamp`` (an earlier build_or_load key: the config's JSON, then the
     mapping frames) is the map ``key`` asks for. A config field added since, at its default, does
-    not make it another map (new fields default to the earlier behaviour)."""
+    not make it another map where its default is the earlier behaviour; the fields whose default
+    changed what a build does (BEFORE_FIELD) read as the value that meant the earlier behaviour."""
     from favormap.build import BuildConfig
 
     dec = json.JSONDecoder()
@@ -380,6 +385,7 @@ def same_build(stamp: str, key: str) -> bool:
         }
 
     defaults = json.loads(json.dumps(BuildConfig().to_dict(), sort_keys=True, default=str))
+    defaults.update(BEFORE_FIELD)
     return stamp[end_old:] == key[end_new:] and with_defaults(defaults, old) == new
 
 
