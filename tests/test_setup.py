@@ -444,3 +444,68 @@ def test_accuracy_benchmark_compares_two_runs_query_by_query_and_seed_by_seed():
     assert got["lm6k", "rendered"]["seeds"] == [2] and got["lm6k", "rendered"]["all"]["ratio"] == pytest.approx(3.0)
     table = bench.compare_table(old, new).splitlines()
     assert table[4].startswith("| orbit | noise | (default) | rendered | 0,1 | 0.71 [") and len(table) == 6
+
+
+def test_accuracy_benchmark_measures_the_error_both_methods_share():
+    """The real table's shared error: over the queries both methods localize, the median distance between
+    their estimated camera centres and the median cosine between their error vectors."""
+    import numpy as np
+
+    bench = _bench_accuracy()
+
+    def row(vecs):
+        pq = [
+            dict(name=n, success=v is not None, t_err=np.linalg.norm(v) if v else np.inf, t_vec=v)
+            for n, v in zip("abcd", vecs)
+        ]
+        return dict(per_query=pq)
+
+    fav = row([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 1.0], [5.0, 0, 0]])
+    base = row([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0], None])  # d failed: left out
+    got = bench.shared_error(fav, base, list("abcd"))
+    assert got["queries"] == 3
+    assert got["apart"] == pytest.approx(1.0)  # 0, 1, 2
+    assert got["cosine"] == pytest.approx(1.0)  # 1, 1, -1
+    assert bench.shared_error(fav, row([None, None, [0, 0, 1.0], None]), list("abcd")) is None
+
+
+def test_accuracy_benchmark_reads_a_pseudo_ground_truth_by_frame_stem(tmp_path):
+    """--splits 7scenes-*-pgt: the frames keep their images and take the poses and focal of the pseudo
+    ground truth file, matched by file stem; a frame the file lacks is refused."""
+    import numpy as np
+
+    from favormap.geometry import camera_centers
+    from favormap.io.types import Camera, Frame, Sequence
+
+    bench = _bench_accuracy()
+    cam = Camera("PINHOLE", 640, 480, [585.0, 585.0, 320.0, 240.0])
+    frames = [Frame(f"frame-{i:06d}.color.jpg", tmp_path / f"frame-{i:06d}.color.jpg", 0, np.eye(4)) for i in (5, 10)]
+    seq = Sequence(tmp_path, "7scenes-flat", {0: cam}, frames)
+    pgt = tmp_path / "pgt.txt"
+    pgt.write_text(
+        "# comment\n"
+        "seq-01/frame-000005.color.png 1 0 0 0 0.5 0 0 525.5\n"
+        "seq-01/frame-000010.color.png 0 0 0 1 0 0 2 525.5\n"  # 180 degrees about z
+    )
+    got = bench.with_pseudo_ground_truth(seq, pgt)
+    assert [f.image_path for f in got.frames] == [f.image_path for f in frames]
+    assert got.cameras[0].params.tolist() == [525.5, 525.5, 320.0, 240.0]
+    centres = camera_centers(np.stack([f.cam_from_world for f in got.frames]))
+    assert centres == pytest.approx(np.array([[-0.5, 0, 0], [0, 0, -2.0]]))
+    assert got.frames[1].cam_from_world[:3, :3] == pytest.approx(np.diag([-1.0, -1.0, 1.0]))
+    pgt.write_text("seq-01/frame-000005.color.png 1 0 0 0 0 0 0 525.5\n")
+    with pytest.raises(SystemExit, match="no pose for frame frame-000010"):
+        bench.with_pseudo_ground_truth(seq, pgt)
+
+
+def test_the_shipped_7scenes_pseudo_ground_truth_covers_the_benchmark_frames():
+    """tools/data's SfM pseudo ground truth: frames 500-995 of the 7-Scenes set, every 5th, rotations
+    as unit quaternions, one focal."""
+    import numpy as np
+
+    bench = _bench_accuracy()
+    rows = [line.split() for line in bench.SEVENSCENES_PGT.read_text().splitlines() if not line.startswith("#")]
+    assert [r[0] for r in rows] == [f"seq-01/frame-{i:06d}.color.png" for i in range(500, 1000, 5)]
+    q = np.array([[float(v) for v in r[1:5]] for r in rows])
+    assert np.linalg.norm(q, axis=1) == pytest.approx(np.ones(100), abs=1e-5)
+    assert {r[8] for r in rows} == {"525.505"}
