@@ -509,3 +509,23 @@ def test_the_shipped_7scenes_pseudo_ground_truth_covers_the_benchmark_frames():
     q = np.array([[float(v) for v in r[1:5]] for r in rows])
     assert np.linalg.norm(q, axis=1) == pytest.approx(np.ones(100), abs=1e-5)
     assert {r[8] for r in rows} == {"525.505"}
+
+
+def test_accuracy_benchmark_gives_the_suite_geometric_mean_an_interval():
+    """The suite's one figure, the geometric mean of the splits' paired ratios, with a 95 % bootstrap
+    interval that resamples each split's queries; stored runs without per-query ratios get none."""
+    import numpy as np
+
+    bench = _bench_accuracy()
+    flat = [
+        {"map": "(default)", "ratio": {"ratio": 2.0, "log_ratios": [np.log(2.0)] * 3}},
+        {"map": "(default)", "ratio": {"ratio": 0.5, "log_ratios": [np.log(0.5)] * 4}},
+    ]
+    value, ci = bench.geometric_means(flat)["(default)"]
+    assert value == pytest.approx(1.0) and ci == pytest.approx([1.0, 1.0])
+    spread = [{"map": "v", "ratio": bench.paired_ratio(np.array([1.0, 2.0, 4.0, 1.0]), np.ones(4))}]
+    spread.append({"map": "v", "ratio": bench.paired_ratio(np.array([0.5, 1.0, 1.0]), np.ones(3))})
+    value, (lo, hi) = bench.geometric_means(spread)["v"]
+    expected = np.exp(np.mean([np.mean(np.log([1, 2, 4, 1])), np.mean(np.log([0.5, 1, 1]))]))
+    assert value == pytest.approx(expected) and lo < value < hi
+    assert bench.geometric_means([{"map": "old", "ratio": {"ratio": 0.8}}]) == {"old": (pytest.approx(0.8), None)}

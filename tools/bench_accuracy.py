@@ -648,6 +648,7 @@ def paired_ratio(errors: np.ndarray, reference: np.ndarray, seed: int = 0) -> di
         "ci95": [float(lo), float(hi)],
         "lower": int((d < 0).sum()),
         "higher": int((d > 0).sum()),
+        "log_ratios": [round(float(v), 6) for v in d],  # per query, for intervals over several splits
     }
 
 
@@ -1042,13 +1043,32 @@ def shared_error(row: dict, base: dict, names: list[str]) -> dict | None:
     }
 
 
-def geometric_means(entries: list[dict]) -> dict[str, float]:
-    """Per favormap map: the geometric mean over the splits of the paired ratios to the baseline."""
-    by: dict[str, list[float]] = {}
+def geometric_means(entries: list[dict], seed: int = 0) -> dict[str, tuple[float, list[float] | None]]:
+    """Per favormap map: the geometric mean over the splits of the paired ratios to the baseline, and its
+    95 % bootstrap interval (each split's queries resampled within the split; None where a ratio lacks
+    its per-query log ratios)."""
+    by: dict[str, list[dict]] = {}
     for e in entries:
         if e.get("ratio"):
-            by.setdefault(e["map"], []).append(np.log(e["ratio"]["ratio"]))
-    return {k: float(np.exp(np.mean(v))) for k, v in by.items()}
+            by.setdefault(e["map"], []).append(e["ratio"])
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k, ratios in by.items():
+        value = float(np.exp(np.mean([np.log(r["ratio"]) for r in ratios])))
+        ci = None
+        if all(r.get("log_ratios") for r in ratios):
+            boot = np.mean(
+                [
+                    np.asarray(r["log_ratios"])[
+                        rng.integers(0, len(r["log_ratios"]), (PAIRED_BOOTSTRAP, len(r["log_ratios"])))
+                    ].mean(1)
+                    for r in ratios
+                ],
+                axis=0,
+            )
+            ci = [float(v) for v in np.exp(np.percentile(boot, [2.5, 97.5]))]
+        out[k] = (value, ci)
+    return out
 
 
 def real_table(entries: list[dict]) -> str:
@@ -1107,9 +1127,10 @@ def real_table(entries: list[dict]) -> str:
         "Recall thresholds: 0.5 % of the path extent / 2 deg, 2 % / 5 deg (and for 7-Scenes 5 cm / 5 deg, "
         "2 cm / 2 deg); FS: false successes (localized, error > 5 % of the path extent or 5 deg)."
     )
-    for k, v in geometric_means(entries).items():
+    for k, (v, ci) in geometric_means(entries).items():
         n = sum(1 for e in entries if e["map"] == k and e.get("ratio"))
-        out.append(f"geometric mean of favormap / baseline over {n} splits, map {k}: {v:.3f}")
+        interval = "" if ci is None else f" [{ci[0]:.3f}, {ci[1]:.3f}]"
+        out.append(f"geometric mean of favormap / baseline over {n} splits, map {k}: {v:.3f}{interval}")
     shared = [e for e in entries if e.get("shared")]
     if shared:
         out += [
