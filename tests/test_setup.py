@@ -529,3 +529,33 @@ def test_accuracy_benchmark_gives_the_suite_geometric_mean_an_interval():
     expected = np.exp(np.mean([np.mean(np.log([1, 2, 4, 1])), np.mean(np.log([0.5, 1, 1]))]))
     assert value == pytest.approx(expected) and lo < value < hi
     assert bench.geometric_means([{"map": "old", "ratio": {"ratio": 0.8}}]) == {"old": (pytest.approx(0.8), None)}
+
+
+def test_accuracy_benchmark_takes_favormaps_median_over_noise_priors():
+    """--prior-seeds: each query's favormap result is the one whose error is the median over its priors
+    (a failure counts as infinite), as the baseline's is over RANSAC seeds; a result already computed
+    for the first prior is not computed again."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    bench = _bench_accuracy()
+
+    def pose(x):
+        T = np.eye(4)
+        T[0, 3] = -x  # camera centre at (x, 0, 0)
+        return T
+
+    calls = []
+
+    class Loc:
+        def localize(self, image, prior, cam):
+            calls.append(prior)
+            return SimpleNamespace(success=prior != "fail", cam_from_world=pose({"b": 3.0, "c": 2.0}.get(prior, 0.0)))
+
+    fr = SimpleNamespace(image_path="q.png", cam_from_world=pose(0.0))
+    first = SimpleNamespace(success=True, cam_from_world=pose(1.0))
+    prior, res = bench.median_over_priors(Loc(), fr, None, [("a", first), ("b", None), ("c", None)])
+    assert prior == "c" and calls == ["b", "c"]  # errors 1, 3, 2: the median is c's
+    prior, res = bench.median_over_priors(Loc(), fr, None, [("a", first), ("fail", None), ("b", None)])
+    assert prior == "b" and res.success  # 1, inf, 3: the median is 3

@@ -560,6 +560,11 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
 
     for prior_mode in args.priors:
         priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
+        # noise priors drawn with every --prior-seeds seed: each query's result is the seeds' median
+        more = [
+            make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=s))
+            for s in (args.prior_seeds[1:] if prior_mode == "noise" else [])
+        ]
         variants = (
             args.variants
             if prior_mode == "noise"
@@ -578,6 +583,8 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
                 loc.extractor.forget()
                 t = time.perf_counter()
                 res = loc.localize(fr.image_path, prior, cam)
+                if more:
+                    prior, res = median_over_priors(loc, fr, cam, [(prior, res)] + [(p[i], None) for p in more])
                 seq_priors.update(res)
                 o = QueryOutcome(fr.name, fr.cam_from_world, prior, res, time.perf_counter() - t)
                 if args.diagnostics:
@@ -928,6 +935,17 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
         rows.append(record(split, name, prior_mode, outs, 1, extent, len(b.points3d)))
         rows[-1]["per_query"] = [per_query(o, a) for o, a in zip(outs, _angles(split))]
     return rows
+
+
+def median_over_priors(loc, fr, cam, tries: list) -> tuple:
+    """favormap's result for one query over several noise priors, as :func:`median_over_seeds` takes the
+    baseline's over RANSAC seeds: the (prior, result) whose translation error is the median of the tries'
+    (failed ones count as infinite). ``tries``: (prior, result or None to localize from that prior)."""
+    from favormap.geometry import pose_error
+
+    done = [(p, r if r is not None else loc.localize(fr.image_path, p, cam)) for p, r in tries]
+    err = [pose_error(r.cam_from_world, fr.cam_from_world)[0] if r.success else np.inf for _, r in done]
+    return done[int(np.argsort(err, kind="stable")[(len(err) - 1) // 2])]
 
 
 def median_over_seeds(b, fr, cam, seeds):
@@ -1290,7 +1308,7 @@ def main():
         help="the real-data suite (every set of ../shared/data read as shipped, the baseline side by side; "
         "real-quick: a subset; 7scenes-pgt: 7-Scenes with its shipped poses and with the SfM pseudo ground "
         "truth of the same frames): sets --splits, --priors noise, --variants rendered, --baseline-seeds 0,1,2 "
-        "unless given, and no per-query diagnostics",
+        "and --prior-seeds 0,1,2 unless given, and no per-query diagnostics",
     )
     ap.add_argument(
         "--baseline-seeds",
@@ -1365,6 +1383,12 @@ def main():
     ap.add_argument("--reuse", action="store_true", help="reuse maps in --workdir built with the same settings")
     ap.add_argument("--seed", type=int, default=0, help="seed of the query priors")
     ap.add_argument(
+        "--prior-seeds",
+        default=None,
+        help="seeds of the noise priors (comma-separated): each query's favormap result is the median over "
+        "its priors, as the baseline's is over --baseline-seeds (default: --seed alone)",
+    )
+    ap.add_argument(
         "--train-seeds",
         help="build every map once per voxel-training seed (e.g. 0,1,2; a seed K > 0 adds -sK to the map's "
         "name) and add a table of each method's median across the seeds: a rebuild with another seed moves "
@@ -1395,10 +1419,18 @@ def main():
             args.variants = "rendered"
         args.diagnostics = False
         args.baseline_seeds = args.baseline_seeds or "0,1,2"
+        args.prior_seeds = args.prior_seeds or "0,1,2"
     try:
         args.baseline_seeds = [int(x) for x in (args.baseline_seeds or "0").split(",") if x.strip()]
     except ValueError:
         ap.error(f"--baseline-seeds {args.baseline_seeds!r}: expected integers, e.g. 0,1,2")
+    try:
+        args.prior_seeds = [int(x) for x in (args.prior_seeds or str(args.seed)).split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--prior-seeds {args.prior_seeds!r}: expected integers, e.g. 0,1,2")
+    if not args.prior_seeds:
+        ap.error("--prior-seeds: no seed given")
+    args.seed = args.prior_seeds[0]
     args.priors = [p for p in args.priors.split(",") if p]
     args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in args.variants if v not in VARIANTS]
@@ -1486,7 +1518,9 @@ def main():
     real = real_rows(rows, splits)
     if real:
         print(
-            "\nReal sets, favormap (rendered, noise priors) and the baseline (median over RANSAC seeds "
+            "\nReal sets, favormap (rendered, noise priors; median over prior seeds "
+            + ",".join(map(str, args.prior_seeds))
+            + ") and the baseline (median over RANSAC seeds "
             + ",".join(map(str, args.baseline_seeds))
             + ") on the same queries:\n"
         )
