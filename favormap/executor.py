@@ -109,9 +109,9 @@ class LocalExecutor(Executor):
         return str(self.device) != "cpu"
 
     def train_group(self) -> int:
-        # a GPU's training steps are bound by kernel launches, not arithmetic: 3,000 fox landmarks
-        # train in 2.6 s as one task, 5.1 s as three (H200, tools/bench_train.py); 16 batches of
-        # 1,024 landmarks keep a task's training data at a few GB
+        # a GPU's training steps are bound by kernel launches, not arithmetic, so several batches train
+        # faster as one task (docs/measurements.md, "On a GPU"); 16 batches of 1,024 landmarks keep a
+        # task's training data at a few GB
         return 16 if self.has_gpu else 1
 
     def _workers(self) -> int:

@@ -328,8 +328,8 @@ def serial_pools():
                 torch = sys.modules.get("torch")
                 if torch is not None and n_torch is not None:  # (torch imported inside the block: left as it is)
                     # always: torch.get_num_threads() reads OpenMP's count, which threadpoolctl may have
-                    # restored behind torch's back, while torch's MKL stayed at one thread (the build's
-                    # training then ran its products on one core: 2.0 -> 2.5 s)
+                    # restored behind torch's back, while torch's MKL stayed at one thread (the training
+                    # after a pool would run its products on one core)
                     torch.set_num_threads(n_torch)
 
 

@@ -264,10 +264,8 @@ def track_features(
     pairs_found = []  # (a, b, ia, ib, xy in a, xy in b, epipolar distance) of every frame pair's mutual matches
     # the pairs of one frame on a pool of threads, one BLAS thread each (favormap.threads.serial_pools):
     # each similarity is one 128-term dot product whatever the thread count, and the NumPy reductions
-    # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS, not
-    # torch's MKL: 1,740 x 1,740 x 128 on one core of this AMD EPYC, 12.7 against 18.1 ms. Fox, 345
-    # pairs on two cores: 3.6 s (torch, one pair after the other) -> 2.9-3.1 s (torch, two threads)
-    # -> 2.2-2.3 s
+    # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS rather
+    # than torch's MKL: faster for these shapes on one core (docs/implementation-notes.md, tracking)
     workers = thread_count() if workers is None else int(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:

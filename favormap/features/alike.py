@@ -33,8 +33,8 @@ from .heatmap import local_maxima, soft_argmax
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 VARIANTS = tuple(CONFIGS)  # alike-t, alike-s, alike-n, alike-l
-# the variant "alike" names: the paper's -l, which costs ~1.5x -n on a CPU (fox at 640 px, 2 cores: 3.9 s
-# against 2.5 s a frame; -t 1.4 s); "alike-t", "alike-s" and "alike-n" name the lighter ones
+# the variant "alike" names: the paper's -l, the slowest on a CPU (about 1.5x -n); "alike-t", "alike-s"
+# and "alike-n" name the lighter ones
 DEFAULT = "alike-l"
 
 

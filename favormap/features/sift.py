@@ -109,10 +109,9 @@ class SIFTExtractor(Extractor):
         # nfeatures=0: OpenCV returns every keypoint and extract() keeps the strongest max_keypoints itself.
         # OpenCV's own cap (KeyPointsFilter.retainBest, an nth_element) reorders keypoints of equal
         # response, and the orientations OpenCV finds at one location all share its response, so which
-        # one "strongest" kept depended on how many keypoints the whole image had (2-12 % of the
-        # keypoints of fox and orbit images changed orientation between contrast thresholds). Uncapped, it is
-        # the first of OpenCV's orientation
-        # histogram peaks: a function of the location's own appearance, the same in a map and a query
+        # one a cap keeps depends on how many keypoints the whole image has. Uncapped, it is the
+        # first of OpenCV's orientation histogram peaks: a function of the location's own appearance,
+        # the same in a map and a query
         self._sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=self.contrast_threshold)
 
     def extract(self, image: np.ndarray) -> Features:
@@ -166,8 +165,7 @@ class SIFTExtractor(Extractor):
         p = np.asarray(pts, np.float32) - 0.5
         p[:, 0] = np.clip(p[:, 0], 0, w - 1)
         p[:, 1] = np.clip(p[:, 1], 0, h - 1)
-        # each distinct descriptor once (11 % of the fox build's patch points repeat one; 1-3 % of the
-        # patch stage's time on two cores), then spread
+        # each distinct descriptor once (the patch points of neighbouring observations coincide), then spread
         first, inverse = _distinct(p, size, angle, octave)
         p, size, angle, octave = p[first], size[first], angle[first], octave[first]
         if self.torch_descriptors:  # the same descriptors, computed by torch on the device (a build's patches)

@@ -127,8 +127,8 @@ class TrainingRays:
     obs_origin: np.ndarray  # (O, 3) camera centre (world)
     ray_dirs: np.ndarray  # (O, S*S, 3) world directions of the patch pixels
     # (O, S*S, C) descriptors extracted at the patch pixels (unit norm): float16 from a build (half the
-    # memory of the build's largest array, 518 -> 259 MB for the fox; rounding < 2.5e-4 per element),
-    # float32 accepted; training computes in float32, chunk by chunk
+    # memory of the build's largest array; rounding < 2.5e-4 per element), float32 accepted; training
+    # computes in float32, chunk by chunk
     targets: np.ndarray
     # (O, C) float32 mean of each observation's patch descriptors, as the build computed it from the
     # float32 descriptors before rounding the targets (None: patch_means computes it from the targets)
