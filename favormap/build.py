@@ -418,7 +418,9 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         "mean_track_length": float(lms.tracks.lengths.mean()),
         # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean
         # reprojection error over its observations, as stored (float32) in landmarks/reproj_error
-        "median_reproj_error_px": median_landmark_reproj_error(lms.mean_reproj_error.astype(np.float32)),
+        "median_reproj_error_px": median_landmark_reproj_error(
+            lms.mean_reproj_error.astype(np.float32), lms.tracks.lengths
+        ),
         "median_psnr": float(np.median(grids.psnr)),
         "median_cosine": float(np.median(grids.cosine)),
     }

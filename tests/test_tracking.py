@@ -398,3 +398,25 @@ def test_frames_that_see_too_few_landmarks_keep_their_best_tracks_beyond_the_bud
     # a frame's tracks bound what it can reach; frames already above the count gain nothing
     everything = select_landmarks(lms, 50, 1000)
     assert len(everything) == 100 and seen(everything)[:5].tolist() == [50] * 5
+
+
+def test_the_reprojection_figure_counts_landmarks_of_three_or_more_views(small_map):
+    """A two-view landmark fits its two rays up to their epipolar residual alone: the map's reprojection
+    figure (build summary, info, the --exact-poses hint) is the median over landmarks of 3 or more
+    observations, over all of them only when there are none such."""
+    from favormap.mapfile.model import median_landmark_reproj_error
+
+    e = np.array([0.05, 0.05, 0.05, 0.4, 0.5, 0.6], np.float32)
+    n = np.array([2, 2, 2, 3, 4, 5])
+    assert median_landmark_reproj_error(e, n) == pytest.approx(0.5)
+    assert median_landmark_reproj_error(e, np.full(6, 2)) == pytest.approx(0.225)
+    assert median_landmark_reproj_error(e) == pytest.approx(0.225)
+    assert median_landmark_reproj_error(np.zeros(0), np.zeros(0)) is None
+    from favormap.mapfile import Map
+
+    m, path = small_map
+    e, n = np.asarray(m.reproj_error), np.asarray(m.track_length)
+    expected = float(np.median(e[n >= 3]))
+    assert m.provenance["stats"]["median_reproj_error_px"] == pytest.approx(expected)
+    with Map.open(path) as mm:
+        assert mm.info()["median_reproj_error_px"] == pytest.approx(expected)

@@ -100,4 +100,4 @@ class StageBars:
 
 def reproj_error_line(px: float) -> str:
     """The one wording of the map's reprojection-error figure (build summary and info)."""
-    return f"median reproj error {px:.3f} px  (per landmark: mean over its observations)"
+    return f"median reproj error {px:.3f} px  (landmarks of 3 or more views, each the mean over its observations)"

@@ -39,10 +39,15 @@ def map_aligns_by_default(provenance: dict | None) -> bool:
     return bool((provenance or {}).get("localize_defaults", {}).get("align", False))
 
 
-def median_landmark_reproj_error(reproj_error) -> float | None:
+def median_landmark_reproj_error(reproj_error, track_length=None) -> float | None:
     """The map's reprojection-error figure, one definition for build's summary and ``info``: the
-    median over landmarks of each landmark's mean reprojection error over its observations (px)."""
+    median over landmarks of each landmark's mean reprojection error over its observations (px), over
+    the landmarks of three or more observations where ``track_length`` is given and there are any. A
+    two-view landmark fits its two rays up to their epipolar residual alone, so its figure says little
+    of how well the tracks fit the poses, and maps hold many of them."""
     e = np.asarray(reproj_error)
+    if track_length is not None and (np.asarray(track_length) >= 3).any():
+        e = e[np.asarray(track_length) >= 3]
     return float(np.median(e)) if e.size else None
 
 

@@ -203,7 +203,7 @@ class Map(MapCounts):
             "exact_poses": built_for_exact_poses(self.provenance),
             "aligns_by_default": map_aligns_by_default(self.provenance),  # localize aligns unless told otherwise
             "mean_track_length": float(np.mean(self.track_length)) if len(self) else 0.0,
-            "median_reproj_error_px": median_landmark_reproj_error(self.reproj_error),
+            "median_reproj_error_px": median_landmark_reproj_error(self.reproj_error, self.track_length),
             "median_psnr": float(np.median(self.quality)) if len(self) else None,
             "bbox": [self.positions.min(0).tolist(), self.positions.max(0).tolist()] if len(self) else None,
             "build_stats": st,

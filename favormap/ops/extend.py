@@ -609,7 +609,9 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
             frames=len(names),
             landmarks=int(L0 + n_new - len(dropped)),
             mean_track_length=float(np.mean(arrays["track_length"])) if len(arrays["ids"]) else 0.0,
-            median_reproj_error_px=median_landmark_reproj_error(arrays["reproj_error"].astype(np.float32)),
+            median_reproj_error_px=median_landmark_reproj_error(
+                arrays["reproj_error"].astype(np.float32), arrays["track_length"]
+            ),
             median_psnr=float(np.median(arrays["quality"])) if len(arrays["ids"]) else float("nan"),
         )
         record = {
