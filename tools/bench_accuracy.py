@@ -324,20 +324,22 @@ def with_pseudo_ground_truth(seq, path: Path):
 
     from favormap.geometry import pose_from_quat_t
 
+    def stem(name: str) -> str:
+        return Path(name).name.split(".")[0]
+
     table = {}
     for line in path.read_text().splitlines():
         if line.strip() and not line.startswith("#"):
             name, qw, qx, qy, qz, tx, ty, tz, focal = line.split()
-            stem = Path(name).name.split(".")[0]
             q, t = [float(qx), float(qy), float(qz), float(qw)], [float(tx), float(ty), float(tz)]
-            table[stem] = (pose_from_quat_t(q, t), float(focal))
+            table[stem(name)] = (pose_from_quat_t(q, t), float(focal))
     frames, focal = [], set()
     for fr in seq.frames:
-        stem = Path(fr.name).name.split(".")[0]
-        if stem not in table:
+        if stem(fr.name) not in table:
             raise SystemExit(f"{path}: no pose for frame {fr.name}")
-        frames.append(dc.replace(fr, cam_from_world=table[stem][0]))
-        focal.add(table[stem][1])
+        pose, f = table[stem(fr.name)]
+        frames.append(dc.replace(fr, cam_from_world=pose))
+        focal.add(f)
     if len(focal) != 1 or any(c.model != "PINHOLE" for c in seq.cameras.values()):
         raise SystemExit(f"{path}: expected one focal for pinhole cameras")
     f = focal.pop()
@@ -938,24 +940,28 @@ def run_baseline(split: Split, args, build_cfg, extent: float) -> list[dict]:
     return rows
 
 
-def median_over_priors(loc, fr, cam, tries: list) -> tuple:
-    """favormap's result for one query over several noise priors, as :func:`median_over_seeds` takes the
-    baseline's over RANSAC seeds: the (prior, result) whose translation error is the median of the tries'
-    (failed ones count as infinite). ``tries``: (prior, result or None to localize from that prior)."""
+def median_run(results: list, cam_from_world: np.ndarray) -> int:
+    """Index of the run whose translation error against ``cam_from_world`` is the median of the runs'
+    (failed runs count as infinite; the lower median of an even count), so that a query counts as
+    localized when most runs localize it."""
     from favormap.geometry import pose_error
 
+    err = [pose_error(r.cam_from_world, cam_from_world)[0] if r.success else np.inf for r in results]
+    return int(np.argsort(err, kind="stable")[(len(err) - 1) // 2])
+
+
+def median_over_priors(loc, fr, cam, tries: list) -> tuple:
+    """favormap's result for one query over several noise priors, as :func:`median_over_seeds` takes the
+    baseline's over RANSAC seeds: the (prior, result) of :func:`median_run`. ``tries``: (prior, result or
+    None to localize from that prior)."""
     done = [(p, r if r is not None else loc.localize(fr.image_path, p, cam)) for p, r in tries]
-    err = [pose_error(r.cam_from_world, fr.cam_from_world)[0] if r.success else np.inf for _, r in done]
-    return done[int(np.argsort(err, kind="stable")[(len(err) - 1) // 2])]
+    return done[median_run([r for _, r in done], fr.cam_from_world)]
 
 
 def median_over_seeds(b, fr, cam, seeds):
-    """The baseline's result for one query over several RANSAC seeds: the run whose translation error
-    is the median of the seeds' (failed runs count as infinite), so that the query counts as localized
-    when most seeds localize it. The seconds are the mean over the runs."""
+    """The baseline's result for one query over several RANSAC seeds: the run of :func:`median_run`. The
+    seconds are the mean over the runs."""
     import dataclasses as dc
-
-    from favormap.geometry import pose_error
 
     config = b.config
     results = []
@@ -965,8 +971,7 @@ def median_over_seeds(b, fr, cam, seeds):
             results.append(b.localize(fr.image_path, cam))
     finally:
         b.config = config
-    err = [pose_error(r.cam_from_world, fr.cam_from_world)[0] if r.success else np.inf for r in results]
-    pick = results[int(np.argsort(err, kind="stable")[(len(err) - 1) // 2])]
+    pick = results[median_run(results, fr.cam_from_world)]
     return dc.replace(pick, seconds=float(np.mean([r.seconds for r in results])))
 
 
