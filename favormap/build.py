@@ -44,6 +44,7 @@ from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
 from .io.images import decode_and_prepare, patches_around
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
+from .pose_refinement import refine_poses
 from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
@@ -172,6 +173,15 @@ def observation_patches(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config
         sel = np.flatnonzero(tr.frame_idx == f)
         out[sel] = patches_around(frame_gray(seq, ff, int(f), config), tr.xy[sel], r)
     return out
+
+
+def refine_mapping_poses(lms: Landmarks, ff: FrameFeatures, config: BuildConfig, epipolar_median_px: float):
+    """The build's pose refinement (favormap.pose_refinement): bundle adjustment of the poses with every
+    triangulated track, the camera centres held near the given ones by the error the measured pose noise
+    implies (at least the extractor's keypoint precision)."""
+    precision = default_max_epipolar(config.extractor)  # the extractor's keypoint precision (px)
+    noise = max(precision, float(epipolar_median_px)) if np.isfinite(epipolar_median_px) else precision
+    return refine_poses(lms, ff.cam_from_world, ff.cameras, noise, loss_px=precision)
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
@@ -361,6 +371,11 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         )
     with pr.stage("triangulate"):
         all_lms = triangulate_tracks(tracks, ff, config)
+        refinement = None
+        if len(all_lms) and config.refine_poses:
+            refinement = refine_mapping_poses(all_lms, ff, config, tracks.epipolar_median_px)
+            ff = replace(ff, cam_from_world=refinement.cam_from_world)
+            all_lms = triangulate_tracks(tracks, ff, config)
         if config.refine_window:
             all_lms = refine_landmarks(all_lms, seq, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks, config.min_frame_landmarks)
@@ -421,6 +436,7 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         "median_reproj_error_px": median_landmark_reproj_error(
             lms.mean_reproj_error.astype(np.float32), lms.tracks.lengths
         ),
+        **({"poses_refined": False} if refinement is None else refinement.stats()),
         "median_psnr": float(np.median(grids.psnr)),
         "median_cosine": float(np.median(grids.cosine)),
     }

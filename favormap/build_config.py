@@ -70,6 +70,11 @@ class BuildConfig:
     # are stored (EXACT_POSES_PATCHES unless align_patches is given), and localization aligns each inlier's
     # keypoint to them unless told otherwise (LocalizeConfig.align None: the map's choice)
     exact_poses: bool = False
+    # refine the mapping poses with the landmarks by bundle adjustment, each camera centre held near its given
+    # position (favormap.pose_refinement), then triangulate again; the map stores the refined poses. For poses
+    # that fit the images less well than the extractor places keypoints (the build says so: the right tracking
+    # matches' median epipolar distance above ExtractorPolicy.keypoint_precision_px), such as motion capture's
+    refine_poses: bool = False
     max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
     min_angle_deg: float = 1.0  # a landmark's least triangulation angle
     max_landmarks: int = 3000  # the longest tracks are kept

@@ -116,6 +116,30 @@ def move_poses(cam_from_world: np.ndarray, new_from_old: np.ndarray) -> np.ndarr
     return P
 
 
+def umeyama(src: np.ndarray, dst: np.ndarray, weights=None) -> np.ndarray:
+    """Batched similarity fits: ``src``, ``dst`` (..., N, 3) -> (..., 4, 4) T with dst ~ T src
+    (Umeyama 1991, least squares over the N pairs)."""
+    src = np.asarray(src, np.float64)
+    dst = np.asarray(dst, np.float64)
+    mu_s = src.mean(-2, keepdims=True)
+    mu_d = dst.mean(-2, keepdims=True)
+    xs, xd = src - mu_s, dst - mu_d
+    n = src.shape[-2]
+    C = np.swapaxes(xd, -1, -2) @ xs / n  # (..., 3, 3)
+    U, S, Vt = np.linalg.svd(C)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.ones(S.shape)
+    D[..., 2] = d
+    R = (U * D[..., None, :]) @ Vt
+    var_s = np.sum(xs**2, axis=(-1, -2)) / n
+    s = np.sum(S * D, -1) / np.maximum(var_s, 1e-300)
+    T = np.zeros((*src.shape[:-2], 4, 4))
+    T[..., :3, :3] = s[..., None, None] * R
+    T[..., :3, 3] = mu_d[..., 0, :] - (s[..., None, None] * R @ mu_s[..., 0, :, None])[..., 0]
+    T[..., 3, 3] = 1
+    return T
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply one 4x4 transform to (N,3) points."""
     return points @ T[:3, :3].T + T[:3, 3]

@@ -190,6 +190,11 @@ class Split:
     path_extent: float | None = None  # real sets: bounding-box diagonal of all the set's camera centres (units)
     units: str = "units"
     recall: tuple = ()  # real sets: (translation, rotation deg) recall thresholds in the set's units
+    # a false success: localized with an error above (translation in the set's units, rotation deg); None:
+    # 5 % of the path extent or 5 deg
+    false_success: tuple | None = None
+    priors: tuple = ()  # prior modes run on this split besides --priors
+    cross: bool = False  # queries from another recording than the mapping frames
 
     @property
     def files(self) -> str:
@@ -251,8 +256,24 @@ EXTRA_SPLITS = {
     "7scenes-holdout-pgt": ("7scenes", "holdout-5"),
     "7scenes-sparse-pgt": ("7scenes", "sparse"),
 }
+# queries from another recording of the same place, in the same world frame: name -> (map folder, query folder,
+# units, recall thresholds, false success). The ground truth of TUM RGB-D disagrees with its images by ~1-2 cm
+# and ~1 deg (SOURCE.md), so a false success is an error above 10 cm or 10 deg, well beyond that
+CROSS_SPLITS = {
+    "tum-desk-xyz": (
+        "tum_fr1_desk_xyz/rgbd_dataset_freiburg1_desk",
+        "tum_fr1_desk_xyz/rgbd_dataset_freiburg1_xyz",
+        "m",
+        ((0.02, 2.0), (0.05, 5.0), (0.10, 10.0)),
+        (0.10, 10.0),
+    ),
+}
+# the prior modes every cross-recording split runs: none, the nearest mapping frame (what image retrieval would
+# give) and the noise prior
+CROSS_PRIORS = ("noise", "nearest", "none")
 SUITES = {
-    "real": list(REAL_SPLITS),
+    "real": list(REAL_SPLITS) + list(CROSS_SPLITS),
+    "cross": list(CROSS_SPLITS),
     "real-quick": ["7scenes-holdout", "cup-holdout", "castle-holdout", "dino-holdout", "fern-holdout"],
     "7scenes-pgt": ["7scenes-holdout", "7scenes-sparse", "7scenes-holdout-pgt", "7scenes-sparse-pgt"],
 }
@@ -279,6 +300,9 @@ def real_splits(which: list[str]) -> list[Split]:
 
     out, cache = [], {}
     for name in which:
+        if name in CROSS_SPLITS:
+            out += cross_split(name)
+            continue
         spec = REAL_SPLITS.get(name) or EXTRA_SPLITS.get(name)
         if spec is None:
             continue
@@ -314,6 +338,26 @@ def real_splits(which: list[str]) -> list[Split]:
         sp.angle = nearest_view_angle(sp.queries, sp.mapping)
         out.append(sp)
     return out
+
+
+def cross_split(name: str) -> list[Split]:
+    """The cross-recording split ``name`` (CROSS_SPLITS): the map from one recording as shipped, every frame of
+    the other as a query; [] when the data is not there."""
+    from favormap.io import read_sequence
+
+    map_folder, query_folder, units, recall, false_success = CROSS_SPLITS[name]
+    roots = [DATA / map_folder, DATA / query_folder]
+    missing = [r for r in roots if not r.exists()]
+    if missing:
+        print(f"(skipping {name}: {missing[0]} not found)", file=sys.stderr)
+        return []
+    mapping, queries = (read_sequence(r) for r in roots)
+    centres = np.array([-f.cam_from_world[:3, :3].T @ f.cam_from_world[:3, 3] for f in mapping.frames + queries.frames])
+    ext = float(np.linalg.norm(centres.max(0) - centres.min(0)))
+    sp = Split(name, mapping, queries, path_extent=ext, units=units, recall=recall, false_success=false_success)
+    sp.priors, sp.cross = CROSS_PRIORS, True
+    sp.angle = nearest_view_angle(queries, mapping)
+    return [sp]
 
 
 def with_pseudo_ground_truth(seq, path: Path):
@@ -560,7 +604,7 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
     if any("nearest" in VARIANTS[v][0].split("+") for v in args.variants):
         obs_desc = observation_descriptors(m, split.mapping)
 
-    for prior_mode in args.priors:
+    for prior_mode in args.priors + [p for p in split.priors if p not in args.priors]:
         priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
         # noise priors drawn with every --prior-seeds seed: each query's result is the seeds' median
         more = [
@@ -612,9 +656,11 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
 
 def per_query(o, angle: float | None = None) -> dict:
     """One query's outcome for the JSON rows: error, success, inliers of the final and of the last
-    descriptor-matched (rendering) iteration, the query's angle to the nearest mapping view, and the
-    camera centre's error vector (estimate - truth, world frame)."""
+    descriptor-matched (rendering) iteration, the query's angle to the nearest mapping view, the
+    camera centre's error vector (estimate - truth, world frame) and, where the localizer reported one,
+    the camera centre's covariance and the NEES of the error under it."""
     from favormap.geometry import camera_centers, pose_error
+    from favormap.localize.evaluate import pose_nees
 
     res = o.result
     est = getattr(res, "estimate", None)
@@ -623,6 +669,8 @@ def per_query(o, angle: float | None = None) -> dict:
     dc = camera_centers(np.stack([pose, o.gt]))
     iterations = getattr(res, "iterations", None) or []
     render = [it.num_inliers for it in iterations if it.kind == "render"]
+    cov = getattr(res, "covariance", None) if res.success else None
+    nees = pose_nees(res, o.gt) if cov is not None else None
     return dict(
         name=o.name,
         success=bool(res.success),
@@ -633,6 +681,8 @@ def per_query(o, angle: float | None = None) -> dict:
         iterations=[it.kind for it in iterations],
         **({} if angle is None else {"angle_deg": round(float(angle), 2)}),
         t_vec=[round(float(v), 6) for v in dc[0] - dc[1]],
+        **({} if nees is None else {"nees": round(nees, 4)}),
+        **({} if cov is None else {"center_cov": np.round(cov.center, 12).tolist()}),
     )
 
 
@@ -987,10 +1037,14 @@ def _query_arrays(row: dict, names: list[str]):
 def _method_stats(split: Split, row: dict, names: list[str]) -> dict:
     """One method's figures on a real split, from its per-query rows: medians over the localized
     queries in the set's units and as % of the path extent, recall, localized share, false successes
-    (localized with an error above 5 % of the path extent or 5 deg)."""
+    (localized with an error above the split's false_success: 5 % of the path extent or 5 deg unless it
+    says otherwise) and the median NEES of the reported covariance."""
     succ, t, r = _query_arrays(row, names)
     ext = split.path_extent
+    fs_t, fs_r = split.false_success or (0.05 * ext, 5.0)
     med_t = float(np.median(t[succ])) if succ.any() else None
+    by = {q["name"]: q for q in row["per_query"]}
+    nees = [by[n]["nees"] for n in names if n in by and by[n].get("nees") is not None]
     return {
         "median_t": med_t,
         "median_t_pct_path": None if med_t is None else 100 * med_t / ext,
@@ -998,7 +1052,8 @@ def _method_stats(split: Split, row: dict, names: list[str]) -> dict:
         "recall": {f"{tt:.4g}/{rr:g}deg": float(np.mean(succ & (t <= tt) & (r <= rr))) for tt, rr in split.recall},
         "localized": int(succ.sum()),
         "queries": len(names),
-        "false_successes": int((succ & ((t > 0.05 * ext) | (r > 5.0))).sum()),
+        "false_successes": int((succ & ((t > fs_t) | (r > fs_r))).sum()),
+        "median_nees": float(np.median(nees)) if nees else None,
     }
 
 
@@ -1015,7 +1070,7 @@ def real_rows(rows: list[dict], splits: list[Split], reference: str = "rendered"
             r
             for r in rows
             if r["split"] == sp.name
-            and r["prior"] == "noise"
+            and (r["prior"] in CROSS_PRIORS if sp.cross else r["prior"] == "noise")
             and r.get("map_variant") is not None
             and r["method"] == " ".join(w for w in (r["map_variant"], reference) if w)
         ]
@@ -1024,6 +1079,8 @@ def real_rows(rows: list[dict], splits: list[Split], reference: str = "rendered"
         for f in favs:
             entry = {
                 "split": sp.name,
+                "prior": f["prior"],
+                "cross": sp.cross,
                 "map": f["map_variant"] or "(default)",
                 "mapping_frames": len(sp.mapping),
                 "units": sp.units,
@@ -1042,6 +1099,10 @@ def real_rows(rows: list[dict], splits: list[Split], reference: str = "rendered"
                 entry["ratio"] = paired_ratio(np.where(succ_f, t_f, np.inf), np.where(succ_b, t_b, np.inf))
                 entry["baseline_only"] = int((succ_b & ~succ_f).sum())  # localized by the baseline, not by favormap
                 entry["shared"] = shared_error(f, base[0], names)
+                if sp.cross and entry["shared"]:
+                    entry["favormap"]["median_nees_gt"] = nees_with_ground_truth_error(
+                        f, names, entry["shared"]["gt_sigma"]
+                    )
             out.append(entry)
     return out
 
@@ -1064,16 +1125,37 @@ def shared_error(row: dict, base: dict, names: list[str]) -> dict | None:
         "queries": len(both),
         "apart": float(np.median(np.linalg.norm(ea - eb, axis=1))),
         "cosine": float(np.median(cos)),
+        # the ground truth's own error per axis: two methods' errors e_a = g + a and e_b = g + b share the ground
+        # truth's g, and with a, b independent of g and of each other E[e_a . e_b] = E|g|^2 = 3 sigma^2
+        "gt_sigma": float(np.sqrt(max(np.mean(np.sum(ea * eb, 1)), 0.0) / 3)),
     }
 
 
+def nees_with_ground_truth_error(row: dict, names: list[str], gt_sigma: float) -> float | None:
+    """Median NEES of a method's localized queries against a ground truth with ``gt_sigma`` of its own error
+    per axis: the camera-centre error under the reported covariance plus gt_sigma^2 I (chi-square with 3
+    degrees of freedom, median 2.37, when both are right)."""
+    by = {q["name"]: q for q in row.get("per_query", [])}
+    out = []
+    for n in names:
+        q = by.get(n)
+        if q and q["success"] and "center_cov" in q:
+            e = np.asarray(q["t_vec"], np.float64)
+            C = np.asarray(q["center_cov"], np.float64) + gt_sigma**2 * np.eye(3)
+            try:
+                out.append(float(e @ np.linalg.solve(C, e)))
+            except np.linalg.LinAlgError:
+                continue
+    return float(np.median(out)) if out else None
+
+
 def geometric_means(entries: list[dict], seed: int = 0) -> dict[str, tuple[float, list[float] | None]]:
-    """Per favormap map: the geometric mean over the splits of the paired ratios to the baseline, and its
-    95 % bootstrap interval (each split's queries resampled within the split; None where a ratio lacks
-    its per-query log ratios)."""
+    """Per favormap map: the geometric mean over the same-recording splits of the paired ratios to the
+    baseline, and its 95 % bootstrap interval (each split's queries resampled within the split; None where a
+    ratio lacks its per-query log ratios). Cross-recording splits are reported on their own."""
     by: dict[str, list[dict]] = {}
     for e in entries:
-        if e.get("ratio"):
+        if e.get("ratio") and not e.get("cross"):
             by.setdefault(e["map"], []).append(e["ratio"])
     rng = np.random.default_rng(seed)
     out = {}
@@ -1093,6 +1175,11 @@ def geometric_means(entries: list[dict], seed: int = 0) -> dict[str, tuple[float
             ci = [float(v) for v in np.exp(np.percentile(boot, [2.5, 97.5]))]
         out[k] = (value, ci)
     return out
+
+
+def _split_label(entry: dict) -> str:
+    """A real-table entry's split, with its prior mode where a cross-recording split runs several."""
+    return entry["split"] + (f" ({entry['prior']} prior)" if entry.get("cross") else "")
 
 
 def real_table(entries: list[dict]) -> str:
@@ -1118,9 +1205,9 @@ def real_table(entries: list[dict]) -> str:
 
     out = [
         "| split | map | frames map / queries | path extent | favormap median t (% path) | R (deg) | recall % | "
-        "localized | FS | baseline median t (% path) | R (deg) | recall % | localized | FS | favormap / baseline "
-        "[95 % CI] | baseline-only | landmarks / points | build s/frame | map B/landmark |",
-        "|---" * 19 + "|",
+        "localized | FS | NEES | baseline median t (% path) | R (deg) | recall % | localized | FS | favormap / "
+        "baseline [95 % CI] | baseline-only | landmarks / points | build s/frame | map B/landmark |",
+        "|---" * 20 + "|",
     ]
     for e in entries:
         r = e.get("ratio")
@@ -1131,11 +1218,12 @@ def real_table(entries: list[dict]) -> str:
             "| "
             + " | ".join(
                 [
-                    e["split"],
+                    _split_label(e),
                     e["map"],
                     f"{e['mapping_frames']} / {e['favormap']['queries']}",
                     f"{e['path_extent']:.3f} {e['units']}",
                     *st(e["favormap"], e),
+                    _f(e["favormap"].get("median_nees"), ".1f"),
                     *st(e.get("baseline"), e),
                     ratio,
                     str(e.get("baseline_only", "-")),
@@ -1149,10 +1237,14 @@ def real_table(entries: list[dict]) -> str:
     out.append("")
     out.append(
         "Recall thresholds: 0.5 % of the path extent / 2 deg, 2 % / 5 deg (and for 7-Scenes 5 cm / 5 deg, "
-        "2 cm / 2 deg); FS: false successes (localized, error > 5 % of the path extent or 5 deg)."
+        "2 cm / 2 deg); FS: false successes (localized, error > 5 % of the path extent or 5 deg). Another "
+        "recording (tum-desk-xyz): recall at 2 cm / 2 deg, 5 cm / 5 deg, 10 cm / 10 deg, a false success beyond "
+        "10 cm or 10 deg (its ground truth is off by ~1-2 cm itself), favormap from each prior mode, the baseline "
+        "without a prior. NEES: median over the localized queries of the camera-centre error under the reported "
+        "covariance (2.37 when that covariance is right)."
     )
     for k, (v, ci) in geometric_means(entries).items():
-        n = sum(1 for e in entries if e["map"] == k and e.get("ratio"))
+        n = sum(1 for e in entries if e["map"] == k and e.get("ratio") and not e.get("cross"))
         interval = "" if ci is None else f" [{ci[0]:.3f}, {ci[1]:.3f}]"
         out.append(f"geometric mean of favormap / baseline over {n} splits, map {k}: {v:.3f}{interval}")
     shared = [e for e in entries if e.get("shared")]
@@ -1160,16 +1252,21 @@ def real_table(entries: list[dict]) -> str:
         out += [
             "",
             "Error shared with the baseline (queries both localize): the median distance between the two "
-            "estimates, against each method's median error, and the median cosine between their error vectors",
+            "estimates, against each method's median error, the median cosine between their error vectors, the "
+            "ground truth's own error per axis that the two share (sqrt of the mean dot product of their error "
+            "vectors over 3) and, on another recording, favormap's median NEES with that error added to its "
+            "covariance",
             "",
-            "| split | map | estimates apart | favormap median t | baseline median t | cosine of the errors |",
-            "|---|---|---|---|---|---|",
+            "| split | map | estimates apart | favormap median t | baseline median t | cosine of the errors | "
+            "ground truth's error per axis | favormap NEES with it |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for e in shared:
             sh = e["shared"]
             out.append(
-                f"| {e['split']} | {e['map']} | {sh['apart']:.4f} | {_f(e['favormap']['median_t'], '.4f')} | "
-                f"{_f(e['baseline']['median_t'], '.4f')} | {sh['cosine']:.2f} |"
+                f"| {_split_label(e)} | {e['map']} | {sh['apart']:.4f} | {_f(e['favormap']['median_t'], '.4f')} | "
+                f"{_f(e['baseline']['median_t'], '.4f')} | {sh['cosine']:.2f} | {sh['gt_sigma']:.4f} | "
+                f"{_f(e['favormap'].get('median_nees_gt'), '.1f')} |"
             )
     return "\n".join(out)
 
@@ -1508,7 +1605,7 @@ def main():
         splits.append(Split("custom", mapping, queries, nearest_view_angle(queries, mapping)))
     else:
         which = args.splits.split(",")
-        real = [w for w in which if w in REAL_SPLITS or w in EXTRA_SPLITS]
+        real = [w for w in which if w in REAL_SPLITS or w in EXTRA_SPLITS or w in CROSS_SPLITS]
         if args.suite or any(w not in ("fox-holdout", "fox-extrap") for w in real):
             splits += real_splits(real)
         else:

@@ -117,6 +117,15 @@ def register(sub):
         "the inliers' keypoints by default. With SfM or SLAM poses these settings lose (docs/accuracy.md)",
     )
     p.add_argument(
+        "--refine-poses",
+        action="store_true",
+        help="refine the poses with the landmarks by bundle adjustment, each camera centre held near its given "
+        "position, and store the refined poses: for poses that fit the images less well than the keypoints "
+        "(motion capture, a tracker with drift; the build summary says when). Queries from another recording "
+        "then localize more precisely; a query whose ground truth shares the given poses' errors (the same "
+        "recording) may seem to lose (docs/accuracy.md)",
+    )
+    p.add_argument(
         "--align-patches",
         type=int,
         default=None,
@@ -259,6 +268,7 @@ def config_from_args(args):
         refine_window=args.refine_window,
         align_patches=args.align_patches,
         exact_poses=getattr(args, "exact_poses", False) or None,
+        refine_poses=getattr(args, "refine_poses", False) or None,
     )
     return BuildConfig(
         extractor=args.extractor,
@@ -273,6 +283,7 @@ def config_from_args(args):
 
 
 def summary(m, path: Path) -> dict:
+    from ..build_config import default_max_epipolar
     from ..mapfile.model import built_for_exact_poses, map_aligns_by_default
 
     st = m.provenance["stats"]
@@ -280,6 +291,7 @@ def summary(m, path: Path) -> dict:
         **st,
         "exact_poses": built_for_exact_poses(m.provenance),
         "aligns_by_default": map_aligns_by_default(m.provenance),
+        "keypoint_precision_px": default_max_epipolar(m.extractor),
         "file": str(path),
         "file_size": path.stat().st_size,
         "timings": m.provenance["timings"],
@@ -298,6 +310,8 @@ _EXACT_HINT_PX = 0.15
 
 
 def print_summary(s: dict) -> None:
+    from ..pose_refinement import poses_need_refinement
+
     print(f"frames              {s['frames']}")
     kept, kept3 = s.get("epipolar_kept"), s.get("epipolar_kept_3x")
     line = f"tracks              {s['tracks']}"
@@ -334,6 +348,17 @@ def print_summary(s: dict) -> None:
         print(
             "                    (the tracks fit the poses as exact ones do: if they are, from a simulator or motion "
             "capture, --exact-poses localizes more precisely)"
+        )
+    if s.get("poses_refined"):
+        rms = s["pose_refinement_rms_px"]
+        print(
+            f"poses refined       cameras moved {s['pose_center_shift_median']:.3g} (median), turned "
+            f"{s['pose_rotation_change_median_deg']:.2f} deg; tracks' RMS reprojection {rms[0]:.2f} -> {rms[1]:.2f} px"
+        )
+    elif poses_need_refinement(s.get("epipolar_median_px", float("nan")), s.get("keypoint_precision_px", 1.0)):
+        print(
+            "                    (the right matches lie farther from their epipolar lines than the keypoints' "
+            "precision: if the poses come from motion capture or a tracker, --refine-poses fits them to the images)"
         )
     print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
     print(f"file                {s['file']}  ({human_size(s['file_size'])})")

@@ -37,7 +37,8 @@ def add_localize_options(p):
         "--ransac-px",
         type=float,
         default=config_default(LocalizeConfig, "ransac_max_error_px"),
-        help="RANSAC inlier threshold in pixels of the map's working resolution (default %(default)s)",
+        help="RANSAC inlier threshold in pixels of the map's working resolution (default: the map's, 4 px or "
+        "1.5 times its epipolar limit where its mapping poses fit their images less well)",
     )
     p.add_argument(
         "--min-inliers",
@@ -178,7 +179,7 @@ def config_from_args(args):
         raise InputError("--threshold must be in (0, 1]")
     if not 0 < args.ratio <= 1:
         raise InputError("--ratio must be in (0, 1]")
-    if args.ransac_px <= 0:
+    if args.ransac_px is not None and not 0 < args.ransac_px < float("inf"):
         raise InputError("--ransac-px must be > 0")
     if args.min_inliers < 4:
         raise InputError("--min-inliers must be >= 4")

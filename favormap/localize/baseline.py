@@ -29,6 +29,7 @@ from ..errors import FavormapError, InputError
 from ..geometry import from_rigid3d, to_rigid3d
 from ..io import Camera, Sequence, load_image
 from ..io.images import prepare_query
+from ..pose_refinement import quiet_colmap
 
 MATCHING_MODES = ("auto", "exhaustive", "sequential")
 
@@ -59,19 +60,6 @@ class BaselineResult:
     inlier_mask: np.ndarray  # (K,) bool
     message: str = ""
     camera: Camera | None = None  # the working pinhole camera of the query
-
-
-@contextlib.contextmanager
-def _quiet_colmap():
-    """Silence COLMAP's glog INFO/WARNING output for the duration of the block."""
-    import pycolmap
-
-    old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
 
 
 def _normalize(desc: np.ndarray) -> np.ndarray:
@@ -163,7 +151,7 @@ class StructureBaseline:
         with contextlib.ExitStack() as stack:
             if workdir is None:
                 workdir = stack.enter_context(tempfile.TemporaryDirectory(prefix="favormap_baseline_"))
-            stack.enter_context(_quiet_colmap())
+            stack.enter_context(quiet_colmap())
             return cls._build(seq, cfg, Path(workdir))
 
     @classmethod
@@ -272,7 +260,7 @@ class StructureBaseline:
         cfg = self.config
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
-        with _quiet_colmap():
+        with quiet_colmap():
             if self._extractor is None:
                 self._extractor = _extractor(cfg)
             kp, desc = _extract(self._extractor, img)

@@ -52,7 +52,12 @@ class LocalizeConfig:
     ratio: float = 1.0  # Lowe ratio on descriptor distances in the rendering iterations (1: off)
     global_ratio: float | None = None  # Lowe ratio when matching against all landmarks (None: the extractor's)
     max_keypoints: int = 4096  # query keypoints
-    ransac_max_error_px: float = 4.0  # PnP-RANSAC threshold, at the working resolution of the map (max_side)
+    # PnP-RANSAC threshold, at the working resolution of the map (max_side). None: the map's (ransac_threshold):
+    # min_ransac_px, or pose_noise_ransac times the map's epipolar limit where its mapping poses fit the images
+    # less well than that
+    ransac_max_error_px: float | None = None
+    min_ransac_px: float = 4.0
+    pose_noise_ransac: float = 1.5
     checks: SuccessChecks = field(default_factory=SuccessChecks)
     # The guided step, after the rendering iterations (search by projection): every landmark visible from the
     # estimate is matched to the most similar query keypoint within guided_radius_px of its projection and within
@@ -102,10 +107,25 @@ class LocalizeConfig:
     # rule (and follows the machine's load), a number fixes them
     threads: int | str | None = None
 
+    def ransac_threshold(self, epipolar_limit_px: float | None) -> float:
+        """The PnP-RANSAC threshold (px) for a map whose build measured ``epipolar_limit_px`` (None: not
+        recorded): ``ransac_max_error_px`` where given. A correct correspondence's reprojection error in the
+        query carries the errors of the mapping poses its landmark was triangulated from; where those poses
+        fit their images to a few pixels only (motion capture, KinectFusion), a threshold below that
+        refuses correct correspondences and RANSAC settles on a few lucky ones."""
+        if self.ransac_max_error_px is not None:
+            return float(self.ransac_max_error_px)
+        return max(self.min_ransac_px, self.pose_noise_ransac * (epipolar_limit_px or 0.0))
+
     def __post_init__(self):
         v = self.landmark_sigma_px
         if not (v in ("landmark", "map") or (isinstance(v, (int, float)) and 0 <= v < float("inf"))):
             raise InputError(f"landmark_sigma_px must be 'landmark', 'map' or a number of pixels >= 0, not {v!r}")
+        r = self.ransac_max_error_px
+        if not (r is None or (isinstance(r, (int, float)) and 0 < r < float("inf"))):
+            raise InputError(f"ransac_max_error_px must be a number of pixels > 0 (or None: the map's), not {r!r}")
+        if not (0 < self.min_ransac_px < float("inf") and 0 <= self.pose_noise_ransac < float("inf")):
+            raise InputError("min_ransac_px must be > 0 and pose_noise_ransac >= 0")
         if not (0 <= self.guided_radius_px < float("inf") and 0 <= self.guided_gate_sigma < float("inf")):
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:

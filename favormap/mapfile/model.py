@@ -32,6 +32,14 @@ def built_for_exact_poses(provenance: dict | None) -> bool:
     return bool((provenance or {}).get("config", {}).get("exact_poses", False))
 
 
+def map_epipolar_limit_px(provenance: dict | None) -> float | None:
+    """The epipolar limit the map's build tracked with (px at its working resolution; measured from the
+    mapping images' matches unless it was given): how far the mapping poses let a correct match lie from
+    its epipolar line. None for maps whose provenance does not record it."""
+    v = (provenance or {}).get("stats", {}).get("max_epipolar_px")
+    return float(v) if isinstance(v, (int, float)) and v > 0 else None
+
+
 def map_aligns_by_default(provenance: dict | None) -> bool:
     """Whether a map of this provenance asks the localizer for the keypoint alignment unless told otherwise
     (``LocalizeConfig.align`` None; its build's ``localize_defaults``: exact poses, or DISK / ALIKED keypoints

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FavormapError, IncompatibleMapsError
+from ..geometry import umeyama
 from ..mapfile import Map
 from .align_config import AlignConfig
 
@@ -108,30 +109,6 @@ def mutual_matches(da: np.ndarray, db: np.ndarray, ratio: float, chunk: int = 20
     i = np.arange(len(da))
     keep = ok_a & (ba[ab] == i) & ok_b[ab]
     return np.stack([i[keep], ab[keep]], 1)
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, weights=None) -> np.ndarray:
-    """Batched similarity fits: ``src``, ``dst`` (..., N, 3) -> (..., 4, 4) T with dst ~ T src
-    (Umeyama 1991, least squares over the N pairs)."""
-    src = np.asarray(src, np.float64)
-    dst = np.asarray(dst, np.float64)
-    mu_s = src.mean(-2, keepdims=True)
-    mu_d = dst.mean(-2, keepdims=True)
-    xs, xd = src - mu_s, dst - mu_d
-    n = src.shape[-2]
-    C = np.swapaxes(xd, -1, -2) @ xs / n  # (..., 3, 3)
-    U, S, Vt = np.linalg.svd(C)
-    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    D = np.ones(S.shape)
-    D[..., 2] = d
-    R = (U * D[..., None, :]) @ Vt
-    var_s = np.sum(xs**2, axis=(-1, -2)) / n
-    s = np.sum(S * D, -1) / np.maximum(var_s, 1e-300)
-    T = np.zeros((*src.shape[:-2], 4, 4))
-    T[..., :3, :3] = s[..., None, None] * R
-    T[..., :3, 3] = mu_d[..., 0, :] - (s[..., None, None] * R @ mu_s[..., 0, :, None])[..., 0]
-    T[..., 3, 3] = 1
-    return T
 
 
 def _residuals(T: np.ndarray, pb: np.ndarray, pa: np.ndarray) -> np.ndarray:

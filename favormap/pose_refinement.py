@@ -1,0 +1,218 @@
+"""pose refinement: the mapping poses adjusted to the images by bundle adjustment (pycolmap).
+
+Given poses that fit their images less well than the extractor places keypoints (motion capture with a
+time offset and a rolling shutter, KinectFusion's drift) give every landmark the error of the few poses
+it was triangulated from. Landmarks of different frames then disagree with each other by pixels, and a
+query matched to them can be located no better than that disagreement. Here the poses and the
+triangulated landmarks are refined together on the tracks' reprojection errors (COLMAP's bundle
+adjuster, Cauchy loss at the extractor's keypoint precision, intrinsics fixed), each camera centre held
+near its given position by a Gaussian prior: the map keeps the world frame and the units of the poses it
+was given, and only the part of the poses that the images contradict moves.
+
+The prior's standard deviation is the camera-centre error the measured pose noise implies: the right
+tracking matches' median distance from their epipolar lines (px), times the landmarks' median depth,
+over the focal length.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import camera_centers, from_rigid3d, move_poses, nearest_rotation, to_rigid3d, transform_points, umeyama
+from .io import Camera
+from .triangulation import Landmarks
+
+
+@dataclass
+class PoseRefinement:
+    """Stage boundary: the refined mapping poses and how far they moved from the given ones."""
+
+    cam_from_world: np.ndarray  # (M, 4, 4) refined
+    center_shift: np.ndarray  # (M,) distance each camera centre moved (world units)
+    rotation_change_deg: np.ndarray  # (M,) angle each camera turned
+    camera_offset: np.ndarray  # (3, 3) the rotation the given poses share on the camera side (given ~ offset @ refined)
+    prior_sigma: float  # standard deviation of the camera-centre prior (world units)
+    initial_rms_px: float  # reprojection error of the observations before and after (RMS over the residuals)
+    final_rms_px: float
+    iterations: int
+
+    def stats(self) -> dict:
+        """The build summary's figures of the refinement."""
+        return {
+            "poses_refined": True,
+            "pose_prior_sigma": float(self.prior_sigma),
+            "pose_center_shift_median": float(np.median(self.center_shift)),
+            "pose_rotation_change_median_deg": float(np.median(self.rotation_change_deg)),
+            "pose_camera_offset_deg": float(
+                np.degrees(np.arccos(np.clip((np.trace(self.camera_offset) - 1) / 2, -1.0, 1.0)))
+            ),
+            "pose_refinement_rms_px": [round(self.initial_rms_px, 3), round(self.final_rms_px, 3)],
+        }
+
+
+def poses_need_refinement(epipolar_median_px: float, keypoint_precision_px: float) -> bool:
+    """Whether the given poses fit their images less well than the extractor places keypoints: the right
+    tracking matches lie farther from their epipolar lines (median, px) than ``keypoint_precision_px``.
+    False when the median was not measured (NaN: an epipolar limit given by the user)."""
+    return bool(np.isfinite(epipolar_median_px) and epipolar_median_px > keypoint_precision_px)
+
+
+def median_depth(lms: Landmarks, cam_from_world: np.ndarray) -> float:
+    """The median depth of the landmarks' observations in their frames (world units)."""
+    f = np.asarray(lms.tracks.frame_idx)
+    T = np.asarray(cam_from_world)[f]
+    X = lms.positions[lms.tracks.track_of_obs]
+    depth = np.einsum("nj,nj->n", T[:, 2, :3], X) + T[:, 2, 3]
+    return float(np.median(depth[depth > 0])) if (depth > 0).any() else 0.0
+
+
+def refine_poses(
+    lms: Landmarks,
+    cam_from_world: np.ndarray,
+    cameras: list[Camera],
+    pixel_noise: float,
+    loss_px: float = 1.0,
+    iterations: int = 100,
+) -> PoseRefinement:
+    """Bundle adjustment of the poses ``cam_from_world`` (M, 4, 4) of the working pinhole ``cameras``
+    (one per frame) and the landmarks ``lms`` on their observations, each camera centre held to its
+    given position by a Gaussian prior of the error ``pixel_noise`` px of pose noise implies
+    (:func:`prior_sigma`); then the refined poses are put back into the frame of the given ones
+    (:func:`frame_alignment`). Cauchy loss of scale ``loss_px``; intrinsics fixed. Returns the refined
+    poses (the landmarks are to be triangulated again from them)."""
+    import pycolmap
+
+    T0 = np.asarray(cam_from_world, np.float64)
+    depth = median_depth(lms, T0)
+    sigma = pixel_noise * depth / float(np.median([np.mean(c.focal) for c in cameras]))
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    image_cam = []
+    for c in cameras:
+        key = (c.model, c.width, c.height, tuple(np.round(np.asarray(c.params, np.float64), 9)))
+        if key not in cam_ids:
+            pc = c.to_pycolmap()
+            pc.camera_id = len(cam_ids) + 1
+            rec.add_camera_with_trivial_rig(pc)
+            cam_ids[key] = pc.camera_id
+        image_cam.append(cam_ids[key])
+    frame = np.asarray(lms.tracks.frame_idx, np.int64)
+    xy = np.asarray(lms.tracks.xy, np.float64)
+    order = np.argsort(frame, kind="stable")  # each frame's observations, in one run
+    starts = np.searchsorted(frame[order], np.arange(len(T0) + 1))
+    point2d = np.empty(len(frame), np.int64)  # each observation's index among its frame's keypoints
+    for f in range(len(T0)):
+        rows = order[starts[f] : starts[f + 1]]
+        point2d[rows] = np.arange(len(rows))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{f:06d}", keypoints=xy[rows], camera_id=image_cam[f], image_id=f + 1),
+            to_rigid3d(T0[f]),
+        )
+    config = pycolmap.BundleAdjustmentConfig()
+    for f in range(len(T0)):
+        config.add_image(f + 1)
+    for c in cam_ids.values():
+        config.set_constant_cam_intrinsics(c)
+    offsets = lms.tracks.offsets
+    point_ids = []
+    for j in range(len(lms)):  # pycolmap takes a track element by element (~0.1 s for 15,000 landmarks)
+        tr = pycolmap.Track()
+        for o in range(offsets[j], offsets[j + 1]):
+            tr.add_element(int(frame[o]) + 1, int(point2d[o]))
+        point_ids.append(rec.add_point3D(np.asarray(lms.positions[j], np.float64), tr))
+        config.add_variable_point(point_ids[-1])
+    centers = camera_centers(T0)
+    priors = []
+    for f in range(len(T0)):
+        prior = pycolmap.PosePrior(
+            position=centers[f],
+            position_covariance=np.eye(3) * max(sigma, 1e-12) ** 2,
+            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+        )
+        prior.corr_data_id = rec.image(f + 1).data_id
+        priors.append(prior)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = float(loss_px)
+    options.ceres.solver_options.max_num_iterations = int(iterations)
+    options.ceres.solver_options.num_threads = 1 if len(lms) < 1000 else -1
+    with quiet_colmap():
+        adjuster = pycolmap.create_pose_prior_bundle_adjuster(
+            options, pycolmap.PosePriorBundleAdjustmentOptions(), config, priors, rec
+        )
+        summary = adjuster.solve()
+    ceres = summary.ceres_summary
+    T = np.stack([from_rigid3d(rec.image(f + 1).cam_from_world()) for f in range(len(T0))])
+    S, offset = frame_alignment(T, T0, depth)
+    T = move_poses(T, S)
+    X = transform_points(S, np.stack([rec.point3D(i).xyz for i in point_ids]))
+    dR = np.einsum("nij,nkj->nik", T[:, :3, :3], T0[:, :3, :3])
+    angle = np.degrees(np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
+    return PoseRefinement(
+        cam_from_world=T,
+        center_shift=np.linalg.norm(camera_centers(T) - centers, axis=1),
+        rotation_change_deg=angle,
+        camera_offset=offset,
+        prior_sigma=float(sigma),
+        initial_rms_px=_rms(lms, T0, cameras),
+        final_rms_px=_rms(lms, T, cameras, X),
+        iterations=int(ceres.num_successful_steps + ceres.num_unsuccessful_steps),
+    )
+
+
+def frame_alignment(
+    refined: np.ndarray, given: np.ndarray, lever: float, rounds: int = 5
+) -> tuple[np.ndarray, np.ndarray]:
+    """(S, offset): the similarity S (4x4, x_given = s R x_refined + t) that puts the refined poses back
+    into the frame of the given ones, fitted to all the given poses say of the frame: their camera centres and their
+    orientations. The centre priors of the bundle adjustment leave the frame free where the centres do not
+    fix it (a rotation about the line of a straight path) and turn it by their own noise where the path is
+    short; the orientations fix both. Each camera contributes its centre and three points ``lever`` along
+    its axes (Umeyama): with the lever the ratio of a centre's error to an orientation's (both from one pixel
+    noise: the landmarks' median depth), both weigh by their noise.
+
+    The given orientations may share one rotation on the camera side that the images contradict (the
+    hand-eye calibration of a motion-capture rig): it is estimated with the similarity, alternately, and
+    left out of the orientations the frame is fitted to, so that it does not turn the world."""
+    c_ref, c_given = camera_centers(refined), camera_centers(given)
+    offset = np.eye(3)  # given ~ offset @ true, on the camera side
+    S = np.eye(4)
+    for _ in range(rounds):
+        R_given = np.einsum("ji,njk->nik", offset, given[:, :3, :3])
+        src = np.concatenate([c_ref[:, None, :], c_ref[:, None, :] + lever * refined[:, :3, :3]], 1)
+        dst = np.concatenate([c_given[:, None, :], c_given[:, None, :] + lever * R_given], 1)
+        S = umeyama(src.reshape(-1, 3), dst.reshape(-1, 3))
+        R_moved = move_poses(refined, S)[:, :3, :3]
+        offset = nearest_rotation(np.einsum("nij,nkj->ik", given[:, :3, :3], R_moved))
+    return S, offset
+
+
+def _rms(lms: Landmarks, cam_from_world: np.ndarray, cameras: list[Camera], positions=None) -> float:
+    """RMS reprojection error (px) of the observations of ``lms`` (at ``positions``, or their own)."""
+    X = (lms.positions if positions is None else positions)[lms.tracks.track_of_obs]
+    f = np.asarray(lms.tracks.frame_idx)
+    T = np.asarray(cam_from_world)[f]
+    P = np.einsum("nij,nj->ni", T[:, :3, :3], X) + T[:, :3, 3]
+    K = np.stack([c.K for c in cameras])[f]
+    uv = np.einsum("nij,nj->ni", K, P)[:, :2] / P[:, 2:3]
+    return float(np.sqrt(np.mean(np.sum((uv - lms.tracks.xy) ** 2, axis=1))))
+
+
+@contextlib.contextmanager
+def quiet_colmap():
+    """COLMAP's glog output at ERROR only, for the duration of the block."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
