@@ -136,3 +136,28 @@ def test_the_ransac_threshold_follows_the_map_s_pose_noise(small_map, tmp_path):
     assert Localizer(tmp_path / "noisy.h5").config.ransac_max_error_px == pytest.approx(9.0)
     with pytest.raises(Exception, match="ransac_max_error_px"):
         LocalizeConfig(ransac_max_error_px=0.0)
+
+
+def test_the_reported_uncertainty_includes_the_map_s_own_pose_noise(small_map, small_sequence, tmp_path):
+    """A map whose build measured its poses to fit the images to 3 px (the right matches' median epipolar
+    distance) cannot localize a query better than that: the reported camera-centre spread is at least 3 px at
+    the landmarks' depth, whatever the number of inliers; the map of exact poses reports less."""
+    from favormap.localize import LocalizeConfig, Localizer
+    from favormap.mapfile import write_map
+
+    m, path = small_map
+    stats = {**m.provenance.get("stats", {}), "epipolar_median_px": 3.0}
+    write_map(dataclasses.replace(m, provenance={**m.provenance, "stats": stats}), tmp_path / "noisy.h5")
+    fr = small_sequence.frames[5]
+    cfg = LocalizeConfig(ransac_max_error_px=4.0)
+    exact = Localizer(path, cfg).localize(fr.image_path, fr.cam_from_world)
+    loc = Localizer(tmp_path / "noisy.h5", cfg)
+    noisy = loc.localize(fr.image_path, fr.cam_from_world)
+    assert exact.success and noisy.success
+    inl = noisy.matches[noisy.inlier_mask]
+    T = noisy.cam_from_world
+    depth = np.median(loc.positions[inl[:, 0]] @ T[2, :3] + T[2, 3])
+    floor = 3.0 / noisy.camera.K[0, 0] * depth
+    assert noisy.covariance.center_std.min() >= 0.99 * floor
+    assert exact.covariance.center_std.max() < noisy.covariance.center_std.min()
+    assert noisy.covariance.rotation_std_deg >= 0.99 * np.degrees(3.0 / noisy.camera.K[0, 0])

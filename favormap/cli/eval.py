@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..viz import add_rerun_args, recording_from_args
 from .common import StageBars, print_json
-from .localize import add_localize_options, config_from_args
+from .localize import add_localize_options, config_from_args, open_map
 
 
 def register(sub):
@@ -65,7 +65,6 @@ def run(args) -> int:
     from ..io import read_sequence
     from ..localize import Localizer
     from ..localize.evaluate import EvalConfig, evaluate, format_table
-    from ..mapfile import Map
 
     methods = ("rendered",) if args.no_baseline else ("rendered", "mean")
     cfg = EvalConfig(prior_mode=args.prior_mode, noise=parse_noise(args.noise), seed=args.seed, methods=methods)
@@ -83,7 +82,7 @@ def run(args) -> int:
     if not idx:
         raise InputError("no query frames selected")
     queries = queries.subset(idx)
-    m = Map.open(args.map)
+    m = open_map(args)
     locs = {name: Localizer(m, dataclasses.replace(lcfg, descriptors=name)) for name in methods}
     bars = StageBars(args.quiet or args.json)
     rec = recording_from_args(args, "favormap eval", m)

@@ -44,4 +44,12 @@ def run(args) -> int:
         why = "built with --exact-poses" if info["exact_poses"] else f"{info['extractor']} keypoints"
         print(f"keypoint alignment  on by default in localize ({why}; --no-align turns it off)")
     print(f"file size           {human_size(info['file_size'])}")
+    from ..mapfile.reader import DEFAULT_CACHE_BYTES
+
+    mem = info["voxel_memory_bytes"]
+    fits = mem <= DEFAULT_CACHE_BYTES
+    print(
+        f"voxel memory        {human_size(mem)} for every grid: a warm localizer "
+        + ("holds them all (default cache 1 GB)" if fits else "reads them as queries need them (localize --cache-mb)")
+    )
     return 0

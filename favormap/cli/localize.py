@@ -14,7 +14,26 @@ from .common import auto_device, config_default, print_json
 IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 
 
+def open_map(args):
+    """The map of a localize / eval command, its voxel cache sized by --cache-mb."""
+    from ..errors import InputError
+    from ..mapfile import Map
+
+    mb = getattr(args, "cache_mb", None)
+    if mb is not None and mb < 1:
+        raise InputError("--cache-mb must be at least 1")
+    return Map.open(args.map, cache_bytes=None if mb is None else mb << 20)
+
+
 def add_localize_options(p):
+    p.add_argument(
+        "--cache-mb",
+        type=int,
+        default=None,
+        metavar="MB",
+        help="memory for the voxel grids read from the map (default 1024: the whole map where it fits; a larger "
+        "map is read as the queries need it)",
+    )
     p.add_argument(
         "--iters",
         type=int,
@@ -260,7 +279,6 @@ def run(args) -> int:
     from ..geometry import inverse
     from ..io.posefile import read_camera, read_pose, write_pose
     from ..localize import Localizer
-    from ..mapfile import Map
 
     query = Path(args.query)
     if not query.exists():
@@ -300,7 +318,7 @@ def run(args) -> int:
         jobs = [(query, read_pose(args.prior) if args.prior else None)]
     config = config_from_args(args)
     first_prior = read_pose(args.prior) if sequential and args.prior else None
-    m = Map.open(args.map)
+    m = open_map(args)
     camera = read_camera(args.camera) if args.camera else None
     loc = Localizer(m, config)
     rec = recording_from_args(args, "favormap localize", m)

@@ -100,8 +100,25 @@ class FinalRefinement:
         )
         if cov is not None and scale is not None:
             cov.landmark_scale, cov.keypoint_sigma_px = float(scale), float(np.median(ksig))
+        if cov is not None:
+            self._add_map_pose_noise(cov, it.cam_from_world, X, q.cam.K)
         t["pnp"] += time.perf_counter() - s
         return cov
+
+    def _add_map_pose_noise(self, cov: PoseCovariance, pose: np.ndarray, X: np.ndarray, K: np.ndarray) -> None:
+        """Add to ``cov`` (in place) the error the map's own poses leave in any pose localized against it: the
+        landmarks were triangulated from mapping poses that its build measured to fit their images to
+        ``epipolar_median_px`` (the right tracking matches' median distance from their epipolar lines), so
+        the map's frame is known to about that many pixels at the landmarks' depth, however many inliers a
+        query has. Independent of the query's own error: the covariances add. Maps that do not record the
+        figure add nothing."""
+        px = (self.map.provenance.get("stats") or {}).get("epipolar_median_px")
+        if not isinstance(px, (int, float)) or not px > 0 or len(X) == 0:
+            return
+        depth = float(np.median(X @ pose[2, :3] + pose[2, 3]))
+        angle = float(px) / float(np.mean(np.diag(K)[:2]))  # rad
+        cov.center = cov.center + (angle * max(depth, 0.0)) ** 2 * np.eye(3)
+        cov.rotation = cov.rotation + angle**2 * np.eye(3)
 
     def _aligned(self, q: Query, pose: np.ndarray, last: dict, kp: np.ndarray, t: dict) -> np.ndarray:
         """The keypoints ``kp`` of the inliers of ``last`` aligned to the mapping images

@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import FavormapError, MapFormatError, first_line
+from ..errors import FavormapError, InputError, MapFormatError, first_line
 from ..io import Camera
 from .fields import bulk_datasets, field_name, metadata_datasets
 from .model import MapCounts, MapData, built_for_exact_poses, map_aligns_by_default, median_landmark_reproj_error
@@ -60,20 +60,30 @@ def _strings(a) -> list[str]:
     return [s.decode("utf-8", "replace") if isinstance(s, bytes) else str(s) for s in np.asarray(a).ravel().tolist()]
 
 
+# the voxel cache of a map opened without a size: the whole map where its grids fit this many bytes
+DEFAULT_CACHE_BYTES = 1 << 30
+
+
 class Map(MapCounts):
     """A favormap map opened lazily. Landmark metadata is in memory; voxel grids are read for the
-    landmarks asked for, in sorted chunk reads, through a small LRU cache.
+    landmarks asked for, in sorted chunk reads, through a cache of ``cache_bytes`` (by default
+    DEFAULT_CACHE_BYTES: the whole map where it fits, so that a warm localizer reads nothing) or of
+    ``cache_size`` grids.
 
     Opening checks the header (refusing newer format versions), the structure against the schema
     and the values of the arrays read at open; maps of older versions are migrated in memory.
     Every problem of a damaged file surfaces as :class:`~favormap.errors.MapFormatError`."""
 
-    def __init__(self, path, cache_size: int = 4096):
-        self.path = Path(path)
+    def __init__(self, path, cache_size: int | None = None, cache_bytes: int | None = None):
         self._f = None
+        if cache_size is not None and cache_bytes is not None:
+            raise InputError("give the voxel cache's size in grids (cache_size) or in bytes (cache_bytes), not both")
+        for name, v in (("cache_size", cache_size), ("cache_bytes", cache_bytes)):
+            if v is not None and not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+                raise InputError(f"{name} must be an integer >= 1, not {v!r}")
+        self.path = Path(path)
         self._f = _open_h5(self.path)
         self.bytes_read = 0  # voxel bytes read from disk (tests and benchmarks look at it)
-        self.cache_size = max(1, int(cache_size))
         self._slot = None  # row -> cache slot (created on the first voxel read)
         self._lock = threading.Lock()  # voxels() may be called from several threads (a shared Localizer)
         try:
@@ -143,6 +153,13 @@ class Map(MapCounts):
                 raise
             raise MapFormatError(f"{self.path} is corrupted: {type(e).__name__}: {first_line(e)}") from None
         self._index = None
+        # the voxel cache: the grids of cache_bytes (DEFAULT_CACHE_BYTES), at most the whole map, unless a
+        # number of grids is given
+        per_grid = self.grid_resolution**3 * (self.channels + 1) * 4
+        if cache_size is None:
+            cache_size = min(max(len(self), 1), max(int(cache_bytes or DEFAULT_CACHE_BYTES) // per_grid, 1))
+        self.cache_size = int(cache_size)
+        self.cache_bytes = self.cache_size * per_grid  # what a warm cache holds (float32 grids and densities)
 
     def _ds(self, path: str):
         return self._view.datasets[path]
@@ -198,6 +215,8 @@ class Map(MapCounts):
             "render_samples": self.render_samples,
             "max_side": self.max_side,
             "file_size": self.file_size,
+            # memory of a warm localizer's voxel cache holding every grid (float32), against DEFAULT_CACHE_BYTES
+            "voxel_memory_bytes": len(self) * self.grid_resolution**3 * (self.channels + 1) * 4,
             "align_patches": self.track_patch_radius,  # R of the stored observation patches (0: none)
             # built for exact poses (BuildConfig.exact_poses): localize aligns the inliers' keypoints by default
             "exact_poses": built_for_exact_poses(self.provenance),
