@@ -28,15 +28,15 @@ class SuccessChecks:
     min_inlier_ratio: float = 0.1
     max_iteration_change: tuple[float, float] = (0.05, 2.0)  # last two estimates: (x median landmark depth, deg)
     min_visible_inliers: float = 0.8  # share of inlier landmarks visible from the final pose
-    # A pose with fewer inliers than this must be confirmed by the prior-free estimate (the query matched
-    # against all landmarks' mean descriptors, Lowe's test, PnP): refined from a prior, that estimate must exist
-    # and lie within max_iteration_change of the pose; refined from that estimate, the pose must have stayed that
-    # close to it. This refuses poses that a repeated pattern lines up (keypoints on one copy matched to
-    # landmarks on another). 0: never ask.
+    # A pose with fewer inliers than this must be confirmed by the prior-free step (the query matched
+    # against all landmarks' mean descriptors, Lowe's test, PnP): confirm_min_inliers of its matches lie within
+    # the RANSAC threshold of the pose, or its estimate exists and lies within max_iteration_change of the pose
+    # (refined from a prior) / the pose stayed that close to it (refined from that estimate). This refuses poses
+    # that a repeated pattern lines up (keypoints on one copy matched to landmarks on another). 0: never ask.
     confirm_below_inliers: int = 100
-    # The prior-free estimate confirms with this many inliers, fewer than a pose to report needs (min_inliers):
-    # it only has to agree with the refined pose, which is the evidence. 12: the structure baseline's success
-    # threshold. 0: only a prior-free estimate of min_inliers confirms.
+    # The prior-free step confirms with this many inliers (of its estimate, or of the pose among its matches), fewer
+    # than a pose to report needs (min_inliers): it only has to agree with the refined pose, which is the evidence.
+    # 12: the structure baseline's success threshold. 0: only a prior-free estimate of min_inliers confirms.
     confirm_min_inliers: int = 12
 
 

@@ -230,7 +230,8 @@ class Localizer(SuccessChecking, FinalRefinement):
         s = time.perf_counter()
         m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.positions[rows[m[:, 0]]], m[:, 1], t)
+        q.global_matches = (self.positions[rows[m[:, 0]]], m[:, 1])
+        ans = self._pnp(q, *q.global_matches, t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         # a RANSAC pose below min_inliers is kept in the iteration: it may still confirm a refined pose

@@ -86,6 +86,8 @@ class Query:
     desc: np.ndarray  # (N, C) float32 unit descriptors
     cam: Camera
     global_pose: tuple | None = None  # (pose or None, IterationResult) of the prior-free step, once computed
+    # that step's matches: (landmark positions (K, 3), query keypoint indices (K,)), once computed
+    global_matches: tuple | None = None
     image: np.ndarray | None = None  # the working image (LocalizeConfig.align)
     gray: np.ndarray | None = None  # its blurred grey version, once aligned
     aligned: np.ndarray | None = None  # (K, 2) the last final refinement's aligned keypoints by match
