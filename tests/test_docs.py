@@ -53,7 +53,7 @@ def test_readme_and_docs_links_resolve():
 
 def test_docs_the_code_points_to_exist():
     named = set()
-    for py in [*(REPO / "favormap").rglob("*.py"), *(REPO / "tools").glob("*.py")]:
+    for py in [*(REPO / "favormap").rglob("*.py"), *(REPO / "tools").rglob("*.py")]:
         named.update(re.findall(r"docs/[\w./-]+\.md", py.read_text()))
     assert named, "the code names no docs"
     missing = sorted(p for p in named if not (REPO / p).exists())
