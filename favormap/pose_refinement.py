@@ -79,10 +79,11 @@ def refine_poses(
 ) -> PoseRefinement:
     """Bundle adjustment of the poses ``cam_from_world`` (M, 4, 4) of the working pinhole ``cameras``
     (one per frame) and the landmarks ``lms`` on their observations, each camera centre held to its
-    given position by a Gaussian prior of the error ``pixel_noise`` px of pose noise implies
-    (:func:`prior_sigma`); then the refined poses are put back into the frame of the given ones
-    (:func:`frame_alignment`). Cauchy loss of scale ``loss_px``; intrinsics fixed. Returns the refined
-    poses (the landmarks are to be triangulated again from them)."""
+    given position by a Gaussian prior of the error ``pixel_noise`` px of pose noise implies (that
+    many pixels at the landmarks' median depth, over the median focal length); then the refined poses
+    are put back into the frame of the given ones (:func:`frame_alignment`). Cauchy loss of scale
+    ``loss_px``; intrinsics fixed. Returns the refined poses (the landmarks are to be triangulated again
+    from them)."""
     import pycolmap
 
     T0 = np.asarray(cam_from_world, np.float64)
