@@ -17,6 +17,15 @@ per-query time is the median pass's mean, the stage times the mean over all pass
 mean is printed below the table. The table gives the per-query time, the peak
 RSS, the voxel bytes read per query (lazy loading: only visible landmarks' grids are read) and the
 ratios large / room (target: both <= 2). ``--large-map`` keeps (or reuses) the large map's file.
+
+``--split NAME`` measures a real split of tools/bench_accuracy.py instead (e.g. tum-desk-xyz; its map
+built with the defaults, or ``--refine-poses``, and reused from ``--workdir`` as the accuracy benchmark
+reuses it): every query localized by one warm Localizer from the nearest mapping frame (after a first
+pass that warms the voxel cache), the queries as a stream (``localize_sequence``: each prior from the
+poses before it), and the pycolmap-SIFT baseline built from the same mapping frames, in the same run.
+The table gives median milliseconds per query and stage, and each mode's ratio to the baseline.
+
+    python tools/bench_localize.py --split tum-desk-xyz --workdir /tmp/favormap-bench-accuracy
 """
 
 from __future__ import annotations
@@ -137,8 +146,85 @@ def measure(args) -> dict:
     }
 
 
+def real_split_timing(args) -> int:
+    """``--split``: warm, stream and baseline time per query on a real split (see the module docstring)."""
+    from accuracy.runners import build_or_load
+    from accuracy.splits import real_splits
+
+    from favormap.build import BuildConfig
+    from favormap.localize import LocalizeConfig, Localizer
+    from favormap.localize.baseline import StructureBaseline
+    from favormap.localize.evaluate import EvalConfig, make_priors
+    from favormap.mapfile import Map
+
+    splits = real_splits([args.split])
+    if not splits:
+        print(f"--split {args.split}: no such split, or its data is missing", file=sys.stderr)
+        return 1
+    sp = splits[0]
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    cfg = BuildConfig(refine_poses=args.refine_poses)
+    path, build_s = build_or_load(sp, workdir, cfg, True, "-refine-poses" if args.refine_poses else "")
+    m = Map.open(path)
+    loc = Localizer(m, LocalizeConfig(device=args.device))
+    frames = sp.queries.frames
+    cams = [sp.queries.cameras[f.camera_id] for f in frames]
+    priors = make_priors(sp.queries, m.cam_from_world, EvalConfig(prior_mode="nearest"))
+    stages = ("extraction", "visibility", "loading", "rendering", "matching", "pnp")
+
+    def run(results_of):
+        rows = []
+        for res, wall in results_of:
+            rows.append([1000 * res.timings.get(k, 0.0) for k in stages] + [1000 * wall, res.success])
+        return np.array(rows, np.float64)
+
+    def warm():
+        for f, c, p in zip(frames, cams, priors):
+            t = time.perf_counter()
+            res = loc.localize(f.image_path, p, c)
+            yield res, time.perf_counter() - t
+
+    def stream():
+        t = time.perf_counter()
+        for res in loc.localize_sequence([f.image_path for f in frames], priors[0], cams[0]):
+            now = time.perf_counter()
+            yield res, now - t
+            t = now
+
+    run(warm())  # fills the voxel cache
+    modes = {"warm (nearest frame)": run(warm()), "stream": run(stream())}
+    t = time.perf_counter()
+    base = StructureBaseline.build(sp.mapping, workdir=workdir / f"{sp.files}_baseline")
+    base_build = time.perf_counter() - t
+    base_ms = np.array([1000 * base.localize(f.image_path, c).seconds for f, c in zip(frames, cams)])
+    b = float(np.median(base_ms))
+    built = "reused" if build_s is None else f"built in {build_s:.0f} s"
+    print(
+        f"{sp.name}: map {path.name} ({len(m):,} landmarks, {built}"
+        f", voxel cache {m.cache_bytes / 2**20:.0f} MB), {len(frames)} queries; baseline {len(base.points3d):,} "
+        f"points (built in {base_build:.0f} s); device {args.device}, load average {os.getloadavg()[0]:.1f}"
+    )
+    print("median ms per query\n")
+    print("| mode | " + " | ".join(stages) + " | total | x baseline | localized |")
+    print("|---" * (len(stages) + 4) + "|")
+    for name, r in modes.items():
+        med = np.median(r[:, : len(stages) + 1], axis=0)
+        print(
+            f"| {name} | "
+            + " | ".join(f"{v:.0f}" for v in med[: len(stages)])
+            + f" | {med[-1]:.0f} | {med[-1] / b:.2f} | {int(r[:, -1].sum())}/{len(r)} |"
+        )
+    print("| pycolmap-SIFT baseline | " + " | ".join("-" for _ in stages) + f" | {b:.0f} | 1.00 | - |")
+    m.close()
+    return 0
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", help="a real split of tools/bench_accuracy.py (e.g. tum-desk-xyz) instead of the room")
+    ap.add_argument("--refine-poses", action="store_true", help="--split: the map built with --refine-poses")
+    ap.add_argument("--workdir", default="/tmp/favormap-bench-accuracy", help="--split: where its maps are kept")
     ap.add_argument("--map")
     ap.add_argument("--queries", type=int, default=10)
     ap.add_argument(
@@ -157,6 +243,8 @@ def main():
     if args.measure:
         print(json.dumps(measure(args)))
         return 0
+    if args.split:
+        return real_split_timing(args)
 
     from favormap.build import BuildConfig, build_map
     from favormap.mapfile import write_map
