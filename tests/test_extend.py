@@ -292,3 +292,15 @@ def test_an_extension_keeps_each_frame_covered_as_a_build_would(halves, tmp_path
             return {tuple(p) for p in np.round(np.asarray(m.positions)[rows], 5).tolist()}
 
         assert where(mall, np.flatnonzero(keep)) == where(ms, np.arange(len(ms)))
+
+
+def test_extending_a_map_of_refined_poses_warns_that_the_new_poses_are_used_as_given(maps, halves, tmp_path):
+    """A map built with --refine-poses holds poses fitted to its images; the new frames' poses are taken as
+    given, and the summary says so."""
+    root, _ = maps
+    with Map.open(root / "a.h5") as ma:
+        m = ma.load()
+    m.provenance = {**m.provenance, "config": {**m.provenance["config"], "refine_poses": True}}
+    write_map(m, tmp_path / "refined.h5")
+    s = extend_map(tmp_path / "refined.h5", halves[2], tmp_path / "out.h5", ExtendConfig(max_landmarks=200))
+    assert len(s.warnings) == 1 and "refined by bundle adjustment" in s.warnings[0]

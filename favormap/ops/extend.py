@@ -486,6 +486,11 @@ def _extend(m, seq, output: Path, cfg, config: ExtendConfig, progress, timings: 
             f"{len(again)} of the {len(seq.frames)} new frames are in the map already (the same name and pose, "
             f"e.g. {again[0]}): they are added again and their observations count twice"
         )
+    if cfg.refine_poses:
+        warnings.append(
+            "the map's poses were refined by bundle adjustment (build --refine-poses) and the new frames' are "
+            "used as given: landmarks seen from both agree only as well as the given poses do"
+        )
     L0, M0 = m.num_landmarks, m.num_frames
     extractor = ExtractorSpec(cfg.extractor, cfg.max_keypoints)
     with stage("extract"):
