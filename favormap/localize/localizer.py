@@ -34,7 +34,7 @@ from ..geometry import from_rigid3d, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
-from ..mapfile.model import map_aligns_by_default, map_epipolar_limit_px
+from ..mapfile.model import map_aligns_by_default, map_epipolar_px
 from ..threads import rebalance, thread_count
 from ..visibility import SpatialIndex, visible_rows
 from .checks import SuccessChecking
@@ -84,7 +84,7 @@ class Localizer(SuccessChecking, FinalRefinement):
         if self.config.match_threshold is None:
             self.config = dataclasses.replace(self.config, match_threshold=self.extractor.policy.match_threshold)
         if self.config.ransac_max_error_px is None:
-            thr = self.config.ransac_threshold(map_epipolar_limit_px(self.map.provenance))
+            thr = self.config.ransac_threshold(map_epipolar_px(self.map.provenance))
             self.config = dataclasses.replace(self.config, ransac_max_error_px=thr)
         self._map_sigma = None  # the map's mapping keypoint noise (px), computed on first use
         self._map_focal = None  # the map's working focal length (px), computed on first use

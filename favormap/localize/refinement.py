@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from ..geometry import from_rigid3d, project
+from ..mapfile.model import map_epipolar_px
 from .descriptors import describe
 from .matching import distinct_pairs, match_near, pair_in, pair_similarity
 from .refine import (
@@ -112,8 +113,8 @@ class FinalRefinement:
         the map's frame is known to about that many pixels at the landmarks' depth, however many inliers a
         query has. Independent of the query's own error: the covariances add. Maps that do not record the
         figure add nothing."""
-        px = (self.map.provenance.get("stats") or {}).get("epipolar_median_px")
-        if not isinstance(px, (int, float)) or not px > 0 or len(X) == 0:
+        px = map_epipolar_px(self.map.provenance, "median")
+        if px is None or len(X) == 0:
             return
         depth = float(np.median(X @ pose[2, :3] + pose[2, 3]))
         angle = float(px) / float(np.mean(np.diag(K)[:2]))  # rad

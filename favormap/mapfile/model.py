@@ -32,11 +32,13 @@ def built_for_exact_poses(provenance: dict | None) -> bool:
     return bool((provenance or {}).get("config", {}).get("exact_poses", False))
 
 
-def map_epipolar_limit_px(provenance: dict | None) -> float | None:
-    """The epipolar limit the map's build tracked with (px at its working resolution; measured from the
-    mapping images' matches unless it was given): how far the mapping poses let a correct match lie from
-    its epipolar line. None for maps whose provenance does not record it."""
-    v = (provenance or {}).get("stats", {}).get("max_epipolar_px")
+def map_epipolar_px(provenance: dict | None, which: str = "limit") -> float | None:
+    """What the map's build measured of its mapping poses (px at its working resolution): the epipolar
+    ``limit`` it tracked with (measured from the matches unless given: how far the poses let a correct match
+    lie from its epipolar line) or the right matches' ``median`` distance from their epipolar lines. None
+    for maps whose provenance does not record it."""
+    key = {"limit": "max_epipolar_px", "median": "epipolar_median_px"}[which]
+    v = ((provenance or {}).get("stats") or {}).get(key)
     return float(v) if isinstance(v, (int, float)) and v > 0 else None
 
 

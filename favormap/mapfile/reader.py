@@ -155,11 +155,19 @@ class Map(MapCounts):
         self._index = None
         # the voxel cache: the grids of cache_bytes (DEFAULT_CACHE_BYTES), at most the whole map, unless a
         # number of grids is given
-        per_grid = self.grid_resolution**3 * (self.channels + 1) * 4
         if cache_size is None:
-            cache_size = min(max(len(self), 1), max(int(cache_bytes or DEFAULT_CACHE_BYTES) // per_grid, 1))
+            cache_size = min(max(len(self), 1), max(int(cache_bytes or DEFAULT_CACHE_BYTES) // self.grid_bytes, 1))
         self.cache_size = int(cache_size)
-        self.cache_bytes = self.cache_size * per_grid  # what a warm cache holds (float32 grids and densities)
+
+    @property
+    def grid_bytes(self) -> int:
+        """Bytes one landmark's grids take in the voxel cache (float32 descriptors and density)."""
+        return self.grid_resolution**3 * (self.channels + 1) * 4
+
+    @property
+    def cache_bytes(self) -> int:
+        """What a warm voxel cache holds (bytes)."""
+        return self.cache_size * self.grid_bytes
 
     def _ds(self, path: str):
         return self._view.datasets[path]
@@ -216,7 +224,7 @@ class Map(MapCounts):
             "max_side": self.max_side,
             "file_size": self.file_size,
             # memory of a warm localizer's voxel cache holding every grid (float32), against DEFAULT_CACHE_BYTES
-            "voxel_memory_bytes": len(self) * self.grid_resolution**3 * (self.channels + 1) * 4,
+            "voxel_memory_bytes": len(self) * self.grid_bytes,
             "align_patches": self.track_patch_radius,  # R of the stored observation patches (0: none)
             # built for exact poses (BuildConfig.exact_poses): localize aligns the inliers' keypoints by default
             "exact_poses": built_for_exact_poses(self.provenance),
