@@ -339,12 +339,17 @@ def view_geometry(points: np.ndarray, point_of_obs: np.ndarray, centers_of_obs: 
     return mean, amax, np.stack([dmin, dmax], 1)
 
 
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """The angle (degrees) of rotation matrices ``R`` (..., 3, 3)."""
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
 def pose_error(cam_from_world_est: np.ndarray, cam_from_world_gt: np.ndarray) -> tuple[float, float]:
     """(translation error in map units between camera centres, rotation error in degrees)."""
     dt = float(np.linalg.norm(camera_centers(cam_from_world_est) - camera_centers(cam_from_world_gt)))
     dR = cam_from_world_est[:3, :3] @ cam_from_world_gt[:3, :3].T
-    cos = np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)
-    return dt, float(np.degrees(np.arccos(cos)))
+    return dt, float(rotation_angle_deg(dR))
 
 
 def perturb_pose(cam_from_world: np.ndarray, trans: float, rot_deg: float, rng: np.random.Generator) -> np.ndarray:

@@ -21,7 +21,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import camera_centers, from_rigid3d, move_poses, nearest_rotation, to_rigid3d, transform_points, umeyama
+from .geometry import (
+    camera_centers,
+    from_rigid3d,
+    move_poses,
+    nearest_rotation,
+    rotation_angle_deg,
+    to_rigid3d,
+    transform_points,
+    umeyama,
+)
 from .io import Camera
 from .triangulation import Landmarks
 
@@ -37,7 +46,6 @@ class PoseRefinement:
     prior_sigma: float  # standard deviation of the camera-centre prior (world units)
     initial_rms_px: float  # reprojection error of the observations before and after (RMS over the residuals)
     final_rms_px: float
-    iterations: int
 
     def stats(self) -> dict:
         """The build summary's figures of the refinement."""
@@ -46,9 +54,7 @@ class PoseRefinement:
             "pose_prior_sigma": float(self.prior_sigma),
             "pose_center_shift_median": float(np.median(self.center_shift)),
             "pose_rotation_change_median_deg": float(np.median(self.rotation_change_deg)),
-            "pose_camera_offset_deg": float(
-                np.degrees(np.arccos(np.clip((np.trace(self.camera_offset) - 1) / 2, -1.0, 1.0)))
-            ),
+            "pose_camera_offset_deg": float(rotation_angle_deg(self.camera_offset)),
             "pose_refinement_rms_px": [round(self.initial_rms_px, 3), round(self.final_rms_px, 3)],
         }
 
@@ -148,14 +154,12 @@ def refine_poses(
         adjuster = pycolmap.create_pose_prior_bundle_adjuster(
             options, pycolmap.PosePriorBundleAdjustmentOptions(), config, priors, rec
         )
-        summary = adjuster.solve()
-    ceres = summary.ceres_summary
+        adjuster.solve()
     T = np.stack([from_rigid3d(rec.image(f + 1).cam_from_world()) for f in range(len(T0))])
     S, offset = frame_alignment(T, T0, depth)
     T = move_poses(T, S)
     X = transform_points(S, np.stack([rec.point3D(i).xyz for i in point_ids]))
-    dR = np.einsum("nij,nkj->nik", T[:, :3, :3], T0[:, :3, :3])
-    angle = np.degrees(np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
+    angle = rotation_angle_deg(np.einsum("nij,nkj->nik", T[:, :3, :3], T0[:, :3, :3]))
     return PoseRefinement(
         cam_from_world=T,
         center_shift=np.linalg.norm(camera_centers(T) - centers, axis=1),
@@ -164,7 +168,6 @@ def refine_poses(
         prior_sigma=float(sigma),
         initial_rms_px=_rms(lms, T0, cameras),
         final_rms_px=_rms(lms, T, cameras, X),
-        iterations=int(ceres.num_successful_steps + ceres.num_unsuccessful_steps),
     )
 
 
