@@ -50,6 +50,10 @@ def run(args) -> int:
     fits = mem <= DEFAULT_CACHE_BYTES
     print(
         f"voxel memory        {human_size(mem)} for every grid: a warm localizer "
-        + ("holds them all (default cache 1 GB)" if fits else "reads them as queries need them (localize --cache-mb)")
+        + (
+            f"holds them all (default cache {human_size(DEFAULT_CACHE_BYTES)})"
+            if fits
+            else "reads them as queries need them (localize --cache-mb)"
+        )
     )
     return 0

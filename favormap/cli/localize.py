@@ -56,8 +56,10 @@ def add_localize_options(p):
         "--ransac-px",
         type=float,
         default=config_default(LocalizeConfig, "ransac_max_error_px"),
-        help="RANSAC inlier threshold in pixels of the map's working resolution (default: the map's, 4 px or "
-        "1.5 times its epipolar limit where its mapping poses fit their images less well)",
+        help="RANSAC inlier threshold in pixels of the map's working resolution (default: the map's, "
+        f"{config_default(LocalizeConfig, 'min_ransac_px'):g} px or "
+        f"{config_default(LocalizeConfig, 'pose_noise_ransac'):g} times its epipolar limit where its mapping poses "
+        "fit their images less well)",
     )
     p.add_argument(
         "--min-inliers",
