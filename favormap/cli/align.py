@@ -50,7 +50,8 @@ def register(sub):
         help="estimate the similarity b_to_a between two maps of one place",
         description="Estimate the similarity transform b_to_a (scale, rotation, translation) that moves map "
         "b into map a's frame, from their landmarks alone: mutual descriptor matches, 3D-3D RANSAC with "
-        "scale, refinement on the inliers and a bootstrap uncertainty. Refuses when the maps do not "
+        "scale, then the similarity refined over the keypoints of both maps' frames that saw the matched "
+        "landmarks, with a jackknife uncertainty over blocks of frames. Refuses when the maps do not "
         "overlap enough. The -o file is what 'favormap merge --transform' reads.",
     )
     p.add_argument("a", help="the map whose frame is kept")
@@ -66,9 +67,15 @@ def summary_lines(r) -> list[str]:
         f"matches             {r.num_matches} between {r.num_landmarks[0]} and {r.num_landmarks[1]} landmarks",
         f"inliers             {r.num_inliers} ({100 * r.inlier_ratio:.1f} %), residual RMS {r.rms:.4g} "
         f"(threshold {r.threshold:.4g}, inlier extent {r.extent:.4g})",
+        f"refined on          {r.num_refined_matches} matches, {r.num_observations} observations, "
+        f"reprojection RMS {r.reprojection_rms_px:.3g} px",
         f"scale               {r.scale:.6g} (std of log-scale {r.std_log_scale:.2g})",
         f"rotation            {r.rotation_deg:.3f} deg (std {r.std_rotation_deg:.3g} deg)",
-        "translation         " + " ".join(f"{v:.6g}" for v in r.b_to_a[:3, 3]) + f" (std {r.std_translation:.3g})",
+        "translation         "
+        + " ".join(f"{v:.6g}" for v in r.b_to_a[:3, 3])
+        + " (std "
+        + " ".join(f"{v:.3g}" for v in r.std_translation_xyz)
+        + ")",
     ]
 
 

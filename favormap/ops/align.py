@@ -1,4 +1,4 @@
-"""Aligning two maps of one place from their landmarks alone.
+"""Aligning two maps of one place: their landmarks first, then the rays they were seen along.
 
 ``align_maps(a, b)`` estimates the similarity ``b_to_a`` (x_a = s R x_b + t) between two maps whose
 poses live in different frames:
@@ -8,9 +8,11 @@ poses live in different frames:
 2. 3D-3D RANSAC with scale: a similarity (Umeyama) from 3 matches per hypothesis, hypotheses
    evaluated together in numpy; inliers are matches whose moved b-landmark lies within the
    threshold of its a-landmark (in a's units; default: twice the median voxel size of a's landmarks);
-3. refinement: Umeyama on all inliers, inliers recomputed, until they stop changing;
-4. uncertainty: a bootstrap over the inliers (std of the translation, of the rotation in degrees and
-   of log-scale).
+   Umeyama on the inliers until they stop changing;
+3. refinement over both maps' observations (:mod:`favormap.ops.align_refine`): matches found again
+   near each moved landmark (within 3, then 1 times the threshold), the similarity and the matched
+   points fitted to the keypoints of every frame of either map that saw them, and the uncertainty from
+   a jackknife over blocks of frames.
 
 It refuses (:class:`AlignmentError`) when the maps do not overlap enough: too few matches, too few
 inliers, an inlier ratio below the threshold or inliers that do not fix a similarity (collinear), so
@@ -25,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FavormapError, IncompatibleMapsError
-from ..geometry import umeyama
+from ..geometry import rotation_angle_deg, transform_points, umeyama
 from ..mapfile import Map
 from .align_config import AlignConfig
+from .align_refine import MapObservations, guided_matches, refine_alignment
 
 
 class AlignmentError(FavormapError):
@@ -41,21 +44,28 @@ class MapAlignment:
     b_to_a: np.ndarray
     scale: float
     num_landmarks: tuple  # (a, b)
-    num_matches: int
-    num_inliers: int
+    num_matches: int  # descriptor matches between the landmarks (stage 1)
+    num_inliers: int  # of them, agreeing on one similarity (stage 2)
     inlier_ratio: float
-    rms: float  # residual RMS of the inliers, in a's units
+    rms: float  # residual RMS of the inliers' landmark positions under b_to_a, in a's units
     threshold: float  # inlier distance used, in a's units
-    std_translation: float  # bootstrap std of t (norm of the per-axis stds), a's units
-    std_rotation_deg: float  # bootstrap RMS rotation difference, degrees
-    std_log_scale: float  # bootstrap std of log(s)
+    num_refined_matches: int  # guided matches the refinement kept (stage 3)
+    num_observations: int  # their observations in both maps' frames: the refinement's residuals
+    reprojection_rms_px: float  # RMS reprojection error of those observations, working-image pixels
+    std_translation_xyz: np.ndarray  # (3,) jackknife std of the translation per axis, a's units
+    std_rotation_deg: float  # jackknife RMS rotation difference, degrees
+    std_log_scale: float  # jackknife std of log(s)
     extent: float  # diagonal of the inliers' bounding box in a, a's units
     warnings: list = field(default_factory=list)
 
     @property
     def rotation_deg(self) -> float:
-        R = self.b_to_a[:3, :3] / self.scale
-        return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        return float(rotation_angle_deg(self.b_to_a[:3, :3] / self.scale))
+
+    @property
+    def std_translation(self) -> float:
+        """Norm of the per-axis translation stds, a's units."""
+        return float(np.linalg.norm(self.std_translation_xyz))
 
     def to_dict(self) -> dict:
         return {
@@ -69,7 +79,11 @@ class MapAlignment:
             "inlier_ratio": self.inlier_ratio,
             "rms": self.rms,
             "threshold": self.threshold,
+            "num_refined_matches": self.num_refined_matches,
+            "num_observations": self.num_observations,
+            "reprojection_rms_px": self.reprojection_rms_px,
             "std_translation": self.std_translation,
+            "std_translation_xyz": self.std_translation_xyz.tolist(),
             "std_rotation_deg": self.std_rotation_deg,
             "std_log_scale": self.std_log_scale,
             "inlier_extent": self.extent,
@@ -156,22 +170,12 @@ def ransac_similarity(pa: np.ndarray, pb: np.ndarray, threshold: float, iteratio
     return best_T, _residuals(best_T, pb, pa) < threshold
 
 
-def _rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    tr = np.trace(R, axis1=-2, axis2=-1)
-    return np.degrees(np.arccos(np.clip((tr - 1) / 2, -1, 1)))
-
-
-def _scale_rotation(T: np.ndarray):
-    s = np.cbrt(np.linalg.det(T[..., :3, :3]))
-    return s, T[..., :3, :3] / s[..., None, None]
-
-
 # -------------------------------------------------------------------------------------------------
 # align
 # -------------------------------------------------------------------------------------------------
 def align_maps(path_a, path_b, config: AlignConfig | None = None) -> MapAlignment:
-    """The similarity ``b_to_a`` between the maps at ``path_a`` and ``path_b`` from their landmarks.
-    Raises :class:`AlignmentError` when the maps do not overlap enough (see the module docstring)."""
+    """The similarity ``b_to_a`` between the maps at ``path_a`` and ``path_b`` (module docstring).
+    Raises :class:`AlignmentError` when the maps do not overlap enough."""
     cfg = config or AlignConfig()
     with Map.open(path_a) as ma, Map.open(path_b) as mb:
         for k in ("extractor", "channels"):
@@ -179,17 +183,55 @@ def align_maps(path_a, path_b, config: AlignConfig | None = None) -> MapAlignmen
                 raise IncompatibleMapsError(
                     f"cannot align {ma.path} and {mb.path}: different {k} ({getattr(ma, k)!r} vs {getattr(mb, k)!r})"
                 )
-        pa_all = np.asarray(ma.positions, np.float64)
-        pb_all = np.asarray(mb.positions, np.float64)
-        vs_a = np.asarray(ma.voxel_size, np.float64)
-        da = ma.mean_descriptors(np.arange(len(ma)))
-        db = mb.mean_descriptors(np.arange(len(mb)))
+        a, b = MapObservations.read(ma), MapObservations.read(mb)
+        voxel_size_a = np.asarray(ma.voxel_size, np.float64)
         names = (Path(ma.path).name, Path(mb.path).name)
-    return align_landmarks(pa_all, da, pb_all, db, vs_a, cfg, names)
+    return align_observations(a, b, voxel_size_a, cfg, names)
 
 
-def align_landmarks(pa_all, da, pb_all, db, voxel_size_a, cfg: AlignConfig, names=("a", "b")) -> MapAlignment:
-    """:func:`align_maps` on arrays: positions and mean descriptors of both maps' landmarks."""
+def align_observations(
+    a: MapObservations, b: MapObservations, voxel_size_a, cfg: AlignConfig, names=("a", "b")
+) -> MapAlignment:
+    """:func:`align_maps` on what it reads of the two maps."""
+    T, matches, inl, threshold = landmark_similarity(
+        a.positions, a.descriptors, b.positions, b.descriptors, voxel_size_a, cfg, names
+    )
+    for k, factor in enumerate(cfg.guided_radius):
+        guided = guided_matches(a, b, T, factor * threshold, cfg.ratio)
+        if len(guided) < cfg.min_inliers:
+            raise AlignmentError(
+                f"{names[0]} and {names[1]} do not overlap enough: {len(guided)} landmark matches near the "
+                f"estimated transform (at least {cfg.min_inliers} needed)"
+            )
+        last = k == len(cfg.guided_radius) - 1
+        refined = refine_alignment(a, b, guided, T, blocks=cfg.jackknife_blocks, uncertainty=last)
+        T = refined.b_to_a
+    pa, pb = a.positions[matches[inl, 0]], b.positions[matches[inl, 1]]
+    res = np.linalg.norm(transform_points(T, pb) - pa, axis=1)
+    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    return MapAlignment(
+        b_to_a=T,
+        scale=scale,
+        num_landmarks=(len(a.positions), len(b.positions)),
+        num_matches=len(matches),
+        num_inliers=int(inl.sum()),
+        inlier_ratio=float(inl.sum() / len(matches)),
+        rms=float(np.sqrt(np.mean(res**2))),
+        threshold=float(threshold),
+        num_refined_matches=len(refined.matches),
+        num_observations=refined.num_observations,
+        reprojection_rms_px=refined.reprojection_rms_px,
+        std_translation_xyz=refined.std_translation_xyz,
+        std_rotation_deg=refined.std_rotation_deg,
+        std_log_scale=refined.std_log_scale,
+        extent=float(np.linalg.norm(pa.max(0) - pa.min(0))),
+    )
+
+
+def landmark_similarity(pa_all, da, pb_all, db, voxel_size_a, cfg: AlignConfig, names=("a", "b")) -> tuple:
+    """Stages 1 and 2 (module docstring) on the landmarks' positions and mean descriptors: (b_to_a,
+    matches (K, 2), inlier mask (K,), inlier threshold). Raises :class:`AlignmentError` when they do
+    not fix a similarity."""
     a_name, b_name = names
     threshold = cfg.threshold
     if threshold is None:
@@ -204,8 +246,7 @@ def align_landmarks(pa_all, da, pb_all, db, voxel_size_a, cfg: AlignConfig, name
             f"(at least {cfg.min_matches} needed)"
         )
     pa, pb = pa_all[matches[:, 0]], pb_all[matches[:, 1]]
-    rng = np.random.default_rng(cfg.seed)
-    T, inl = ransac_similarity(pa, pb, threshold, cfg.iterations, rng)
+    T, inl = ransac_similarity(pa, pb, threshold, cfg.iterations, np.random.default_rng(cfg.seed))
     n_in = int(inl.sum())
     ratio = n_in / K
     if T is None or n_in < cfg.min_inliers or ratio < cfg.min_inlier_ratio:
@@ -220,32 +261,7 @@ def align_landmarks(pa_all, da, pb_all, db, voxel_size_a, cfg: AlignConfig, name
             f"{a_name} and {b_name}: the {n_in} agreeing landmarks are nearly collinear, they do not fix a "
             "transform (degenerate overlap)"
         )
-    res = _residuals(T, pb[inl], qa)
-    rms = float(np.sqrt(np.mean(res**2)))
-    s, R = _scale_rotation(T)
-    # bootstrap over the inliers
-    ib = np.flatnonzero(inl)
-    boot = rng.integers(0, n_in, (cfg.bootstrap, n_in))
-    Tb = umeyama(pb[ib][boot], pa[ib][boot])
-    sb, Rb = _scale_rotation(Tb)
-    std_t = float(np.linalg.norm(np.std(Tb[:, :3, 3], axis=0)))
-    std_r = float(np.sqrt(np.mean(_rotation_angle_deg(Rb @ R.T) ** 2)))
-    std_ls = float(np.std(np.log(sb)))
-    extent = float(np.linalg.norm(qa.max(0) - qa.min(0)))
-    return MapAlignment(
-        b_to_a=T,
-        scale=float(s),
-        num_landmarks=(len(pa_all), len(pb_all)),
-        num_matches=K,
-        num_inliers=n_in,
-        inlier_ratio=float(ratio),
-        rms=rms,
-        threshold=float(threshold),
-        std_translation=std_t,
-        std_rotation_deg=std_r,
-        std_log_scale=std_ls,
-        extent=extent,
-    )
+    return T, matches, inl, threshold
 
 
 def write_transform(path, T: np.ndarray) -> None:

@@ -17,5 +17,6 @@ class AlignConfig:
     min_inliers: int = 12  # refuse below this many agreeing landmarks
     min_inlier_ratio: float = 0.15  # refuse when fewer than this share of the matches agree
     min_spread: float = 0.05  # inliers' 2nd / 1st principal std in a; below: collinear (degenerate)
-    bootstrap: int = 200  # resamples of the inliers behind the uncertainty
+    guided_radius: tuple = (3.0, 1.0)  # rounds of guided matching and refinement, radius in thresholds
+    jackknife_blocks: int = 8  # blocks of consecutive frames per map behind the uncertainty
     seed: int = 0
