@@ -3,10 +3,14 @@ landmarks whose depths are noisy along their viewing rays, keypoints with pixel 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from favormap.geometry import look_at, rotation_angle_deg, rotvec_to_rotmat, transform_points, umeyama
+from favormap.ops.align import align_observations
+from favormap.ops.align_config import AlignConfig
 from favormap.ops.align_refine import MapObservations, guided_matches, refine_alignment
 
 FOCAL = 500.0
@@ -31,6 +35,7 @@ def _observations(points, cam_from_world, rng, depth_noise, pixel_noise) -> MapO
         rays=rays,
         focal=np.full(len(li), FOCAL),
         cam_from_world=cam_from_world,
+        reproj_error=np.full(L, pixel_noise),
     )
 
 
@@ -109,3 +114,19 @@ def test_guided_matches_find_the_pairs_near_each_moved_landmark(pair):
     assert (
         len(guided_matches(a, b, T @ np.diag([1, 1, 1, 1.0]) + np.c_[np.zeros((4, 3)), [100, 0, 0, 0]], 0.5, 0.9)) == 0
     )
+
+
+def test_maps_whose_poses_disagree_are_aligned_with_a_warning(pair):
+    a, b, T = pair
+    voxel_size = np.full(len(a.positions), 0.2)
+    r = align_observations(a, b, voxel_size, AlignConfig())
+    assert r.warnings == []
+    assert _errors(r.b_to_a, T)[0] < 0.05
+    # b's frames each turned by 1 degree about a random axis: its poses no longer fit a's images
+    rng = np.random.default_rng(1)
+    turned = dataclasses.replace(b, cam_from_world=b.cam_from_world.copy())
+    for P in turned.cam_from_world:
+        axis = rng.normal(size=3)
+        P[:3, :] = rotvec_to_rotmat(np.radians(1.0) * axis / np.linalg.norm(axis)) @ P[:3, :]
+    r = align_observations(a, turned, voxel_size, AlignConfig())
+    assert len(r.warnings) == 1 and "poses disagree" in r.warnings[0], r.warnings

@@ -79,6 +79,13 @@ def summary_lines(r) -> list[str]:
     ]
 
 
+def print_warnings(command: str, warnings) -> None:
+    import sys
+
+    for w in warnings:
+        print(f"favormap {command}: warning: {w}", file=sys.stderr)
+
+
 def run(args) -> int:
     from ..ops.align import align_maps, write_transform
 
@@ -93,6 +100,7 @@ def run(args) -> int:
         return 0
     for line in summary_lines(r):
         print(line)
+    print_warnings("align", r.warnings)
     if args.output:
         print(f"b_to_a              {args.output}")
     else:

@@ -8,7 +8,7 @@ from pathlib import Path
 from ..ops.merge_config import MergeConfig
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
-from .align import add_align_args, align_config, summary_lines
+from .align import add_align_args, align_config, print_warnings, summary_lines
 from .common import StageBars, config_default, human_size, print_json
 
 
@@ -81,6 +81,7 @@ def run(args) -> int:
         if not args.json:
             for line in summary_lines(alignment):
                 print(line)
+        print_warnings("merge", alignment.warnings)
     rec = recording_from_args(args, "favormap merge")
     bars = StageBars(args.quiet or args.json)
     try:

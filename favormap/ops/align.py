@@ -32,6 +32,10 @@ from ..mapfile import Map
 from .align_config import AlignConfig
 from .align_refine import MapObservations, guided_matches, refine_alignment
 
+# the refined matches reproject in both maps' frames more than this many times worse than each map's
+# landmarks in its own frames: the two maps' poses disagree (a warning says so)
+POSE_DISAGREEMENT_FACTOR = 2.0
+
 
 class AlignmentError(FavormapError):
     """Two maps whose overlap does not determine a transform between them."""
@@ -209,6 +213,15 @@ def align_observations(
     pa, pb = a.positions[matches[inl, 0]], b.positions[matches[inl, 1]]
     res = np.linalg.norm(transform_points(T, pb) - pa, axis=1)
     scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    own = np.concatenate([a.reproj_error[refined.matches[:, 0]], b.reproj_error[refined.matches[:, 1]]])
+    own_rms = float(np.sqrt(np.mean(own**2)))
+    warnings = []
+    if refined.reprojection_rms_px > POSE_DISAGREEMENT_FACTOR * own_rms:
+        warnings.append(
+            f"the maps' poses disagree beyond each map's own fit: the matched points reproject with RMS "
+            f"{refined.reprojection_rms_px:.2f} px in both maps' frames against {own_rms:.2f} px in each "
+            "map's own; the stated stds cover the matches' noise, not this disagreement"
+        )
     return MapAlignment(
         b_to_a=T,
         scale=scale,
@@ -225,6 +238,7 @@ def align_observations(
         std_rotation_deg=refined.std_rotation_deg,
         std_log_scale=refined.std_log_scale,
         extent=float(np.linalg.norm(pa.max(0) - pa.min(0))),
+        warnings=warnings,
     )
 
 

@@ -41,6 +41,7 @@ class MapObservations:
     rays: np.ndarray  # (O, 2) normalised image coordinates (x / z, y / z) of the keypoint
     focal: np.ndarray  # (O,) pixels per normalised unit of the observing working camera
     cam_from_world: np.ndarray  # (M, 4, 4) frame poses
+    reproj_error: np.ndarray  # (L,) mean reprojection error of each landmark in its own map, pixels
 
     @classmethod
     def read(cls, m) -> MapObservations:
@@ -65,6 +66,7 @@ class MapObservations:
             rays=rays,
             focal=focal,
             cam_from_world=np.asarray(m.cam_from_world, np.float64),
+            reproj_error=np.asarray(m.reproj_error, np.float64),
         )
 
 

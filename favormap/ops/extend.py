@@ -167,6 +167,8 @@ def extend_map(map_path, sequence, output, config: ExtendConfig | None = None, p
     summary = _extend(m, seq, Path(output), build_cfg, config, progress, timings)
     summary.transform = None if transform is None else np.asarray(transform, np.float64).tolist()
     summary.alignment = alignment
+    if alignment is not None:
+        summary.warnings += [f"alignment: {w}" for w in alignment["warnings"]]
     return summary
 
 
