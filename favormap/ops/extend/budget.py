@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .matching import _unit
+from .grids import render_towards, unit
 
 
 def within_budget(m, glms, grown_rows: np.ndarray, nlms, budget: int, min_frame_landmarks: int, M0: int):
@@ -74,14 +74,10 @@ def unexplained(m, glms, grown_rows: np.ndarray, M0: int, ff) -> np.ndarray:
     observations' keypoints has at least the cosine with the descriptor its grids render towards that
     frame that its training patches had with their renderings (``cosine``, its fit). Its position, track and
     view cone are updated either way."""
-    from ...geometry import camera_centers
-    from ...voxels.render_numpy import render_from_camera_numpy
-
     tr = glms.tracks
     new = np.flatnonzero(tr.frame_idx >= M0)
     j, f, k = tr.track_of_obs[new], tr.frame_idx[new] - M0, tr.keypoint_idx[new]
     rows = grown_rows[j]
-    R3 = m.grid_resolution**3
     ok = np.zeros(len(new), bool)
     order = np.argsort(f, kind="stable")
     bounds = np.searchsorted(f[order], np.arange(len(ff.features) + 1))
@@ -90,14 +86,7 @@ def unexplained(m, glms, grown_rows: np.ndarray, M0: int, ff) -> np.ndarray:
         if not len(sel):
             continue
         r = rows[sel]
-        rendered = render_from_camera_numpy(
-            np.asarray(m.descriptors[r], np.float32).reshape(len(r), R3, -1),
-            np.asarray(m.density[r], np.float32).reshape(len(r), R3),
-            np.asarray(m.positions[r], np.float32),
-            np.asarray(m.voxel_size[r], np.float32),
-            np.asarray(camera_centers(ff.cam_from_world[frame]), np.float32),
-            m.render_samples,
-        )
-        seen = _unit(np.asarray(ff.features[frame].descriptors, np.float32)[k[sel]])
+        rendered = render_towards(m, r, ff.cam_from_world[frame])
+        seen = unit(np.asarray(ff.features[frame].descriptors, np.float32)[k[sel]])
         ok[sel] = np.einsum("ij,ij->i", rendered, seen) >= np.asarray(m.cosine, np.float32)[r]
     return np.bincount(j[~ok], minlength=len(glms)) > 0

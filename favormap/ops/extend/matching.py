@@ -6,11 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..extend_config import ExtendConfig
-
-
-def _unit(x) -> np.ndarray:
-    x = np.asarray(x, np.float32)
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+from .grids import render_towards, unit
 
 
 def match_radius(m, cfg, config: ExtendConfig) -> float:
@@ -32,13 +28,12 @@ def match_landmarks(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keypoints of the new frames ``ff`` (FrameFeatures) that observe landmarks of the map ``m``
     (MapData): (landmark row, frame, keypoint) of each match, all landmarks of a frame at once."""
-    from ...geometry import camera_centers, project
+    from ...geometry import project
     from ...localize.matching import radius_pairs
     from ...visibility import ViewLimits, visible_mask
-    from ...voxels.render_numpy import render_from_camera_numpy
 
     limits = ViewLimits(angle_margin_deg=config.view_cone_deg)
-    mean_desc = _unit(m.mean_descriptor)
+    mean_desc = unit(m.mean_descriptor)
     out_l, out_f, out_k = [], [], []
     for f in range(len(ff.features)):
         feats = ff.features[f]
@@ -56,17 +51,7 @@ def match_landmarks(
         near, li = np.unique(li, return_inverse=True)
         rows = rows[near]
         D = np.ascontiguousarray(feats.descriptors, np.float32)
-        R3 = m.grid_resolution**3
-        rendered = _unit(
-            render_from_camera_numpy(
-                np.asarray(m.descriptors[rows], np.float32).reshape(len(rows), R3, -1),
-                np.asarray(m.density[rows], np.float32).reshape(len(rows), R3),
-                np.asarray(m.positions[rows], np.float32),
-                np.asarray(m.voxel_size[rows], np.float32),
-                np.asarray(camera_centers(T), np.float32),
-                m.render_samples,
-            )
-        )
+        rendered = unit(render_towards(m, rows, T))
         sim = np.maximum(np.einsum("ij,ij->i", mean_desc[rows][li], D[kj]), np.einsum("ij,ij->i", rendered[li], D[kj]))
         ok = sim >= min_similarity
         li, kj, sim = li[ok], kj[ok], sim[ok]

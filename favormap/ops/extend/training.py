@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .grids import grids_of
+
 
 def _concat_landmarks(glms, nlms, M0: int):
     """The grown landmarks (frames of the whole map) and the new ones (new frames, shifted by ``M0``)
@@ -86,14 +88,9 @@ def _training_set(m, glms, grown_rows, nlms, M0, ff, poses, Ks, cfg, extractor):
             od,
             np.zeros((len(old), od.shape[1], 0), np.float16),
         )
-        R3 = m.grid_resolution**3
+        desc, dens = grids_of(m, ur)
         with torch.no_grad():
-            rendered = render_training_rays(
-                render_data,
-                torch.as_tensor(np.asarray(m.descriptors[ur], np.float32).reshape(len(ur), R3, -1)),
-                torch.as_tensor(np.asarray(m.density[ur], np.float32).reshape(len(ur), R3)),
-                v,
-            ).numpy()
+            rendered = render_training_rays(render_data, torch.as_tensor(desc), torch.as_tensor(dens), v).numpy()
         # the training rays of those observations start at the landmarks' new positions
         tc, td, reach_old = patch_rays(all_lms.positions, tid[old], fi[old], Ks, poses, v.patch_size, v.patch_stride)
         old_targets = torch.from_numpy(rendered).half().numpy()
@@ -114,8 +111,7 @@ def _training_set(m, glms, grown_rows, nlms, M0, ff, poses, Ks, cfg, extractor):
         R3 = m.grid_resolution**3
         init_d = np.full((U, R3, m.channels), np.nan, np.float32)
         init_s = np.full((U, R3), np.nan, np.float32)
-        init_d[: len(glms)] = np.asarray(m.descriptors[grown_rows], np.float32).reshape(len(glms), R3, -1)
-        init_s[: len(glms)] = np.asarray(m.density[grown_rows], np.float32).reshape(len(glms), R3)
+        init_d[: len(glms)], init_s[: len(glms)] = grids_of(m, grown_rows)
     rays = TrainingRays(
         all_lms.positions,
         sizes,
