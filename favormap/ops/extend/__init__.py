@@ -27,16 +27,19 @@
 5. frames, cameras, tracks, view cones, provenance and the datasets' checksums are written as a new map
    (atomically: :class:`favormap.mapfile.MapWriter`); the input map is never written to.
 
-The stages live in modules of this package: :mod:`.matching` (step 2, 3's attachment), :mod:`.budget`
-(3's landmark budget, 4's choice of the landmarks to retrain), :mod:`.training` (4), :mod:`.assemble` (5),
-:mod:`.pipeline` (their sequence); :mod:`.api` holds :func:`extend_map`.
+The stages live in modules of this package: :mod:`.matching` (step 2 and the attachment of
+step 3), :mod:`.triangulate` (3) and :mod:`.budget` (its landmark budget; the choice of the landmarks to
+retrain), :mod:`.training` (4), :mod:`.frames` and :mod:`.assemble` (5), :mod:`.grids` (the map's grids read and
+rendered); :mod:`.pipeline` runs them in order, each stage a function from a typed input to a typed output
+(:class:`.matching.NewFrames`, :class:`.matching.Attachment`, :class:`.triangulate.Grown`,
+:class:`.training.Trained`, :class:`favormap.mapfile.model.MapData`); :mod:`.api` holds :func:`extend_map`.
 """
 
 from ..extend_config import ExtendConfig
 from .api import ExtendSummary, extend_map, map_build_config, moved_sequence
 from .budget import unexplained, within_budget
+from .frames import frames_in_map
 from .matching import attach_tracks, match_landmarks, match_radius
-from .pipeline import frames_in_map
 
 __all__ = [
     "ExtendConfig",

@@ -106,10 +106,10 @@ def _read_sequence(sequence, fmt):
 def extend_map(map_path, sequence, output, config: ExtendConfig | None = None, progress=None) -> ExtendSummary:
     """Add the posed frames of ``sequence`` (a folder, or a :class:`~favormap.io.Sequence`) to the map
     at ``map_path`` and write the result to ``output`` (atomically; ``output`` may not be the input).
-    ``progress(stage, done, total)`` reports progress. See the module docstring for the steps."""
+    ``progress(stage, done, total)`` reports progress. See :mod:`favormap.ops.extend` for the steps."""
     from ...mapfile import Map
     from ...mapfile.writer import check_output_path
-    from .pipeline import _extend
+    from .pipeline import run_extension
 
     config = ExtendConfig() if config is None else config
     _check_config(config)
@@ -133,7 +133,7 @@ def extend_map(map_path, sequence, output, config: ExtendConfig | None = None, p
         timings["align"] = round(time.perf_counter() - t, 3)
     if transform is not None:
         seq = moved_sequence(seq, transform)
-    summary = _extend(m, seq, Path(output), build_cfg, config, progress, timings)
+    summary = run_extension(m, seq, Path(output), build_cfg, config, progress, timings)
     summary.transform = None if transform is None else np.asarray(transform, np.float64).tolist()
     summary.alignment = alignment
     if alignment is not None:

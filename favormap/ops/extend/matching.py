@@ -3,10 +3,52 @@ similar keypoint near its projection; the new tracks with such keypoints join th
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..extend_config import ExtendConfig
 from .grids import render_towards, unit
+
+if TYPE_CHECKING:
+    from ...extraction import ExtractorSpec, FrameFeatures
+    from ...tracking import Tracks
+
+
+@dataclass
+class NewFrames:
+    """The new frames' features (extracted with the map's extractor settings) and their tracks among
+    themselves (:func:`favormap.build.track_frames`): what the matching starts from."""
+
+    ff: FrameFeatures
+    tracks: Tracks
+    extractor: ExtractorSpec
+
+
+@dataclass
+class Attachment:
+    """The new frames' observations of the map's landmarks (:func:`attach`)."""
+
+    joined: np.ndarray  # (len(tracks),) the landmark each new track joins (-1: none, it makes a new one)
+    landmark: np.ndarray  # (A,) map row of each attached observation, one per landmark and new frame
+    frame: np.ndarray  # (A,) its new frame
+    keypoint: np.ndarray  # (A,) its keypoint in that frame
+    radius_px: float  # the projection matching radius used (match_radius)
+    min_similarity: float  # the least descriptor similarity used
+
+
+def attach(m, new: NewFrames, cfg, config: ExtendConfig) -> Attachment:
+    """The matching stage: the new frames' keypoints matched to the map ``m``'s landmarks
+    (:func:`match_landmarks`), then the new tracks with matched keypoints joined to them (:func:`attach_tracks`).
+    ``cfg``: the map's build config."""
+    min_sim = cfg.min_similarity if config.min_similarity is None else config.min_similarity
+    radius = match_radius(m, cfg, config)
+    match_l, match_f, match_k = match_landmarks(m, new.ff, config, min_sim, radius)
+    counts = np.array([len(f.keypoints) for f in new.ff.features], np.int64)
+    base = np.concatenate([[0], np.cumsum(counts)])
+    joined, (add_l, add_f, add_k) = attach_tracks(new.tracks, m.num_landmarks, base, match_l, match_f, match_k)
+    return Attachment(joined, add_l, add_f, add_k, radius, min_sim)
 
 
 def match_radius(m, cfg, config: ExtendConfig) -> float:
