@@ -26,6 +26,7 @@ from .geometry import (
     from_rigid3d,
     move_poses,
     nearest_rotation,
+    project,
     rotation_angle_deg,
     to_rigid3d,
     transform_points,
@@ -254,10 +255,7 @@ def _rms(lms: Landmarks, cam_from_world: np.ndarray, cameras: list[Camera], posi
     """RMS reprojection error (px) of the observations of ``lms`` (at ``positions``, or their own)."""
     X = (lms.positions if positions is None else positions)[lms.tracks.track_of_obs]
     f = np.asarray(lms.tracks.frame_idx)
-    T = np.asarray(cam_from_world)[f]
-    P = np.einsum("nij,nj->ni", T[:, :3, :3], X) + T[:, :3, 3]
-    K = np.stack([c.K for c in cameras])[f]
-    uv = np.einsum("nij,nj->ni", K, P)[:, :2] / P[:, 2:3]
+    uv = project(np.stack([c.K for c in cameras])[f], np.asarray(cam_from_world)[f], X)
     return float(np.sqrt(np.mean(np.sum((uv - lms.tracks.xy) ** 2, axis=1))))
 
 
