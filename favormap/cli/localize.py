@@ -25,6 +25,7 @@ def open_map(args):
 
 
 def add_localize_options(p):
+    # long: one argparse option table (shared with `favormap eval`), split would scatter it
     p.add_argument(
         "--cache-mb",
         type=int,
