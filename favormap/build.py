@@ -30,7 +30,9 @@ from .build_result import (
     BuildRun,
     TrackSummary,
     build_map_data,
+    frame_gray,
     landmark_geometry,
+    observation_patches,
     track_mean_descriptors,
 )
 from .errors import FavormapError, InputError, SequenceError
@@ -48,7 +50,6 @@ from .features.base import check_patch
 from .features.cache import FeatureCache
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
-from .io.images import decode_and_prepare, patches_around
 from .mapfile.model import MapData
 from .pose_refinement import refine_poses
 from .threads import rebalance, thread_count
@@ -155,30 +156,6 @@ def refine_landmarks(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: B
         lms, grays, np.stack([c.K for c in ff.cameras]), ff.cam_from_world, config.refine_window
     )[0]
     return triangulate_tracks(tracks, ff, config)
-
-
-def frame_gray(seq: Sequence, ff: FrameFeatures, f: int, config: BuildConfig) -> np.ndarray:
-    """Frame ``f``'s grey working image (uint8): the one SIFT's sampling state holds, or the frame
-    decoded again for the extractors whose features hold none."""
-    import cv2
-
-    gray = getattr(ff.features[f].dense, "gray", None)
-    if gray is None:
-        fr = seq.frames[f]
-        img = decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], config.max_side)[0]
-        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    return gray
-
-
-def observation_patches(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: BuildConfig) -> np.ndarray:
-    """The (O, P, P) grey pixels around every observation of ``lms`` (``config.align_patches``), frame by frame."""
-    r = int(config.align_patches)
-    tr = lms.tracks
-    out = np.empty((len(tr.xy), 2 * r + 1, 2 * r + 1), np.uint8)
-    for f in np.unique(tr.frame_idx):
-        sel = np.flatnonzero(tr.frame_idx == f)
-        out[sel] = patches_around(frame_gray(seq, ff, int(f), config), tr.xy[sel], r)
-    return out
 
 
 def refine_mapping_poses(lms: Landmarks, ff: FrameFeatures, config: BuildConfig, epipolar_median_px: float):
@@ -343,14 +320,21 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
     rays = _patch_stage(found, extractor, config, executor, pr)
     grids = _train_stage(rays, config, executor, pr, obs)
-    track_patch = observation_patches(found.lms, seq, found.ff, config) if config.align_patches else None
     run = BuildRun(pr.timings, executor.describe(), "memory" if cache is None else str(cache.path))
-    m = build_map_data(seq, config, found, rays, grids, track_patch, run)
+    m = build_map_data(seq, config, found, rays, grids, run)
     obs.on_map(m, pr.timings)
     return m
 
 
-def _extract_stage(seq, config, extractor, executor, cache, pr: _Progress, obs: BuildObserver) -> FrameFeatures:
+def _extract_stage(
+    seq: Sequence,
+    config: BuildConfig,
+    extractor: ExtractorSpec,
+    executor: Executor,
+    cache: FeatureCache | None,
+    pr: _Progress,
+    obs: BuildObserver,
+) -> FrameFeatures:
     """Every frame's features (and the working images, where the observer wants them)."""
     images = [] if obs.wants_images else None
     with pr.stage("extract"):
@@ -396,7 +380,9 @@ def _landmark_stage(
     return BuildLandmarks(lms, ff, refinement, summary)
 
 
-def _patch_stage(found: BuildLandmarks, extractor: ExtractorSpec, config: BuildConfig, executor, pr) -> TrainingRays:
+def _patch_stage(
+    found: BuildLandmarks, extractor: ExtractorSpec, config: BuildConfig, executor: Executor, pr: _Progress
+) -> TrainingRays:
     """The training rays: every observation's descriptor patch."""
     vox = config.voxel
     with pr.stage("patches"):
@@ -415,7 +401,9 @@ def _patch_stage(found: BuildLandmarks, extractor: ExtractorSpec, config: BuildC
     return rays
 
 
-def _train_stage(rays: TrainingRays, config: BuildConfig, executor, pr: _Progress, obs: BuildObserver) -> VoxelGrids:
+def _train_stage(
+    rays: TrainingRays, config: BuildConfig, executor: Executor, pr: _Progress, obs: BuildObserver
+) -> VoxelGrids:
     """Every landmark's voxel grids, trained batch by batch on ``executor``."""
     with pr.stage("train"):
         grids = train_batches(rays, config.voxel, config.train_batch, executor, pr.callback)

@@ -1,8 +1,8 @@
 """The build's last stage: the trained landmarks, their statistics and provenance as one :class:`MapData`.
 
 The types at the boundary of the build's landmark stage (:class:`TrackSummary`, :class:`BuildLandmarks`)
-and what the map stores of each landmark beyond its grids (view geometry, mean descriptor) live here, so
-that :mod:`favormap.build` reads as its sequence of stages.
+and what the map stores of each landmark beyond its grids (view geometry, mean descriptor, the observations'
+pixels) live here, so that :mod:`favormap.build` reads as its sequence of stages.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from .extraction import FrameFeatures
 from .features import patch_offsets
 from .geometry import camera_centers, sum_by_group, view_geometry
 from .io import Sequence
+from .io.images import decode_and_prepare, patches_around
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
 from .pose_refinement import PoseRefinement
 from .tracking import Tracks
@@ -92,6 +93,30 @@ def track_mean_descriptors(
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
+def frame_gray(seq: Sequence, ff: FrameFeatures, f: int, config: BuildConfig) -> np.ndarray:
+    """Frame ``f``'s grey working image (uint8): the one SIFT's sampling state holds, or the frame
+    decoded again for the extractors whose features hold none."""
+    import cv2
+
+    gray = getattr(ff.features[f].dense, "gray", None)
+    if gray is None:
+        fr = seq.frames[f]
+        img = decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], config.max_side)[0]
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    return gray
+
+
+def observation_patches(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: BuildConfig) -> np.ndarray:
+    """The (O, P, P) grey pixels around every observation of ``lms`` (``config.align_patches``), frame by frame."""
+    r = int(config.align_patches)
+    tr = lms.tracks
+    out = np.empty((len(tr.xy), 2 * r + 1, 2 * r + 1), np.uint8)
+    for f in np.unique(tr.frame_idx):
+        sel = np.flatnonzero(tr.frame_idx == f)
+        out[sel] = patches_around(frame_gray(seq, ff, int(f), config), tr.xy[sel], r)
+    return out
+
+
 def build_stats(seq: Sequence, config: BuildConfig, found: BuildLandmarks, grids: VoxelGrids) -> dict:
     """The build's statistics (``provenance/stats``) from its stages' results."""
     lms, s, ff = found.lms, found.summary, found.ff
@@ -135,11 +160,10 @@ def build_map_data(
     found: BuildLandmarks,
     rays: TrainingRays,
     grids: VoxelGrids,
-    track_patch: np.ndarray | None,
     run: BuildRun,
 ) -> MapData:
-    """The map of the trained landmarks; its provenance: ``run``, the source, the configuration and the
-    statistics."""
+    """The map of the trained landmarks (with their observations' pixels where ``config.align_patches``
+    asks for them); its provenance: ``run``, the source, the configuration and the statistics."""
     lms, ff, vox = found.lms, found.ff, config.voxel
     view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
     mean_desc = track_mean_descriptors(rays, len(lms), vox.patch_size, vox.mean_patch, vox.patch_stride)
@@ -172,7 +196,7 @@ def build_map_data(
         track_landmark=lms.tracks.track_of_obs.astype(np.int32),
         track_frame=lms.tracks.frame_idx.astype(np.int32),
         track_xy=lms.tracks.xy.astype(np.float32),
-        track_patch=track_patch,
+        track_patch=observation_patches(lms, seq, ff, config) if config.align_patches else None,
         provenance={
             "source": str(seq.root),
             "source_format": seq.format,
