@@ -243,7 +243,7 @@ def _optimise(
     f32 = dict(dtype=torch.float32, device=dev)
     ray_w = torch.cat([torch.ones(K, **f32), torch.full((Kp,), cfg.prior_weight, **f32)])
     norm = float(L * ray_w.sum())  # loss = weighted mean over all rays of all landmarks
-    group = max(1, cfg.max_batch_rays // (K + Kp))
+    group = cfg.per_batch(K + Kp)
     history = []
     tv_start = int(cfg.iterations * cfg.tv_from)
     tv_grad = TVGradient(R, L, C, dev) if cfg.tv_weight > 0 else None
@@ -338,7 +338,7 @@ def _train_lstsq(
     A = torch.zeros(L, R3, R3, **f32)  # sum w a^T a
     B = torch.zeros(L, R3, C, **f32)  # sum w a^T t
     O = len(obs_lm)
-    chunk = max(1, cfg.max_batch_rays // max(1, P))
+    chunk = cfg.per_batch(max(1, P))
     kept: list[tuple[slice, torch.Tensor]] = []  # the real rays' stencils, for the fit's evaluation ...
     keep = evaluate_fit and O * P * R3 * 4 <= _KEEP_STENCIL_BYTES  # ... unless they would take much memory
     for s in range(0, O, chunk):
@@ -358,7 +358,7 @@ def _train_lstsq(
         gen = BlockGenerator(seed_blocks or [L], cfg.seed)
         prior = lms.prior_bank(data, cfg, targets, gen)
         V = prior.origins.shape[1]
-        step = max(1, cfg.max_batch_rays // max(1, V))
+        step = cfg.per_batch(max(1, V))
         for s in range(0, L, step):
             ls = slice(s, min(L, s + step))
             a, _ = composite_uniform(prior.origins[ls], prior.dirs[ls], R, cfg.samples, sigma)
