@@ -25,6 +25,16 @@ from .build_config import (
     default_max_epipolar,
     localize_defaults,
 )
+from .build_result import (
+    BuildLandmarks,
+    BuildRun,
+    TrackSummary,
+    build_map_data,
+    frame_gray,
+    landmark_geometry,
+    observation_patches,
+    track_mean_descriptors,
+)
 from .errors import FavormapError, InputError, SequenceError
 from .executor import Executor, LocalExecutor
 from .extraction import (
@@ -36,21 +46,18 @@ from .extraction import (
     extract_sequence,
     map_into,
 )
-from .features import patch_offsets
 from .features.base import check_patch
 from .features.cache import FeatureCache
-from .geometry import camera_centers, sum_by_group, view_geometry
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
-from .io.images import decode_and_prepare, patches_around
-from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
+from .mapfile.model import MapData
 from .pose_refinement import refine_poses
 from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
 from .voxels import TrainingRays
 from .voxels.batches import TrainTask, batch_bounds, rays_subset, train_batch, train_batches
-from .voxels.config import voxel_config_for
+from .voxels.config import VoxelGrids, voxel_config_for
 from .voxels.rays import PatchLayout, PatchTask, patch_targets, sample_patches, training_rays
 
 # the build's stages, importable from here whichever module holds them
@@ -151,30 +158,6 @@ def refine_landmarks(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: B
     return triangulate_tracks(tracks, ff, config)
 
 
-def frame_gray(seq: Sequence, ff: FrameFeatures, f: int, config: BuildConfig) -> np.ndarray:
-    """Frame ``f``'s grey working image (uint8): the one SIFT's sampling state holds, or the frame
-    decoded again for the extractors whose features hold none."""
-    import cv2
-
-    gray = getattr(ff.features[f].dense, "gray", None)
-    if gray is None:
-        fr = seq.frames[f]
-        img = decode_and_prepare(None, fr.image_path, seq.cameras[fr.camera_id], config.max_side)[0]
-        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    return gray
-
-
-def observation_patches(lms: Landmarks, seq: Sequence, ff: FrameFeatures, config: BuildConfig) -> np.ndarray:
-    """The (O, P, P) grey pixels around every observation of ``lms`` (``config.align_patches``), frame by frame."""
-    r = int(config.align_patches)
-    tr = lms.tracks
-    out = np.empty((len(tr.xy), 2 * r + 1, 2 * r + 1), np.uint8)
-    for f in np.unique(tr.frame_idx):
-        sel = np.flatnonzero(tr.frame_idx == f)
-        out[sel] = patches_around(frame_gray(seq, ff, int(f), config), tr.xy[sel], r)
-    return out
-
-
 def refine_mapping_poses(lms: Landmarks, ff: FrameFeatures, config: BuildConfig, epipolar_median_px: float):
     """The build's pose refinement (favormap.pose_refinement): bundle adjustment of the poses with every
     triangulated track, the camera centres held near the given ones by the error the measured pose noise
@@ -236,12 +219,6 @@ def select_landmarks(lms: Landmarks, max_landmarks: int, min_frame_landmarks: in
     return lms.select(order)
 
 
-def landmark_geometry(lms: Landmarks, cam_from_world: np.ndarray):
-    """Viewing direction (unit, landmark -> cameras), angular radius (deg) and depth range of the
-    training views of each landmark."""
-    return view_geometry(lms.positions, lms.tracks.track_of_obs, camera_centers(cam_from_world)[lms.tracks.frame_idx])
-
-
 # builds of more frames keep their features in a temporary feature cache file (build_map's feature_cache)
 MEMORY_FRAMES = 300
 
@@ -275,25 +252,6 @@ def check_build_input(seq: Sequence, config: BuildConfig) -> None:
             f"sequence {seq.root} cannot become a map: {problems[0]}"
             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else "")
         )
-
-
-def track_mean_descriptors(
-    rays: TrainingRays, n_landmarks: int, patch_size: int, mean_patch: int = 0, patch_stride: int = 1
-) -> np.ndarray:
-    """(L, C) unit mean descriptor of each landmark: the mean over its observations of the central
-    ``mean_patch`` x ``mean_patch`` pixels of each training patch (0, or at least ``patch_size``: the
-    whole patch), as ``landmarks/mean_descriptor`` stores it."""
-    if mean_patch < 0:
-        raise ValueError(f"VoxelConfig.mean_patch must be >= 0 (0: the whole patch), not {mean_patch}")
-    half = (mean_patch or patch_size) / 2
-    central = np.flatnonzero(np.abs(patch_offsets(patch_size, patch_stride)).max(1) < half)
-    means = (
-        rays.patch_means()
-        if len(central) == rays.targets.shape[1]
-        else rays.targets[:, central].mean(1, dtype=np.float32)
-    )
-    out = sum_by_group(means, rays.obs_landmark, n_landmarks)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
 def build_map(
@@ -354,11 +312,39 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
     obs = observer or BuildObserver()
     # the per-extractor defaults resolved (recorded in the provenance)
     config = replace(config, voxel=voxel_config_for(config.voxel, config.extractor))
-    images = [] if obs.wants_images else None
     extractor = ExtractorSpec(config.extractor, config.max_keypoints)
+    ff = _extract_stage(seq, config, extractor, executor, cache, pr, obs)
+    found = _landmark_stage(_track_stage(seq, ff, config, pr, obs), seq, ff, config, pr)
+    obs.on_landmarks(found.lms, found.ff)
+    if len(found.lms) == 0:
+        raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
+    rays = _patch_stage(found, extractor, config, executor, pr)
+    grids = _train_stage(rays, config, executor, pr, obs)
+    run = BuildRun(pr.timings, executor.describe(), "memory" if cache is None else str(cache.path))
+    m = build_map_data(seq, config, found, rays, grids, run)
+    obs.on_map(m, pr.timings)
+    return m
+
+
+def _extract_stage(
+    seq: Sequence,
+    config: BuildConfig,
+    extractor: ExtractorSpec,
+    executor: Executor,
+    cache: FeatureCache | None,
+    pr: _Progress,
+    obs: BuildObserver,
+) -> FrameFeatures:
+    """Every frame's features (and the working images, where the observer wants them)."""
+    images = [] if obs.wants_images else None
     with pr.stage("extract"):
         ff = extract_sequence(seq, extractor, config.max_side, pr.callback, images, executor, cache)
     obs.on_frames(seq, ff, images)
+    return ff
+
+
+def _track_stage(seq: Sequence, ff: FrameFeatures, config: BuildConfig, pr: _Progress, obs: BuildObserver) -> Tracks:
+    """The frames' features matched into tracks; refuses a sequence without any."""
     with pr.stage("track"):
         tracks = track_frames(ff, config)
         release_free_memory()
@@ -369,6 +355,14 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
             f"no feature tracks of length >= {config.min_track} in {seq.root}: too few frames, too little overlap, "
             "or wrong poses"
         )
+    return tracks
+
+
+def _landmark_stage(
+    tracks: Tracks, seq: Sequence, ff: FrameFeatures, config: BuildConfig, pr: _Progress
+) -> BuildLandmarks:
+    """The tracks triangulated (with the poses refined and the keypoints aligned where asked) and the
+    landmarks within the budget selected; only their observations go on."""
     with pr.stage("triangulate"):
         all_lms = triangulate_tracks(tracks, ff, config)
         refinement = None
@@ -379,107 +373,41 @@ def _build(seq, config, progress, observer, executor, device, cache) -> MapData:
         if config.refine_window:
             all_lms = refine_landmarks(all_lms, seq, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks, config.min_frame_landmarks)
-        n_tracks, n_triangulated = len(tracks), len(all_lms)
-        epipolar_kept = tracks.epipolar_matches / max(tracks.matches, 1)
-        epipolar_kept_3x = tracks.epipolar_matches_3x / max(tracks.matches, 1)
-        epipolar_px, epipolar_median = tracks.max_epipolar_px, tracks.epipolar_median_px
+        summary = TrackSummary.of(tracks, len(all_lms))
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on
         release_free_memory()
         pr.callback("triangulate", 1, 1)
-    obs.on_landmarks(lms, ff)
-    if len(lms) == 0:
-        raise FavormapError("no landmark survived triangulation (check that the poses match the images)")
+    return BuildLandmarks(lms, ff, refinement, summary)
+
+
+def _patch_stage(
+    found: BuildLandmarks, extractor: ExtractorSpec, config: BuildConfig, executor: Executor, pr: _Progress
+) -> TrainingRays:
+    """The training rays: every observation's descriptor patch."""
+    vox = config.voxel
     with pr.stage("patches"):
         rays = training_rays(
-            lms,
-            ff,
+            found.lms,
+            found.ff,
             extractor,
-            config.voxel.patch_size,
-            config.voxel.box_factor,
+            vox.patch_size,
+            vox.box_factor,
             executor,
             pr.callback,
-            config.voxel.patch_stride,
-            config.voxel.patch_interp,
+            vox.patch_stride,
+            vox.patch_interp,
         )
     release_free_memory()
+    return rays
+
+
+def _train_stage(
+    rays: TrainingRays, config: BuildConfig, executor: Executor, pr: _Progress, obs: BuildObserver
+) -> VoxelGrids:
+    """Every landmark's voxel grids, trained batch by batch on ``executor``."""
     with pr.stage("train"):
         grids = train_batches(rays, config.voxel, config.train_batch, executor, pr.callback)
     release_free_memory()  # the blocks training kept for reuse (favormap.heap)
     for it, loss, psnr in grids.history:  # the (landmark-weighted) training curve
         obs.on_train_step(it, loss, psnr)
-    channels = rays.targets.shape[-1]
-    view_dir, view_angle, depth_range = landmark_geometry(lms, ff.cam_from_world)
-    mean_desc = track_mean_descriptors(
-        rays, len(lms), config.voxel.patch_size, config.voxel.mean_patch, config.voxel.patch_stride
-    )
-    stats = {
-        "frames": len(seq.frames),
-        "frames_extracted": len(seq.frames) if ff.extracted is None else ff.extracted,
-        "tracks": int(n_tracks),
-        # shares of the mutual matches within the epipolar limit and 3x it (favormap.tracking.Tracks)
-        "epipolar_kept": round(epipolar_kept, 4),
-        "epipolar_kept_3x": round(epipolar_kept_3x, 4),  # within 3x the limit
-        "max_epipolar_px": float(epipolar_px),  # the limit used: given, or measured
-        "epipolar_measured": config.max_epipolar_px is None,
-        # the right matches' median distance from their epipolar lines (px; measured limits only)
-        **({"epipolar_median_px": round(epipolar_median, 3)} if epipolar_median == epipolar_median else {}),
-        "triangulated": int(n_triangulated),
-        "landmarks": int(len(lms)),
-        "max_landmarks": int(config.max_landmarks),  # the budget
-        "min_frame_landmarks": int(config.min_frame_landmarks),  # and the least a mapping frame keeps
-        # landmarks beyond the budget, kept for frames that would see fewer than min_frame_landmarks
-        "coverage_landmarks": max(int(len(lms)) - int(config.max_landmarks), 0),
-        "two_view_landmarks": int((lms.tracks.lengths == 2).sum()),  # tracks of two frames among the landmarks
-        "mean_track_length": float(lms.tracks.lengths.mean()),
-        # one definition with `favormap info` (Map.info): the median over landmarks of each landmark's mean
-        # reprojection error over its observations, as stored (float32) in landmarks/reproj_error
-        "median_reproj_error_px": median_landmark_reproj_error(
-            lms.mean_reproj_error.astype(np.float32), lms.tracks.lengths
-        ),
-        **({"poses_refined": False} if refinement is None else refinement.stats()),
-        "median_psnr": float(np.median(grids.psnr)),
-        "median_cosine": float(np.median(grids.cosine)),
-    }
-    R = config.voxel.resolution
-    m = MapData(
-        extractor=config.extractor,
-        channels=channels,
-        grid_resolution=R,
-        patch_size=config.voxel.patch_size,
-        render_samples=config.voxel.samples,
-        max_side=config.max_side,
-        ids=new_landmark_ids(len(lms)),
-        positions=lms.positions,
-        voxel_size=rays.sizes.astype(np.float32),
-        track_length=lms.tracks.lengths.astype(np.int32),
-        reproj_error=lms.mean_reproj_error.astype(np.float32),
-        quality=grids.psnr,
-        cosine=grids.cosine,
-        view_dir=view_dir.astype(np.float32),
-        view_angle=view_angle.astype(np.float32),
-        depth_range=depth_range.astype(np.float32),
-        mean_descriptor=mean_desc.astype(np.float32),
-        descriptors=grids.descriptors.cpu().numpy().reshape(len(lms), R, R, R, -1),
-        density=grids.density.cpu().numpy().reshape(len(lms), R, R, R),
-        cameras=dict(seq.cameras),
-        frame_names=[f.name for f in seq.frames],
-        frame_camera_ids=np.array([f.camera_id for f in seq.frames], np.int32),
-        cam_from_world=ff.cam_from_world,
-        track_landmark=lms.tracks.track_of_obs.astype(np.int32),
-        track_frame=lms.tracks.frame_idx.astype(np.int32),
-        track_xy=lms.tracks.xy.astype(np.float32),
-        track_patch=observation_patches(lms, seq, ff, config) if config.align_patches else None,
-        provenance={
-            "source": str(seq.root),
-            "source_format": seq.format,
-            "config": config.to_dict(),
-            "localize_defaults": localize_defaults(config),
-            "timings": pr.timings,
-            "stats": stats,
-            "training_history": grids.history,
-            "executor": executor.describe(),
-            "feature_cache": "memory" if cache is None else str(cache.path),
-        },
-    )
-    obs.on_map(m, pr.timings)
-    return m
+    return grids

@@ -26,6 +26,7 @@ from .geometry import (
     from_rigid3d,
     move_poses,
     nearest_rotation,
+    project,
     rotation_angle_deg,
     to_rigid3d,
     transform_points,
@@ -95,70 +96,23 @@ def refine_poses(
     T0 = np.asarray(cam_from_world, np.float64)
     depth = median_depth(lms, T0)
     sigma = pixel_noise * depth / float(np.median([np.mean(c.focal) for c in cameras]))
-    rec = pycolmap.Reconstruction()
-    cam_ids: dict[tuple, int] = {}
-    image_cam = []
-    for c in cameras:
-        key = (c.model, c.width, c.height, tuple(np.round(np.asarray(c.params, np.float64), 9)))
-        if key not in cam_ids:
-            pc = c.to_pycolmap()
-            pc.camera_id = len(cam_ids) + 1
-            rec.add_camera_with_trivial_rig(pc)
-            cam_ids[key] = pc.camera_id
-        image_cam.append(cam_ids[key])
-    frame = np.asarray(lms.tracks.frame_idx, np.int64)
-    xy = np.asarray(lms.tracks.xy, np.float64)
-    order = np.argsort(frame, kind="stable")  # each frame's observations, in one run
-    starts = np.searchsorted(frame[order], np.arange(len(T0) + 1))
-    point2d = np.empty(len(frame), np.int64)  # each observation's index among its frame's keypoints
-    for f in range(len(T0)):
-        rows = order[starts[f] : starts[f + 1]]
-        point2d[rows] = np.arange(len(rows))
-        rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=f"{f:06d}", keypoints=xy[rows], camera_id=image_cam[f], image_id=f + 1),
-            to_rigid3d(T0[f]),
-        )
-    config = pycolmap.BundleAdjustmentConfig()
-    for f in range(len(T0)):
-        config.add_image(f + 1)
-    for c in cam_ids.values():
-        config.set_constant_cam_intrinsics(c)
-    offsets = lms.tracks.offsets
-    point_ids = []
-    for j in range(len(lms)):  # pycolmap takes a track element by element (~0.1 s for 15,000 landmarks)
-        tr = pycolmap.Track()
-        for o in range(offsets[j], offsets[j + 1]):
-            tr.add_element(int(frame[o]) + 1, int(point2d[o]))
-        point_ids.append(rec.add_point3D(np.asarray(lms.positions[j], np.float64), tr))
-        config.add_variable_point(point_ids[-1])
+    problem = _adjustment_problem(lms, T0, cameras)
     centers = camera_centers(T0)
-    priors = []
-    for f in range(len(T0)):
-        prior = pycolmap.PosePrior(
-            position=centers[f],
-            position_covariance=np.eye(3) * max(sigma, 1e-12) ** 2,
-            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
-        )
-        prior.corr_data_id = rec.image(f + 1).data_id
-        priors.append(prior)
-    options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = False
-    options.refine_principal_point = False
-    options.refine_extra_params = False
-    options.print_summary = False
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = float(loss_px)
-    options.ceres.solver_options.max_num_iterations = int(iterations)
-    options.ceres.solver_options.num_threads = 1 if len(lms) < 1000 else -1
+    priors = _center_priors(problem.rec, centers, sigma)
     with quiet_colmap():
         adjuster = pycolmap.create_pose_prior_bundle_adjuster(
-            options, pycolmap.PosePriorBundleAdjustmentOptions(), config, priors, rec
+            _adjuster_options(loss_px, iterations, len(lms)),
+            pycolmap.PosePriorBundleAdjustmentOptions(),
+            problem.config,
+            priors,
+            problem.rec,
         )
         adjuster.solve()
+    rec = problem.rec
     T = np.stack([from_rigid3d(rec.image(f + 1).cam_from_world()) for f in range(len(T0))])
     S, offset = frame_alignment(T, T0, depth)
     T = move_poses(T, S)
-    X = transform_points(S, np.stack([rec.point3D(i).xyz for i in point_ids]))
+    X = transform_points(S, np.stack([rec.point3D(i).xyz for i in problem.point_ids]))
     angle = rotation_angle_deg(np.einsum("nij,nkj->nik", T[:, :3, :3], T0[:, :3, :3]))
     return PoseRefinement(
         cam_from_world=T,
@@ -169,6 +123,105 @@ def refine_poses(
         initial_rms_px=_rms(lms, T0, cameras),
         final_rms_px=_rms(lms, T, cameras, X),
     )
+
+
+@dataclass
+class _Adjustment:
+    """The bundle adjustment's problem in pycolmap's terms: frame f is image f + 1."""
+
+    rec: object  # pycolmap.Reconstruction: the cameras, the images with their observations, the landmarks
+    config: object  # pycolmap.BundleAdjustmentConfig: every image and landmark variable, the intrinsics fixed
+    point_ids: list[int]  # each landmark's point id
+
+
+def _adjustment_problem(lms: Landmarks, T0: np.ndarray, cameras: list[Camera]) -> _Adjustment:
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    cam_ids, image_cam = _add_cameras(rec, cameras)
+    point2d = _add_images(rec, lms, T0, image_cam)
+    config = pycolmap.BundleAdjustmentConfig()
+    for f in range(len(T0)):
+        config.add_image(f + 1)
+    for c in cam_ids:
+        config.set_constant_cam_intrinsics(c)
+    frame = np.asarray(lms.tracks.frame_idx, np.int64)
+    offsets = lms.tracks.offsets
+    point_ids = []
+    for j in range(len(lms)):  # pycolmap takes a track element by element (~0.1 s for 15,000 landmarks)
+        tr = pycolmap.Track()
+        for o in range(offsets[j], offsets[j + 1]):
+            tr.add_element(int(frame[o]) + 1, int(point2d[o]))
+        point_ids.append(rec.add_point3D(np.asarray(lms.positions[j], np.float64), tr))
+        config.add_variable_point(point_ids[-1])
+    return _Adjustment(rec, config, point_ids)
+
+
+def _add_cameras(rec, cameras: list[Camera]) -> tuple[list[int], list[int]]:
+    """One pycolmap camera per distinct camera of the frames; returns their ids and each frame's."""
+    cam_ids: dict[tuple, int] = {}
+    image_cam = []
+    for c in cameras:
+        key = (c.model, c.width, c.height, tuple(np.round(np.asarray(c.params, np.float64), 9)))
+        if key not in cam_ids:
+            pc = c.to_pycolmap()
+            pc.camera_id = len(cam_ids) + 1
+            rec.add_camera_with_trivial_rig(pc)
+            cam_ids[key] = pc.camera_id
+        image_cam.append(cam_ids[key])
+    return list(cam_ids.values()), image_cam
+
+
+def _add_images(rec, lms: Landmarks, T0: np.ndarray, image_cam: list[int]) -> np.ndarray:
+    """One image per frame at its given pose, its keypoints the landmarks' observations in it; returns
+    each observation's index among its frame's keypoints."""
+    import pycolmap
+
+    frame = np.asarray(lms.tracks.frame_idx, np.int64)
+    xy = np.asarray(lms.tracks.xy, np.float64)
+    order = np.argsort(frame, kind="stable")  # each frame's observations, in one run
+    starts = np.searchsorted(frame[order], np.arange(len(T0) + 1))
+    point2d = np.empty(len(frame), np.int64)
+    for f in range(len(T0)):
+        rows = order[starts[f] : starts[f + 1]]
+        point2d[rows] = np.arange(len(rows))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{f:06d}", keypoints=xy[rows], camera_id=image_cam[f], image_id=f + 1),
+            to_rigid3d(T0[f]),
+        )
+    return point2d
+
+
+def _center_priors(rec, centers: np.ndarray, sigma: float) -> list:
+    """Each image's camera centre held near ``centers`` by a Gaussian prior of standard deviation ``sigma``."""
+    import pycolmap
+
+    priors = []
+    for f in range(len(centers)):
+        prior = pycolmap.PosePrior(
+            position=centers[f],
+            position_covariance=np.eye(3) * max(sigma, 1e-12) ** 2,
+            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+        )
+        prior.corr_data_id = rec.image(f + 1).data_id
+        priors.append(prior)
+    return priors
+
+
+def _adjuster_options(loss_px: float, iterations: int, n_landmarks: int):
+    """COLMAP's bundle-adjustment options: intrinsics fixed, Cauchy loss of scale ``loss_px``."""
+    import pycolmap
+
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = float(loss_px)
+    options.ceres.solver_options.max_num_iterations = int(iterations)
+    options.ceres.solver_options.num_threads = 1 if n_landmarks < 1000 else -1
+    return options
 
 
 def frame_alignment(
@@ -202,10 +255,7 @@ def _rms(lms: Landmarks, cam_from_world: np.ndarray, cameras: list[Camera], posi
     """RMS reprojection error (px) of the observations of ``lms`` (at ``positions``, or their own)."""
     X = (lms.positions if positions is None else positions)[lms.tracks.track_of_obs]
     f = np.asarray(lms.tracks.frame_idx)
-    T = np.asarray(cam_from_world)[f]
-    P = np.einsum("nij,nj->ni", T[:, :3, :3], X) + T[:, :3, 3]
-    K = np.stack([c.K for c in cameras])[f]
-    uv = np.einsum("nij,nj->ni", K, P)[:, :2] / P[:, 2:3]
+    uv = project(np.stack([c.K for c in cameras])[f], np.asarray(cam_from_world)[f], X)
     return float(np.sqrt(np.mean(np.sum((uv - lms.tracks.xy) ** 2, axis=1))))
 
 

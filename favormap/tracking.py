@@ -243,10 +243,46 @@ def track_features(
 
     ``max_epipolar_px`` None: the limit is measured from the mutual matches (:func:`epipolar_limit`, no
     less than ``min_epipolar_px``), so poses less accurate than the keypoints get a looser check."""
-    n = len(features)
     counts = _counts(features)
-    base = np.concatenate([[0], np.cumsum(counts)])
-    gid = np.int32 if base[-1] < np.iinfo(np.int32).max else np.int64  # global keypoint ids of the edges
+    base = np.concatenate([[0], np.cumsum(counts)])  # global keypoint id of each frame's first keypoint
+    workers = thread_count() if workers is None else int(workers)
+    pairs = _match_pairs(features, counts, cam_from_world, cameras, window, min_similarity, workers)
+    check = _EpipolarCheck.of(pairs, max_epipolar_px, min_epipolar_px)
+    edges = _MatchEdges.within(pairs, check.max_epipolar_px, base)
+    del pairs
+    if not edges.count:
+        empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
+        return check.recorded_in(Tracks(*empty))
+    graph = _MatchGraph.of(edges, base)
+    del edges
+    return check.recorded_in(_consistent_tracks(graph, len(features), min_track))
+
+
+@dataclass
+class _PairMatches:
+    """The mutual matches of frames a < b: keypoint indices, their pixels and epipolar distances."""
+
+    a: int
+    b: int
+    ia: np.ndarray  # (M,) keypoints of frame a
+    ib: np.ndarray  # (M,) keypoints of frame b
+    xa: np.ndarray  # (M, 2) float32 pixels in a
+    xb: np.ndarray  # (M, 2) float32 pixels in b
+    dist: np.ndarray  # (M,) float32 symmetric epipolar distance (px)
+
+
+def _match_pairs(
+    features: SequenceABC[Features],
+    counts: np.ndarray,
+    cam_from_world: np.ndarray,
+    cameras: list[Camera],
+    window: int,
+    min_similarity: float,
+    workers: int,
+) -> list[_PairMatches]:
+    """Every frame matched with its next ``window`` frames (mutual nearest neighbours), holding at most
+    ``window + 1`` frames' keypoints and descriptors at a time."""
+    n = len(features)
     held: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (keypoints, descriptors)
 
     def frame(i):
@@ -261,12 +297,11 @@ def track_features(
         ia, ib, _ = mutual_nn(da, db, min_similarity)
         return ia, ib, epipolar_distance(F, ka[ia], kb[ib]).astype(np.float32)
 
-    pairs_found = []  # (a, b, ia, ib, xy in a, xy in b, epipolar distance) of every frame pair's mutual matches
+    found = []
     # the pairs of one frame on a pool of threads, one BLAS thread each (favormap.threads.serial_pools):
     # each similarity is one 128-term dot product whatever the thread count, and the NumPy reductions
     # after each product, which run on one core, overlap another pair's product. NumPy's OpenBLAS rather
     # than torch's MKL: faster for these shapes on one core (docs/implementation-notes.md, tracking)
-    workers = thread_count() if workers is None else int(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
         with serial_pools() if pool else nullcontext():
@@ -279,53 +314,98 @@ def track_features(
                 for b, (ia, ib, dist) in zip(bs, results):
                     if len(ia):
                         ka, kb = held[a][0], held[b][0]
-                        pairs_found.append((a, b, ia, ib, ka[ia], kb[ib], dist))
+                        found.append(_PairMatches(a, b, ia, ib, ka[ia], kb[ib], dist))
     finally:
         if pool:
             pool.shutdown()
-    all_dist = np.concatenate([p[-1] for p in pairs_found]) if pairs_found else np.zeros(0, np.float32)
-    median = float("nan")
-    if max_epipolar_px is None:
-        max_epipolar_px, median = epipolar_limit(all_dist, min_epipolar_px)
-    n_mutual = len(all_dist)
-    n_kept = int((all_dist <= max_epipolar_px).sum())
-    n_kept3 = int((all_dist <= 3 * max_epipolar_px).sum())
-    del all_dist
-    rows, cols, xy_rows, xy_cols = [], [], [], []
-    for a, b, ia, ib, xa, xb, dist in pairs_found:
-        ok = dist <= max_epipolar_px
-        rows.append((base[a] + ia[ok]).astype(gid))
-        cols.append((base[b] + ib[ok]).astype(gid))
-        xy_rows.append(xa[ok])
-        xy_cols.append(xb[ok])
-    del pairs_found
-    found = dict(
-        matches=n_mutual,
-        epipolar_matches=n_kept,
-        epipolar_matches_3x=n_kept3,
-        max_epipolar_px=float(max_epipolar_px),
-        epipolar_median_px=median,
-    )
-    if not rows or not sum(len(r) for r in rows):
-        empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
-        return Tracks(*empty, **found)
-    # the graph of matched keypoints only (global keypoint index -> node)
-    ends = np.concatenate(rows + cols)
-    node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
-    node_xy = np.concatenate(xy_rows + xy_cols)[first]
-    del ends, rows, cols, xy_rows, xy_cols
-    m = len(node_id)
-    r, c = inv[: len(inv) // 2], inv[len(inv) // 2 :]
-    label = connected_components(m, r, c)
-    node_frame = (np.searchsorted(base, node_id, side="right") - 1).astype(np.int64)
-    node_kp = node_id.astype(np.int64) - base[node_frame]
-    # consistency (one keypoint per frame) and length
-    pairs = label.astype(np.int64) * n + node_frame
+    return found
+
+
+@dataclass(frozen=True)
+class _EpipolarCheck:
+    """The epipolar limit the matches are held to (given, or measured: :func:`epipolar_limit`) and how
+    many of the mutual matches lie within it and within 3x it, as :class:`Tracks` records them."""
+
+    max_epipolar_px: float
+    epipolar_median_px: float  # nan when the limit was given
+    matches: int
+    epipolar_matches: int
+    epipolar_matches_3x: int
+
+    @classmethod
+    def of(cls, pairs: list[_PairMatches], max_epipolar_px: float | None, min_epipolar_px: float) -> _EpipolarCheck:
+        dist = np.concatenate([p.dist for p in pairs]) if pairs else np.zeros(0, np.float32)
+        median = float("nan")
+        if max_epipolar_px is None:
+            max_epipolar_px, median = epipolar_limit(dist, min_epipolar_px)
+        return cls(
+            max_epipolar_px=float(max_epipolar_px),
+            epipolar_median_px=median,
+            matches=len(dist),
+            epipolar_matches=int((dist <= max_epipolar_px).sum()),
+            epipolar_matches_3x=int((dist <= 3 * max_epipolar_px).sum()),
+        )
+
+    def recorded_in(self, tracks: Tracks) -> Tracks:
+        for k in ("matches", "epipolar_matches", "epipolar_matches_3x", "max_epipolar_px", "epipolar_median_px"):
+            setattr(tracks, k, getattr(self, k))
+        return tracks
+
+
+@dataclass
+class _MatchEdges:
+    """The matches within the epipolar limit as edges between global keypoint ids, with their pixels."""
+
+    rows: list[np.ndarray]  # per frame pair, the global ids of the matched keypoints in the earlier frame
+    cols: list[np.ndarray]  # ... in the later frame
+    xy_rows: list[np.ndarray]
+    xy_cols: list[np.ndarray]
+
+    @property
+    def count(self) -> int:
+        return sum(len(r) for r in self.rows)
+
+    @classmethod
+    def within(cls, pairs: list[_PairMatches], max_epipolar_px: float, base: np.ndarray) -> _MatchEdges:
+        gid = np.int32 if base[-1] < np.iinfo(np.int32).max else np.int64  # global keypoint ids of the edges
+        edges = cls([], [], [], [])
+        for p in pairs:
+            ok = p.dist <= max_epipolar_px
+            edges.rows.append((base[p.a] + p.ia[ok]).astype(gid))
+            edges.cols.append((base[p.b] + p.ib[ok]).astype(gid))
+            edges.xy_rows.append(p.xa[ok])
+            edges.xy_cols.append(p.xb[ok])
+        return edges
+
+
+@dataclass
+class _MatchGraph:
+    """The graph of the matched keypoints only: its nodes (keypoints) and the matches between them."""
+
+    node_frame: np.ndarray  # (m,) frame of each node
+    node_kp: np.ndarray  # (m,) its keypoint in the frame
+    node_xy: np.ndarray  # (m, 2) its pixel
+    r: np.ndarray  # (E,) edges' first nodes
+    c: np.ndarray  # (E,) and second
+
+    @classmethod
+    def of(cls, edges: _MatchEdges, base: np.ndarray) -> _MatchGraph:
+        ends = np.concatenate(edges.rows + edges.cols)
+        node_id, first, inv = np.unique(ends, return_index=True, return_inverse=True)
+        node_xy = np.concatenate(edges.xy_rows + edges.xy_cols)[first]
+        node_frame = (np.searchsorted(base, node_id, side="right") - 1).astype(np.int64)
+        node_kp = node_id.astype(np.int64) - base[node_frame]
+        return cls(node_frame, node_kp, node_xy, inv[: len(inv) // 2], inv[len(inv) // 2 :])
+
+
+def _consistent_tracks(graph: _MatchGraph, n_frames: int, min_track: int) -> Tracks:
+    """The graph's connected components as tracks, less those that hold two keypoints of one frame
+    (ambiguous) and those of fewer than ``min_track`` frames."""
+    n = n_frames
+    label = connected_components(len(graph.node_frame), graph.r, graph.c)
+    pairs = label.astype(np.int64) * n + graph.node_frame
     uniq_pairs, pair_counts = np.unique(pairs, return_counts=True)
     bad_labels = np.unique(uniq_pairs[pair_counts > 1] // n)
     frames_per_track = np.bincount(uniq_pairs // n, minlength=label.max() + 1)
     ok = ~np.isin(label, bad_labels) & (frames_per_track[label] >= min_track)
-    tracks = Tracks.from_obs(node_frame[ok], node_kp[ok], node_xy[ok].astype(np.float64), label[ok])
-    for k, v in found.items():
-        setattr(tracks, k, v)
-    return tracks
+    return Tracks.from_obs(graph.node_frame[ok], graph.node_kp[ok], graph.node_xy[ok].astype(np.float64), label[ok])

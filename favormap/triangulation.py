@@ -102,73 +102,127 @@ def triangulate(
 def _triangulate_block(
     tracks: Tracks, cam_from_world: np.ndarray, Ks: np.ndarray, config: TriangulationConfig
 ) -> Landmarks:
+    """The tracks triangulated linearly (:func:`dlt`), refined robustly in inverse depth and checked."""
     fi = tracks.frame_idx
-    Rcw = cam_from_world[fi, :3, :3]  # (O,3,3)
-    tcw = cam_from_world[fi, :3, 3]
-    K = Ks[fi]
-    P = K @ cam_from_world[fi, :3, :]  # (O,3,4)
-    tid = tracks.track_of_obs
-    X0 = dlt(P, tracks.xy, tid, len(tracks))
+    X0 = dlt(Ks[fi] @ cam_from_world[fi, :3, :], tracks.xy, tracks.track_of_obs, len(tracks))
+    problem = _AnchoredTracks.of(tracks, cam_from_world, Ks[fi], config.robust_c_px)
+    theta, e = _refine_inverse_depths(problem, problem.theta_of(X0), config.iterations)
+    return _checked_landmarks(tracks, cam_from_world, problem.points(theta), theta[:, 2], e, config)
 
-    # --- anchored inverse-depth parameterisation -------------------------------------------------
-    anchor = tracks.frame_idx[tracks.offsets[:-1]]  # first frame of each track
-    wfc_a = inverse(cam_from_world[anchor])
-    R_wa, c_a = wfc_a[:, :3, :3], wfc_a[:, :3, 3]
-    Xa = np.einsum("tji,tj->ti", R_wa, X0 - c_a)  # landmark in anchor camera
-    za = np.where(np.abs(Xa[:, 2]) < 1e-6, 1e-6, Xa[:, 2])
-    theta = np.stack([Xa[:, 0] / za, Xa[:, 1] / za, 1.0 / za], 1)  # (T,3): alpha, beta, rho
 
-    # per observation constants: h = A m + rho b with m = (alpha, beta, 1)
-    A = Rcw @ R_wa[tid]  # (O,3,3)
-    b = np.einsum("oij,oj->oi", Rcw, c_a[tid]) + tcw  # (O,3)
-    fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
-    c2 = config.robust_c_px**2
-    lam = np.full(len(tracks), 1e-3)
+@dataclass
+class _AnchoredTracks:
+    """Each track's landmark in inverse depth theta = (alpha, beta, rho) in the camera of the track's first
+    frame (its anchor): in an observation's camera the landmark is h = A m + rho b, m = (alpha, beta, 1)."""
 
-    def residuals(th):
+    tid: np.ndarray  # (O,) track of each observation
+    xy: np.ndarray  # (O, 2) its pixel
+    A: np.ndarray  # (O, 3, 3)
+    b: np.ndarray  # (O, 3)
+    fx: np.ndarray  # (O,) its camera's intrinsics
+    fy: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    R_wa: np.ndarray  # (T, 3, 3) world from anchor rotation
+    c_a: np.ndarray  # (T, 3) anchor camera centre
+    c2: float  # squared scale of the robust (Geman-McClure) cost, px^2
+
+    @classmethod
+    def of(cls, tracks: Tracks, cam_from_world: np.ndarray, K: np.ndarray, robust_c_px: float) -> _AnchoredTracks:
+        fi, tid = tracks.frame_idx, tracks.track_of_obs
+        Rcw = cam_from_world[fi, :3, :3]  # (O,3,3)
+        tcw = cam_from_world[fi, :3, 3]
+        anchor = tracks.frame_idx[tracks.offsets[:-1]]  # first frame of each track
+        wfc_a = inverse(cam_from_world[anchor])
+        R_wa, c_a = wfc_a[:, :3, :3], wfc_a[:, :3, 3]
+        A = Rcw @ R_wa[tid]  # (O,3,3)
+        b = np.einsum("oij,oj->oi", Rcw, c_a[tid]) + tcw  # (O,3)
+        return cls(tid, tracks.xy, A, b, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], R_wa, c_a, robust_c_px**2)
+
+    @property
+    def n(self) -> int:
+        return len(self.R_wa)
+
+    def theta_of(self, X: np.ndarray) -> np.ndarray:
+        """(T, 3) inverse-depth parameters of world points ``X`` (T, 3)."""
+        Xa = np.einsum("tji,tj->ti", self.R_wa, X - self.c_a)  # landmark in anchor camera
+        za = np.where(np.abs(Xa[:, 2]) < 1e-6, 1e-6, Xa[:, 2])
+        return np.stack([Xa[:, 0] / za, Xa[:, 1] / za, 1.0 / za], 1)  # (T,3): alpha, beta, rho
+
+    def points(self, theta: np.ndarray) -> np.ndarray:
+        """(T, 3) world points of ``theta``."""
+        rho = theta[:, 2]
+        rho_safe = np.where(np.abs(rho) < 1e-12, 1e-12, rho)
+        Xa = np.stack([theta[:, 0], theta[:, 1], np.ones(len(theta))], 1) / rho_safe[:, None]
+        return np.einsum("tij,tj->ti", self.R_wa, Xa) + self.c_a
+
+    def residuals(self, th: np.ndarray):
+        """(O, 2) pixel residuals, and h (O, 3) with its guarded depth hz (O,)."""
+        tid = self.tid
         m = np.concatenate([th[tid, :2], np.ones((len(tid), 1))], 1)
-        h = np.einsum("oij,oj->oi", A, m) + th[tid, 2:3] * b
+        h = np.einsum("oij,oj->oi", self.A, m) + th[tid, 2:3] * self.b
         hz = np.where(np.abs(h[:, 2]) < 1e-9, 1e-9, h[:, 2])
-        u = fx * h[:, 0] / hz + cx
-        v = fy * h[:, 1] / hz + cy
-        return np.stack([u, v], 1) - tracks.xy, h, hz
+        u = self.fx * h[:, 0] / hz + self.cx
+        v = self.fy * h[:, 1] / hz + self.cy
+        return np.stack([u, v], 1) - self.xy, h, hz
 
-    def cost(e):
+    def cost(self, e: np.ndarray) -> np.ndarray:
+        """(T,) robust cost of each track."""
+        c2 = self.c2
         u2 = np.sum(e * e, 1)
-        return np.bincount(tid, 0.5 * c2 * u2 / (c2 + u2), len(tracks))
+        return np.bincount(self.tid, 0.5 * c2 * u2 / (c2 + u2), self.n)
 
-    e, h, hz = residuals(theta)
-    cur = cost(e)
-    for _ in range(config.iterations):
+    def jacobian(self, h: np.ndarray, hz: np.ndarray) -> np.ndarray:
+        """(O, 2, 3) Jacobian of the pixels (u, v) with respect to theta."""
+        dh = np.concatenate([self.A[:, :, :2], self.b[:, :, None]], 2)  # (O,3,3) dh/dtheta
+        J = np.empty((len(self.tid), 2, 3))
+        J[:, 0] = self.fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
+        J[:, 1] = self.fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
+        return J
+
+
+def _refine_inverse_depths(problem: _AnchoredTracks, theta: np.ndarray, iterations: int):
+    """Levenberg-Marquardt on the robust cost, every track at once (Geman-McClure IRLS weights, a damping
+    per track); returns theta and the final pixel residuals (O, 2)."""
+    tid, n, c2 = problem.tid, problem.n, problem.c2
+    lam = np.full(n, 1e-3)
+    e, h, hz = problem.residuals(theta)
+    cur = problem.cost(e)
+    for _ in range(iterations):
         u2 = np.sum(e * e, 1)
         w = (c2 / (c2 + u2)) ** 2  # Geman-McClure IRLS weight
-        # Jacobian of (u, v) wrt (alpha, beta, rho): (O,2,3)
-        dh = np.concatenate([A[:, :, :2], b[:, :, None]], 2)  # (O,3,3) dh/dtheta
-        J = np.empty((len(tid), 2, 3))
-        J[:, 0] = fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
-        J[:, 1] = fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
-        H = sum_by_group(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, len(tracks))
-        g = sum_by_group(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, len(tracks))
+        J = problem.jacobian(h, hz)
+        H = sum_by_group(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, n)
+        g = sum_by_group(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, n)
         Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
         try:
             step = -np.linalg.solve(Hd, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
             step = -np.einsum("tij,tj->ti", np.linalg.pinv(Hd), g)
         cand = theta + step
-        e_c, h_c, hz_c = residuals(cand)
-        new = cost(e_c)
+        e_c, h_c, hz_c = problem.residuals(cand)
+        new = problem.cost(e_c)
         better = np.isfinite(new) & (new < cur)
         theta = np.where(better[:, None], cand, theta)
         lam = np.where(better, lam * 0.3, lam * 10.0).clip(1e-9, 1e9)
         cur = np.where(better, new, cur)
-        e, h, hz = residuals(theta)
+        e, h, hz = problem.residuals(theta)
+    return theta, e
 
-    rho = theta[:, 2]
-    rho_safe = np.where(np.abs(rho) < 1e-12, 1e-12, rho)
-    Xa = np.stack([theta[:, 0], theta[:, 1], np.ones(len(theta))], 1) / rho_safe[:, None]
-    X = np.einsum("tij,tj->ti", R_wa, Xa) + c_a
 
-    # --- checks ----------------------------------------------------------------------------------
+def _checked_landmarks(
+    tracks: Tracks,
+    cam_from_world: np.ndarray,
+    X: np.ndarray,
+    rho: np.ndarray,
+    e: np.ndarray,
+    config: TriangulationConfig,
+) -> Landmarks:
+    """The landmarks ``X`` less the observations reprojected beyond ``max_reproj_px`` or behind their
+    camera, then less the tracks seen under less than ``min_angle_deg``, at negative inverse depth
+    ``rho`` or left shorter than ``min_track``."""
+    fi, tid = tracks.frame_idx, tracks.track_of_obs
+    Rcw, tcw = cam_from_world[fi, :3, :3], cam_from_world[fi, :3, 3]
     err = np.linalg.norm(e, axis=1)
     depth = np.einsum("oj,oj->o", Rcw[:, 2], X[tid]) + tcw[:, 2]
     ok_obs = (err <= config.max_reproj_px) & (depth > 0) & np.isfinite(err) & np.isfinite(X[tid]).all(1)
@@ -234,66 +288,99 @@ def refine_observations(
 
     On the synthetic room with exact poses it brings the landmarks about 2.5x closer to the true
     surface (tests/test_build.py); a translation-only alignment without the plane moved them off it."""
-    import cv2
-
     tracks = lms.tracks
     xy = tracks.xy.copy()
     moved = np.zeros(len(xy), bool)
     if len(lms) == 0:
         return tracks, moved
+    warps = _PlaneWarps.of(lms, K, cam_from_world, normals, normal_k)
+    frames = _GreyFrames(grays)
     half = window // 2
     g = (
         np.stack(np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1)), -1)
         .reshape(-1, 2)
         .astype(np.float64)
     )
-    lens = tracks.lengths
-    ref = np.repeat(tracks.offsets[:-1] + lens // 2, lens)  # observations are sorted by frame within a track
-    tid = tracks.track_of_obs
-    centers = camera_centers(cam_from_world)
-    if normals is None:
-        normals = landmark_normals(lms.positions, centers[tracks.frame_idx[tracks.offsets[:-1] + lens // 2]], normal_k)
-    T = np.asarray(cam_from_world, np.float64)
-    K = np.broadcast_to(np.asarray(K, np.float64), (len(T), 3, 3))
-    todo = np.flatnonzero(np.arange(len(xy)) != ref)
-    fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
-    # each observation's reference pixels carried into its frame through the landmark's plane
-    H = plane_homographies(K[fa], T[fa], K[fb], T[fb], lms.positions[tid[todo]], normals[tid[todo]])
-    pa = tracks.xy[ref[todo]]
-    s = np.zeros((len(todo), 2))
-    imgs = {}  # frame -> its grey image, and it with its gradients (central differences) as 3 channels
-
-    def image(f):
-        if f not in imgs:
-            im = np.ascontiguousarray(grays[f], np.float32)
-            sobel = [cv2.Sobel(im, cv2.CV_32F, dx, 1 - dx, ksize=1) * 0.5 for dx in (1, 0)]
-            imgs[f] = im, np.stack([im] + sobel, -1)
-        return imgs[f]
-
-    for lo in range(0, len(todo), REFINE_BLOCK):  # bounded memory: (block, window^2) samples at a time
-        blk = np.arange(lo, min(lo + REFINE_BLOCK, len(todo)))
-        grid = pa[blk, None] + g[None]
-        # the reference templates and their gradients, frame by frame of the references (one lookup each)
-        A, J = np.zeros(grid.shape[:2]), np.zeros(grid.shape[:2] + (2,))
-        for a in np.unique(fa[blk]):
-            rows = np.flatnonzero(fa[blk] == a)
-            v = sample_bilinear(image(a)[1], grid[rows])
-            A[rows], J[rows] = v[..., 0], v[..., 1:]
-        A -= A.mean(1, keepdims=True)
-        J -= J.mean(1, keepdims=True)
-        Jt = J.transpose(0, 2, 1)
-        step = np.linalg.inv(Jt @ J + 1e-6 * np.eye(2)) @ Jt  # (n, 2, G): Gauss-Newton's step from the residuals
-        # Lucas-Kanade, all observations in one frame a step at a time (one lookup of that frame)
-        by_frame = [(b, np.flatnonzero(fb[blk] == b)) for b in np.unique(fb[blk])]
-        sb, Hb = s[blk], H[blk]
-        for _ in range(iterations):
-            for b, rows in by_frame:
-                W = sample_bilinear(image(b)[0], apply_homographies(Hb[rows], grid[rows] + sb[rows, None]))
-                e = W - W.mean(1, keepdims=True) - A[rows]
-                sb[rows] -= (step[rows] @ e[..., None])[..., 0]
-        s[blk] = sb
-    pb = apply_homographies(H, (pa + s)[:, None])[:, 0]
+    s = np.zeros((len(warps.todo), 2))
+    for lo in range(0, len(warps.todo), REFINE_BLOCK):  # bounded memory: (block, window^2) samples at a time
+        blk = np.arange(lo, min(lo + REFINE_BLOCK, len(warps.todo)))
+        s[blk] = _align_block(warps, blk, g, frames, iterations)
+    todo = warps.todo
+    pb = apply_homographies(warps.H, (warps.pa + s)[:, None])[:, 0]
     ok = np.isfinite(pb).all(1) & (np.linalg.norm(pb - tracks.xy[todo], axis=1) <= max_move_px)
     xy[todo[ok]] = pb[ok]
     moved[todo[ok]] = True
     return Tracks(tracks.frame_idx, tracks.keypoint_idx, xy, tracks.offsets), moved
+
+
+@dataclass
+class _PlaneWarps:
+    """Each observation to align (all but its track's reference, the middle one) with the homography that
+    carries its reference's pixels into its frame through the landmark's plane."""
+
+    todo: np.ndarray  # (N,) observations to align
+    fa: np.ndarray  # (N,) frame of each one's reference
+    fb: np.ndarray  # (N,) its own frame
+    H: np.ndarray  # (N, 3, 3) reference pixels -> its frame
+    pa: np.ndarray  # (N, 2) the reference keypoint
+
+    @classmethod
+    def of(cls, lms: Landmarks, K, cam_from_world, normals, normal_k: int) -> _PlaneWarps:
+        tracks = lms.tracks
+        lens = tracks.lengths
+        ref = np.repeat(tracks.offsets[:-1] + lens // 2, lens)  # observations are sorted by frame within a track
+        tid = tracks.track_of_obs
+        centers = camera_centers(cam_from_world)
+        if normals is None:
+            middle = tracks.frame_idx[tracks.offsets[:-1] + lens // 2]
+            normals = landmark_normals(lms.positions, centers[middle], normal_k)
+        T = np.asarray(cam_from_world, np.float64)
+        K = np.broadcast_to(np.asarray(K, np.float64), (len(T), 3, 3))
+        todo = np.flatnonzero(np.arange(len(tracks.xy)) != ref)
+        fa, fb = tracks.frame_idx[ref[todo]].astype(np.int64), tracks.frame_idx[todo].astype(np.int64)
+        H = plane_homographies(K[fa], T[fa], K[fb], T[fb], lms.positions[tid[todo]], normals[tid[todo]])
+        return cls(todo, fa, fb, H, tracks.xy[ref[todo]])
+
+
+class _GreyFrames:
+    """The frames' grey images as float32, each with its gradients (central differences), made on first use."""
+
+    def __init__(self, grays):
+        self.grays = grays
+        self.held: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) image and (H, W, 3) image, d/dx, d/dy."""
+        import cv2
+
+        if f not in self.held:
+            im = np.ascontiguousarray(self.grays[f], np.float32)
+            sobel = [cv2.Sobel(im, cv2.CV_32F, dx, 1 - dx, ksize=1) * 0.5 for dx in (1, 0)]
+            self.held[f] = im, np.stack([im] + sobel, -1)
+        return self.held[f]
+
+
+def _align_block(warps: _PlaneWarps, blk: np.ndarray, g: np.ndarray, frames: _GreyFrames, iterations: int):
+    """(n, 2) shifts in the reference frames that align observations ``blk`` to their references:
+    Lucas-Kanade with gain and offset removed, ``iterations`` Gauss-Newton steps over window offsets ``g``."""
+    fa, fb = warps.fa[blk], warps.fb[blk]
+    grid = warps.pa[blk, None] + g[None]
+    # the reference templates and their gradients, frame by frame of the references (one lookup each)
+    A, J = np.zeros(grid.shape[:2]), np.zeros(grid.shape[:2] + (2,))
+    for a in np.unique(fa):
+        rows = np.flatnonzero(fa == a)
+        v = sample_bilinear(frames(a)[1], grid[rows])
+        A[rows], J[rows] = v[..., 0], v[..., 1:]
+    A -= A.mean(1, keepdims=True)
+    J -= J.mean(1, keepdims=True)
+    Jt = J.transpose(0, 2, 1)
+    step = np.linalg.inv(Jt @ J + 1e-6 * np.eye(2)) @ Jt  # (n, 2, G): Gauss-Newton's step from the residuals
+    # Lucas-Kanade, all observations in one frame a step at a time (one lookup of that frame)
+    by_frame = [(b, np.flatnonzero(fb == b)) for b in np.unique(fb)]
+    sb, Hb = np.zeros((len(blk), 2)), warps.H[blk]
+    for _ in range(iterations):
+        for b, rows in by_frame:
+            W = sample_bilinear(frames(b)[0], apply_homographies(Hb[rows], grid[rows] + sb[rows, None]))
+            e = W - W.mean(1, keepdims=True) - A[rows]
+            sb[rows] -= (step[rows] @ e[..., None])[..., 0]
+    return sb

@@ -10,8 +10,7 @@ from ..localize.config import LocalizeConfig, SuccessChecks
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
 from .common import auto_device, config_default, print_json
-
-IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+from .queries import IMAGE_EXT, Query, read_queries, write_poses
 
 
 def open_map(args):
@@ -26,6 +25,7 @@ def open_map(args):
 
 
 def add_localize_options(p):
+    # long: one argparse option table (shared with `favormap eval`), split would scatter it
     p.add_argument(
         "--cache-mb",
         type=int,
@@ -250,39 +250,36 @@ def config_from_args(args):
     )
 
 
-def read_priors(path: Path) -> dict:
-    """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world."""
-    import numpy as np
-
-    from ..errors import InputError
-    from ..geometry import inverse
-    from ..io.posefile import parse_pose
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"priors file not found: {path}")
-    out = {}
-    for ln, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        try:
-            nums = np.array([float(x) for x in parts[1:]])
-        except ValueError:
-            raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers") from None
-        out[parts[0]] = inverse(parse_pose(nums, 1, f"{path}:{ln}"))
-    if not out:
-        raise InputError(f"priors file {path} holds no poses")
-    return out
-
-
 def run(args) -> int:
-    from ..errors import InputError
-    from ..geometry import inverse
-    from ..io.posefile import read_camera, read_pose, write_pose
+    from ..io.posefile import read_camera, read_pose
     from ..localize import Localizer
 
     query = Path(args.query)
+    sequential = _check_args(args, query)
+    queries = read_queries(args, query)
+    config = config_from_args(args)
+    first_prior = read_pose(args.prior) if sequential and args.prior else None
+    m = open_map(args)
+    camera = read_camera(args.camera) if args.camera else None
+    loc = Localizer(m, config)
+    rec = recording_from_args(args, "favormap localize", m)
+    done = _localize_all(args, queries, loc, rec, camera, sequential, first_prior)
+    if args.output:
+        write_poses(Path(args.output), done, one=len(queries) == 1)
+    failures = sum(not q.result.success for q in done)
+    if failures:
+        if not args.json:
+            msgs = [f"{q.image.name}: {q.result.message}" for q in done if not q.result.success]
+            print(f"favormap localize: {failures} of {len(queries)} queries not localized ({msgs[0]})", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _check_args(args, query: Path) -> bool:
+    """The checks of the arguments before any work (the query exists, the output can be written, the
+    options go together); returns whether the queries are localized as a sequence."""
+    from ..errors import InputError
+
     if not query.exists():
         raise InputError(f"query not found: {query}")
     if args.output:  # before any work: a folder that exists and takes files, and not one of the inputs
@@ -302,74 +299,40 @@ def run(args) -> int:
         raise InputError("--motion and --fixed-landmarks go with --sequential")
     if query.is_dir() and args.prior and not sequential:
         raise InputError("--prior is for one image (or the first of a --sequential folder); for a folder give --priors")
-    if query.is_dir():
-        priors = read_priors(Path(args.priors)) if args.priors else None
-        images = sorted(p for p in query.iterdir() if p.suffix.lower() in IMAGE_EXT)
-        if not images:
-            raise InputError(f"no images in {query}")
-        jobs = []
-        for p in images:
-            if priors is None:
-                jobs.append((p, None))
-                continue
-            key = p.name if p.name in priors else (p.stem if p.stem in priors else None)
-            if key is None:
-                raise InputError(f"no prior for {p.name} in {args.priors}")
-            jobs.append((p, priors[key]))
-    else:
-        jobs = [(query, read_pose(args.prior) if args.prior else None)]
-    config = config_from_args(args)
-    first_prior = read_pose(args.prior) if sequential and args.prior else None
-    m = open_map(args)
-    camera = read_camera(args.camera) if args.camera else None
-    loc = Localizer(m, config)
-    rec = recording_from_args(args, "favormap localize", m)
-    failures = 0
-    lines = []
+    return sequential
+
+
+def _localize_all(args, queries: list[Query], loc, rec, camera, sequential: bool, first_prior) -> list[Query]:
+    """Each query localized (one by one, or as a sequence: each prior from the estimates before it, the
+    landmarks refined as it goes), printed and recorded as it comes; returns those localized, with
+    their results. Closes the localizer and the recording."""
+    done = []
     if sequential:  # each prior from the estimates before it; the landmarks refined as it goes
         refine = not args.fixed_landmarks
         results = loc.localize_sequence(
-            [img for img, _ in jobs], first_prior, camera, args.motion or "constant-velocity", refine
+            [q.image for q in queries], first_prior, camera, args.motion or "constant-velocity", refine
         )
     else:
-        refine, results = False, (loc.localize(img, prior, camera) for img, prior in jobs)
+        refine, results = False, (loc.localize(q.image, q.prior, camera) for q in queries)
     try:
-        for i, ((img, _), res) in enumerate(zip(jobs, results)):
+        for i, (q, res) in enumerate(zip(queries, results)):
             if rec is not None:
                 if refine:
                     rec.log_refined_landmarks(i, loc.positions, loc.map.positions)
-                rec.log_localization(i, str(img), res, res.prior, camera=camera, positions=loc.positions)
-            failures += not res.success
+                rec.log_localization(i, str(q.image), res, res.prior, camera=camera, positions=loc.positions)
             if args.json:
-                print_json({"query": str(img), **res.to_json()})
+                print_json({"query": str(q.image), **res.to_json()})
             else:
-                print_result(str(img), res)
-            lines.append((img, res))
+                print_result(str(q.image), res)
+            q.result = res
+            done.append(q)
     finally:
         if sequential:
             results.close()  # the stream hands the localizer the map's landmarks back
         loc.close()
         if rec is not None:
             rec.close()
-    if args.output:
-        from ..mapfile import atomic_path
-
-        if len(jobs) == 1:
-            with atomic_path(Path(args.output)) as tmp:
-                write_pose(tmp, lines[0][1].cam_from_world)
-        else:
-            with atomic_path(Path(args.output)) as tmp:
-                with open(tmp, "w") as fh:
-                    for img, res in lines:
-                        fh.write(
-                            img.name + " " + " ".join(f"{v:.9g}" for v in inverse(res.cam_from_world).ravel()) + "\n"
-                        )
-    if failures:
-        if not args.json:
-            msgs = [f"{img.name}: {res.message}" for img, res in lines if not res.success]
-            print(f"favormap localize: {failures} of {len(jobs)} queries not localized ({msgs[0]})", file=sys.stderr)
-        return 2
-    return 0
+    return done
 
 
 def print_result(name: str, res) -> None:

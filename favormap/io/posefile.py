@@ -366,54 +366,69 @@ def convert_pose(kind: str, source: str, name: str | None = None) -> np.ndarray:
         vals = _numbers(text, label)
         return geometry.inverse(parse_pose(vals, len([ln for ln in text.splitlines() if ln.strip()]), label))
     if kind in ("cam_from_world", "opengl"):
-        vals = _numbers(text, label)
-        if len(vals) not in (12, 16):
-            raise InputError(f"{label}: expected a 4x4 (16 numbers) or 3x4 (12) matrix, found {len(vals)} numbers")
-        M = _matrix(vals, label, "pose")
-        T = _rigid(M[:3, :3], M[:3, 3], label)
-        if kind == "cam_from_world":
-            return T
-        return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(T))
+        return _matrix_pose(text, label, opengl=kind == "opengl")
     if kind == "nerf":
-        if not name:
-            raise InputError("--name is needed with nerf: the file_path (or its file name) of the frame")
-        try:
-            frames = json.loads(text)["frames"]
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
-            raise InputError(f"{label}: not a transforms.json ({type(e).__name__}: {e})") from None
-        fr = _nerf_frame(frames, name)
-        if fr is None:
-            raise InputError(f"{label}: no frame with file_path {name!r}")
-        fp = fr.get("file_path", "")
-        try:
-            M = np.asarray(fr["transform_matrix"], np.float64)
-        except (KeyError, TypeError, ValueError) as e:
-            raise InputError(f"{label}: {fp}: no 4x4 transform_matrix ({type(e).__name__}: {e})") from None
-        M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
-        if M.shape != (4, 4):
-            raise InputError(
-                f"{label}: {fp}: transform_matrix is {M.shape[0]}x{M.shape[1] if M.ndim > 1 else 1}, not 4x4"
-            )
-        return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}")))
+        return _nerf_pose(text, label, name)
     if kind == "colmap":
-        lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-        if name:  # images.txt: the first line of each image pair names the image last
-            lines = [t for t in lines if len(t) >= 10 and t[9] == name]
-            if not lines:
-                raise InputError(f"{label}: no image named {name!r}")
-        tok = lines[0] if lines else []
-        nums = tok[1:8] if len(tok) >= 10 else tok
-        vals = _numbers(" ".join(nums), label)
-        if len(vals) != 7:
-            raise InputError(
-                f"{label}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' or 'QW QX QY QZ TX TY TZ'"
-            )
-        qw, qx, qy, qz, tx, ty, tz = vals
-        T = np.eye(4)
-        T[:3, :3] = _quat([qx, qy, qz, qw], label)
-        T[:3, 3] = [tx, ty, tz]
+        return _colmap_pose(text, label, name)
+    return _tum_pose(text, label, name)
+
+
+def _matrix_pose(text: str, label: str, opengl: bool) -> np.ndarray:
+    """A 4x4 or 3x4 cam_from_world matrix, or an OpenGL world_from_cam one."""
+    vals = _numbers(text, label)
+    if len(vals) not in (12, 16):
+        raise InputError(f"{label}: expected a 4x4 (16 numbers) or 3x4 (12) matrix, found {len(vals)} numbers")
+    M = _matrix(vals, label, "pose")
+    T = _rigid(M[:3, :3], M[:3, 3], label)
+    if not opengl:
         return T
-    # tum
+    return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(T))
+
+
+def _nerf_pose(text: str, label: str, name: str | None) -> np.ndarray:
+    """The transform_matrix of frame ``name`` of a transforms.json."""
+    if not name:
+        raise InputError("--name is needed with nerf: the file_path (or its file name) of the frame")
+    try:
+        frames = json.loads(text)["frames"]
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise InputError(f"{label}: not a transforms.json ({type(e).__name__}: {e})") from None
+    fr = _nerf_frame(frames, name)
+    if fr is None:
+        raise InputError(f"{label}: no frame with file_path {name!r}")
+    fp = fr.get("file_path", "")
+    try:
+        M = np.asarray(fr["transform_matrix"], np.float64)
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{label}: {fp}: no 4x4 transform_matrix ({type(e).__name__}: {e})") from None
+    M = np.vstack([M, [0, 0, 0, 1]]) if M.shape == (3, 4) else M
+    if M.shape != (4, 4):
+        raise InputError(f"{label}: {fp}: transform_matrix is {M.shape[0]}x{M.shape[1] if M.ndim > 1 else 1}, not 4x4")
+    return geometry.inverse(geometry.world_from_cam_opengl_to_opencv(_rigid(M[:3, :3], M[:3, 3], f"{label}: {fp}")))
+
+
+def _colmap_pose(text: str, label: str, name: str | None) -> np.ndarray:
+    """An images.txt line (of image ``name``) or 'QW QX QY QZ TX TY TZ'."""
+    lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if name:  # images.txt: the first line of each image pair names the image last
+        lines = [t for t in lines if len(t) >= 10 and t[9] == name]
+        if not lines:
+            raise InputError(f"{label}: no image named {name!r}")
+    tok = lines[0] if lines else []
+    nums = tok[1:8] if len(tok) >= 10 else tok
+    vals = _numbers(" ".join(nums), label)
+    if len(vals) != 7:
+        raise InputError(f"{label}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' or 'QW QX QY QZ TX TY TZ'")
+    qw, qx, qy, qz, tx, ty, tz = vals
+    T = np.eye(4)
+    T[:3, :3] = _quat([qx, qy, qz, qw], label)
+    T[:3, 3] = [tx, ty, tz]
+    return T
+
+
+def _tum_pose(text: str, label: str, name: str | None) -> np.ndarray:
+    """One 'timestamp tx ty tz qx qy qz qw' line (world_from_cam), or the one nearest timestamp ``name``."""
     rows = [_numbers(ln, label) for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if name is not None:
         try:

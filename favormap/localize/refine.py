@@ -202,66 +202,91 @@ def refine_pose(
     (None when it cannot be computed); ``covariance_mask`` (N,) bool restricts the covariance to
     those correspondences (the evidence independent of the pose; all refine the pose)."""
     T = np.array(cam_from_world, np.float64)
-    H = None
     X = np.asarray(points, np.float64).reshape(-1, 3)
     kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     keypoint_noise(keypoint_sigma_px, len(X))  # checked once, before the iterations
+    system, front = None, None
     for _ in range(iterations):
         P = X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
         if front.sum() < 6:
             break
-        P, x_kp = P[front], kp[front]
+        eye2 = keypoint_noise(keypoint_sigma_px, len(X), front)
+        cov_front = None if point_cov is None else point_cov[front]
+        system = _NormalEquations.at(T, P[front], kp[front], K, cov_front, eye2, loss_scale)
+        try:
+            d = -np.linalg.solve(system.H + 1e-9 * np.trace(system.H) * np.eye(6), system.g)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(d)):
+            system = None
+            break
+        T = _left_update(T, d)
+        # converged: the step turns the camera by < 1e-6 rad (0.00006 deg) and moves it by < 1e-6 of
+        # the scene depth. The Cauchy reweighting converges linearly (each step ~1/4 of the last),
+        # so what is left is ~3e-7: two orders below the best poses' errors, at half the iterations
+        if np.linalg.norm(d[:3]) < 1e-6 and np.linalg.norm(d[3:]) < 1e-6 * float(np.median(system.depth)):
+            break
+    if not return_covariance:
+        return T
+    if system is None:
+        return T, None
+    return T, system.pose_covariance(T, covariance_mask, front)
+
+
+@dataclass
+class _NormalEquations:
+    """One Gauss-Newton step of :func:`refine_pose` at a pose, over the correspondences in front of it."""
+
+    J: np.ndarray  # (n, 2, 6) d(pixel) / d(rotation w, translation v) of the left update
+    SiJ: np.ndarray  # (n, 2, 6) J whitened by each residual's inverse covariance
+    chi2: np.ndarray  # (n,) squared whitened residuals
+    H: np.ndarray  # (6, 6) Cauchy-weighted J^T S^-1 J
+    g: np.ndarray  # (6,) Cauchy-weighted J^T S^-1 r
+    depth: np.ndarray  # (n,) the points' depths
+
+    @classmethod
+    def at(cls, T, P, x_kp, K, point_cov, eye2, loss_scale: float) -> _NormalEquations:
+        """At pose ``T``, the camera-frame points ``P`` (n, 3) observed at ``x_kp`` (n, 2)."""
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         x, y, z = P.T
         r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
         Jp = _projection_jacobians(P, K)  # d(pixel) / d(camera-frame point)
         # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
         # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
         J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
-        eye2 = keypoint_noise(keypoint_sigma_px, len(X), front)
-        Si = _inverse2(_image_covariances(Jp, T[:3, :3], None if point_cov is None else point_cov[front], eye2))
+        Si = _inverse2(_image_covariances(Jp, T[:3, :3], point_cov, eye2))
         SiJ = Si @ J  # (n, 2, 6)
         chi2 = mahalanobis2(Si, r)  # squared whitened residual r^T S^-1 r
         w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
         wSiJ = (w[:, None, None] * SiJ).reshape(-1, 6)  # sums over points and pixel rows as one product
-        H = wSiJ.T @ J.reshape(-1, 6)
-        g = wSiJ.T @ r.reshape(-1)
-        try:
-            d = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
-        except np.linalg.LinAlgError:
-            break
-        if not np.all(np.isfinite(d)):
-            H = None
-            break
-        dR = rotvec_to_rotmat(d[:3])
-        T_new = np.eye(4)
-        T_new[:3, :3] = dR @ T[:3, :3]
-        T_new[:3, 3] = dR @ T[:3, 3] + d[3:]
-        T = T_new
-        # converged: the step turns the camera by < 1e-6 rad (0.00006 deg) and moves it by < 1e-6 of
-        # the scene depth. The Cauchy reweighting converges linearly (each step ~1/4 of the last),
-        # so what is left is ~3e-7: two orders below the best poses' errors, at half the iterations
-        if np.linalg.norm(d[:3]) < 1e-6 and np.linalg.norm(d[3:]) < 1e-6 * float(np.median(z)):
-            break
-    if not return_covariance:
-        return T
-    cov = None
-    if H is not None:
-        # (J^T J)^-1 of the whitened residuals (the RANSAC inliers taken as Gaussian: the Cauchy
-        # weights would count a 1-sigma residual half and overstate the spread), scaled by the
-        # residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
-        # never below 1: the noise model is a floor
+        return cls(J, SiJ, chi2, wSiJ.T @ J.reshape(-1, 6), wSiJ.T @ r.reshape(-1), z)
+
+    def pose_covariance(self, T, covariance_mask, front) -> PoseCovariance | None:
+        """(J^T J)^-1 of the whitened residuals (the RANSAC inliers taken as Gaussian: the Cauchy
+        weights would count a 1-sigma residual half and overstate the spread), scaled by the
+        residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
+        never below 1: the noise model is a floor. ``covariance_mask`` (N,) and ``front`` (N,): the
+        correspondences it counts and those in front of the camera at the last pose."""
+        J, SiJ = self.J, self.SiJ
         keep = np.ones(len(J), bool) if covariance_mask is None else np.asarray(covariance_mask, bool)[front]
         if keep.sum() < 6:
-            return T, None
+            return None
         H0 = J[keep].reshape(-1, 6).T @ SiJ[keep].reshape(-1, 6)
-        scale = max(float(np.median(chi2[keep])) / (2 * np.log(2)), 1.0)
+        scale = max(float(np.median(self.chi2[keep])) / (2 * np.log(2)), 1.0)
         try:
-            cov = PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
+            return PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
         except np.linalg.LinAlgError:
-            cov = None
-    return T, cov
+            return None
+
+
+def _left_update(T: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The pose ``T`` after the left update by ``d`` = (rotation vector, translation)."""
+    dR = rotvec_to_rotmat(d[:3])
+    T_new = np.eye(4)
+    T_new[:3, :3] = dR @ T[:3, :3]
+    T_new[:3, 3] = dR @ T[:3, 3] + d[3:]
+    return T_new
 
 
 def estimate_noise(

@@ -14,7 +14,7 @@ from ..errors import FavormapError, InputError, MapFormatError, first_line
 from ..io import Camera
 from .fields import bulk_datasets, field_name, metadata_datasets
 from .model import MapCounts, MapData, built_for_exact_poses, map_aligns_by_default, median_landmark_reproj_error
-from .schema import FORMAT, check_structure, check_values, open_view
+from .schema import FORMAT, MapView, check_structure, check_values, open_view
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -64,6 +64,15 @@ def _strings(a) -> list[str]:
 DEFAULT_CACHE_BYTES = 1 << 30
 
 
+def _check_cache_args(cache_size, cache_bytes) -> None:
+    """The voxel cache's size: in grids or in bytes, not both, an integer >= 1."""
+    if cache_size is not None and cache_bytes is not None:
+        raise InputError("give the voxel cache's size in grids (cache_size) or in bytes (cache_bytes), not both")
+    for name, v in (("cache_size", cache_size), ("cache_bytes", cache_bytes)):
+        if v is not None and not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+            raise InputError(f"{name} must be an integer >= 1, not {v!r}")
+
+
 class Map(MapCounts):
     """A favormap map opened lazily. Landmark metadata is in memory; voxel grids are read for the
     landmarks asked for, in sorted chunk reads, through a cache of ``cache_bytes`` (by default
@@ -76,77 +85,17 @@ class Map(MapCounts):
 
     def __init__(self, path, cache_size: int | None = None, cache_bytes: int | None = None):
         self._f = None
-        if cache_size is not None and cache_bytes is not None:
-            raise InputError("give the voxel cache's size in grids (cache_size) or in bytes (cache_bytes), not both")
-        for name, v in (("cache_size", cache_size), ("cache_bytes", cache_bytes)):
-            if v is not None and not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
-                raise InputError(f"{name} must be an integer >= 1, not {v!r}")
+        _check_cache_args(cache_size, cache_bytes)
         self.path = Path(path)
         self._f = _open_h5(self.path)
         self.bytes_read = 0  # voxel bytes read from disk (tests and benchmarks look at it)
         self._slot = None  # row -> cache slot (created on the first voxel read)
         self._lock = threading.Lock()  # voxels() may be called from several threads (a shared Localizer)
         try:
-            with _guard(self.path, "the file structure (HDF5 metadata)"):
-                view = open_view(self._f, self.path)
-            problems = check_structure(view)
-            if problems:
-                raise MapFormatError(
-                    f"{self.path} is not a valid favormap map: {problems[0]}"
-                    + (f" (+{len(problems) - 1} more problems; run favormap validate)" if len(problems) > 1 else "")
-                )
-            self._view = view
-            a = view.attrs
-            self.extractor = str(a["extractor"])
-            self.channels = int(a["channels"])
-            self.grid_resolution = int(a["grid_resolution"])
-            self.patch_size = int(a["patch_size"])
-            self.render_samples = int(a["render_samples"])
-            self.max_side = int(a["max_side"])
-            self.format_version = int(a["format_version"])
-            self.created = str(a["created"])
-            self.favormap_version = str(a["favormap_version"])
-            self.provenance = json.loads(a["provenance"])
-            arrays = {}
-            for p in (
-                *metadata_datasets(),
-                "frames/names",
-                "frames/camera_ids",
-                "frames/cam_from_world",
-                "cameras/ids",
-                "cameras/models",
-                "cameras/sizes",
-                "cameras/params",
-            ):
-                with _guard(self.path, repr(p)):
-                    arrays[p] = self._ds(p)[()]
-            self._check_values(arrays)
-            for p in metadata_datasets():  # ids, positions, quality, view cone, ...
-                setattr(self, field_name(p), arrays[p])
-            self.frame_names = _strings(arrays["frames/names"])
-            self.frame_camera_ids = arrays["frames/camera_ids"]
-            self.cam_from_world = arrays["frames/cam_from_world"]
-            from ..io.types import SUPPORTED_MODELS
-
-            self.cameras = {}
-            fov = np.zeros(len(arrays["cameras/ids"]))
-            if self._ds("cameras/working_fov") is not None:  # optional: 0 = the default rule
-                with _guard(self.path, "'cameras/working_fov'"):
-                    fov = self._ds("cameras/working_fov")[()]
-                    self._check_values({"cameras/working_fov": fov})
-            for cid, model, (w, h), params, wf in zip(
-                arrays["cameras/ids"],
-                _strings(arrays["cameras/models"]),
-                arrays["cameras/sizes"],
-                arrays["cameras/params"],
-                fov,
-            ):
-                try:
-                    self.cameras[int(cid)] = Camera(
-                        model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])], float(wf) or None
-                    )
-                except FavormapError as e:
-                    raise MapFormatError(f"{self.path}: invalid camera {int(cid)}: {e}") from None
+            self._view = self._checked_view()
+            self._read_header(self._view.attrs)
+            arrays = self._read_metadata()
+            self.cameras = self._read_cameras(arrays)
         except BaseException as e:
             self.close()
             if isinstance(e, FavormapError) or not isinstance(e, Exception):
@@ -158,6 +107,80 @@ class Map(MapCounts):
         if cache_size is None:
             cache_size = min(max(len(self), 1), max(int(cache_bytes or DEFAULT_CACHE_BYTES) // self.grid_bytes, 1))
         self.cache_size = int(cache_size)
+
+    def _checked_view(self) -> MapView:
+        """The file's view, its structure checked against the schema."""
+        with _guard(self.path, "the file structure (HDF5 metadata)"):
+            view = open_view(self._f, self.path)
+        problems = check_structure(view)
+        if problems:
+            raise MapFormatError(
+                f"{self.path} is not a valid favormap map: {problems[0]}"
+                + (f" (+{len(problems) - 1} more problems; run favormap validate)" if len(problems) > 1 else "")
+            )
+        return view
+
+    def _read_header(self, a) -> None:
+        """The map's attributes: extractor, sizes, versions and provenance."""
+        self.extractor = str(a["extractor"])
+        self.channels = int(a["channels"])
+        self.grid_resolution = int(a["grid_resolution"])
+        self.patch_size = int(a["patch_size"])
+        self.render_samples = int(a["render_samples"])
+        self.max_side = int(a["max_side"])
+        self.format_version = int(a["format_version"])
+        self.created = str(a["created"])
+        self.favormap_version = str(a["favormap_version"])
+        self.provenance = json.loads(a["provenance"])
+
+    def _read_metadata(self) -> dict[str, np.ndarray]:
+        """The landmarks' metadata and the frames, read whole and checked (the voxel grids stay on disk);
+        returns the arrays read, the cameras' among them."""
+        arrays = {}
+        for p in (
+            *metadata_datasets(),
+            "frames/names",
+            "frames/camera_ids",
+            "frames/cam_from_world",
+            "cameras/ids",
+            "cameras/models",
+            "cameras/sizes",
+            "cameras/params",
+        ):
+            with _guard(self.path, repr(p)):
+                arrays[p] = self._ds(p)[()]
+        self._check_values(arrays)
+        for p in metadata_datasets():  # ids, positions, quality, view cone, ...
+            setattr(self, field_name(p), arrays[p])
+        self.frame_names = _strings(arrays["frames/names"])
+        self.frame_camera_ids = arrays["frames/camera_ids"]
+        self.cam_from_world = arrays["frames/cam_from_world"]
+        return arrays
+
+    def _read_cameras(self, arrays: dict[str, np.ndarray]) -> dict[int, Camera]:
+        """The cameras by id, with their working field of view where the map stores one."""
+        from ..io.types import SUPPORTED_MODELS
+
+        cameras = {}
+        fov = np.zeros(len(arrays["cameras/ids"]))
+        if self._ds("cameras/working_fov") is not None:  # optional: 0 = the default rule
+            with _guard(self.path, "'cameras/working_fov'"):
+                fov = self._ds("cameras/working_fov")[()]
+                self._check_values({"cameras/working_fov": fov})
+        for cid, model, (w, h), params, wf in zip(
+            arrays["cameras/ids"],
+            _strings(arrays["cameras/models"]),
+            arrays["cameras/sizes"],
+            arrays["cameras/params"],
+            fov,
+        ):
+            try:
+                cameras[int(cid)] = Camera(
+                    model, int(w), int(h), params[: len(SUPPORTED_MODELS[model])], float(wf) or None
+                )
+            except FavormapError as e:
+                raise MapFormatError(f"{self.path}: invalid camera {int(cid)}: {e}") from None
+        return cameras
 
     @property
     def grid_bytes(self) -> int:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MapFormatError, first_line
+from .value_checks import bound_problems, count_values, membership_problems, nonfinite_problems, row_problems
 
 FORMAT = "favormap-map"
 FORMAT_VERSION = 1
@@ -327,16 +328,7 @@ def check_file(f, version: int = FORMAT_VERSION) -> list[str]:
     return check_structure(view, version)
 
 
-# -- values -----------------------------------------------------------------------------------------
-def _bound(b, dims):
-    return dims.get(b) if isinstance(b, str) else b
-
-
-def _count(mask) -> str:
-    n = int(np.count_nonzero(mask))
-    return f"{n} value{'s' if n != 1 else ''}"
-
-
+# -- values (the constraints' checks: favormap.mapfile.value_checks) --------------------------------
 def check_values(
     path: str, a: np.ndarray, dims: dict, arrays: dict | None = None, version: int = FORMAT_VERSION
 ) -> tuple[list[str], list[str]]:
@@ -347,80 +339,23 @@ def check_values(
     arrays = arrays or {}
     if not spec or a.size == 0:
         return problems, warnings
-    num = a.dtype.kind in "fiu"
     af = cmp = a
     if a.dtype.kind == "f":
-        # finiteness in the array's own dtype (as in float64: a cast keeps it), the float64 copy only
-        # for the constraints that compare values (a map's 20 MB of voxel descriptors are only finite)
-        if spec.get("finite"):
-            bad = ~np.isfinite(a)
-            if bad.any():
-                problems.append(f"{path!r}: {_count(bad)} not finite (NaN or inf)")
-        if spec.get("not_nan"):
-            bad = np.isnan(a)
-            if bad.any():
-                problems.append(f"{path!r}: {_count(bad)} NaN")
+        problems += nonfinite_problems(path, a, spec)
         if any(k in spec for k in ("min", "max", "exclusive_min", "unit_norm", "ordered", "rigid")):
             af = a.astype(np.float64, copy=False)
             cmp = np.where(np.isnan(af), 0.0, af)  # NaN counted above, not again
-    if num:
-        if "min" in spec and (cmp < spec["min"]).any():
-            problems.append(f"{path!r}: {_count(cmp < spec['min'])} below {spec['min']}")
-        if "max" in spec and (cmp > spec["max"]).any():
-            problems.append(f"{path!r}: {_count(cmp > spec['max'])} above {spec['max']}")
-        if "exclusive_min" in spec and (cmp <= spec["exclusive_min"]).any():
-            problems.append(f"{path!r}: {_count(cmp <= spec['exclusive_min'])} not above {spec['exclusive_min']}")
-        if spec.get("nonzero") and (a == 0).any():
-            problems.append(f"{path!r}: {_count(a == 0)} zero")
-        if "range" in spec:
-            lo, hi = (_bound(b, dims) for b in spec["range"])
-            if lo is not None and hi is not None:
-                bad = (a < lo) | (a >= hi)
-                if bad.any():
-                    problems.append(f"{path!r}: {_count(bad)} outside [{lo}, {hi}) (index out of range)")
-        if "unit_norm" in spec and a.ndim >= 1:
-            n = np.linalg.norm(af, axis=-1)
-            bad = np.isfinite(n) & (np.abs(n - 1) > spec["unit_norm"])
-            if bad.any():
-                problems.append(f"{path!r}: {_count(bad)} not unit length")
-        if spec.get("ordered") and a.ndim >= 1 and a.shape[-1] > 1:
-            bad = (np.diff(cmp, axis=-1) < 0).any(-1)
-            if bad.any():
-                problems.append(f"{path!r}: {_count(bad)} rows not in increasing order")
-        if "rigid" in spec and a.ndim == 3 and a.shape[1:] == (4, 4):
-            tol = spec["rigid"]
-            T = np.where(np.isfinite(af), af, 0.0)
-            Rm = T[:, :3, :3]
-            ortho = np.abs(np.einsum("nji,njk->nik", Rm, Rm) - np.eye(3)).max((1, 2)) > tol
-            det = np.linalg.det(Rm) < 0
-            last = np.abs(T[:, 3] - [0, 0, 0, 1]).max(1) > tol
-            bad = ortho | det | last
-            if bad.any():
-                problems.append(
-                    f"{path!r}: {_count(bad)} not a rigid transform (rotation + translation, last row 0 0 0 1)"
-                )
-    if spec.get("unique"):
-        u, c = np.unique(a, return_counts=True)
-        if (c > 1).any():
-            problems.append(f"{path!r}: {int((c > 1).sum())} duplicated value(s), e.g. {u[c > 1][0]!r}")
-    if "enum" in spec:
-        vals = [v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in a.ravel().tolist()]
-        bad = sorted({v for v in vals if v not in spec["enum"]})
-        if bad:
-            problems.append(
-                f"{path!r}: unknown value(s) {', '.join(map(repr, bad[:3]))} (allowed: {', '.join(spec['enum'])})"
-            )
-    if "in" in spec and spec["in"] in arrays and arrays[spec["in"]] is not None:
-        bad = ~np.isin(a, arrays[spec["in"]])
-        if bad.any():
-            problems.append(f"{path!r}: {_count(bad)} not in {spec['in']!r}, e.g. {a[bad].ravel()[0]!r}")
+    if a.dtype.kind in "fiu":
+        problems += bound_problems(path, a, cmp, spec, dims)
+        problems += row_problems(path, a, af, cmp, spec)
+    problems += membership_problems(path, a, spec, arrays)
     if "consistent_with" in spec and arrays.get(spec["consistent_with"]) is not None:
         idx = np.asarray(arrays[spec["consistent_with"]], np.int64)
         idx = idx[(idx >= 0) & (idx < len(a))]
         bad = np.bincount(idx, minlength=len(a)) != a
         if bad.any():
             warnings.append(
-                f"{path!r}: {_count(bad)} differ from the number of observations in {spec['consistent_with']!r}"
+                f"{path!r}: {count_values(bad)} differ from the number of observations in {spec['consistent_with']!r}"
             )
     return problems, warnings
 

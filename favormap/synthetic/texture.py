@@ -97,17 +97,25 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     palette = rng.uniform(40, 215, (4, 3))  # a per-texture palette so faces look different
     base = palette[0]
     img = _smooth_noise(h, w, rng, base, float(rng.uniform(22, 38)))
-
-    def colours(k):
-        c = palette[rng.integers(0, len(palette), k)] + rng.normal(0, 35, (k, 3))
-        wild = rng.random(k) < 0.35  # fully random colours
-        c[wild] = rng.uniform(0, 255, (int(wild.sum()), 3))
-        ext = rng.random(k) < 0.2  # very dark / very bright for contrast
-        c[ext] = np.where(rng.random((int(ext.sum()), 1)) < 0.5, 20.0, 235.0) + rng.normal(0, 10, (int(ext.sum()), 3))
-        return np.clip(c, 0, 255).astype(int).tolist()
-
     area_units = (h * w) / tpu**2
-    n = int(100 * area_units) + 8
+    _draw_shapes(img, rng, palette, tpu, int(100 * area_units) + 8)
+    _draw_texts(img, rng, palette, tpu, int(35 * area_units) + 3)
+    return img
+
+
+def _colours(rng: np.random.Generator, palette: np.ndarray, k: int) -> list:
+    """``k`` RGB colours: the palette's with noise, a share fully random, a share very dark or bright."""
+    c = palette[rng.integers(0, len(palette), k)] + rng.normal(0, 35, (k, 3))
+    wild = rng.random(k) < 0.35  # fully random colours
+    c[wild] = rng.uniform(0, 255, (int(wild.sum()), 3))
+    ext = rng.random(k) < 0.2  # very dark / very bright for contrast
+    c[ext] = np.where(rng.random((int(ext.sum()), 1)) < 0.5, 20.0, 235.0) + rng.normal(0, 10, (int(ext.sum()), 3))
+    return np.clip(c, 0, 255).astype(int).tolist()
+
+
+def _draw_shapes(img: np.ndarray, rng: np.random.Generator, palette: np.ndarray, tpu: float, n: int) -> None:
+    """``n`` random ellipses, rectangles, polygons, lines and circles, largest first."""
+    h, w = img.shape[:2]
     # shape sizes (half extents, texels) log-uniform from ~6 mm to ~20 cm, largest first
     rmin, rmax = max(2.0, 0.006 * tpu), max(4.0, 0.2 * tpu)
     r_all = np.sort(np.exp(rng.uniform(np.log(rmin), np.log(rmax), n)))[::-1]
@@ -118,49 +126,44 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     ang_all = rng.uniform(0, np.pi, n)
     asp_all = rng.uniform(0.2, 1.0, n)
     u_all = rng.random(n)
-    col_all = colours(n)
-    aa = cv2.LINE_AA
+    col_all = _colours(rng, palette, n)
     for i in range(n):
-        r, cx, cy, kind, a = float(r_all[i]), float(cx_all[i]), float(cy_all[i]), kind_all[i], float(ang_all[i])
-        col = tuple(col_all[i])
-        filled = bool(filled_all[i])
-        thick = -1 if filled else 1 + int(u_all[i] * max(1.0, r / 6))
-        if kind < 0.3:
-            axes = (max(1, int(r)), max(1, int(r * asp_all[i])))
-            cv2.ellipse(img, (int(cx), int(cy)), axes, np.degrees(a), 0, 360, col, thick, aa)
-        elif kind < 0.55:
-            hw, hh = r, r * asp_all[i]
+        r, cx, cy, a = float(r_all[i]), float(cx_all[i]), float(cy_all[i]), float(ang_all[i])
+        _draw_shape(img, rng, kind_all[i], r, cx, cy, a, asp_all[i], u_all[i], tuple(col_all[i]), bool(filled_all[i]))
+
+
+def _draw_shape(img, rng, kind: float, r: float, cx: float, cy: float, a: float, asp, u, col: tuple, filled: bool):
+    """One shape of size ``r`` at (cx, cy) turned by ``a``: which one ``kind`` (uniform in [0, 1)) says."""
+    aa = cv2.LINE_AA
+    thick = -1 if filled else 1 + int(u * max(1.0, r / 6))
+    if kind < 0.3:
+        axes = (max(1, int(r)), max(1, int(r * asp)))
+        cv2.ellipse(img, (int(cx), int(cy)), axes, np.degrees(a), 0, 360, col, thick, aa)
+    elif kind < 0.7:
+        if kind < 0.55:  # a rectangle
+            hw, hh = r, r * asp
             ca, sa = np.cos(a), np.sin(a)
             pts = np.array([[-hw, -hh], [hw, -hh], [hw, hh], [-hw, hh]]) @ np.array([[ca, sa], [-sa, ca]])
             pts = (pts + [cx, cy]).astype(np.int32)
-            if filled:
-                cv2.fillPoly(img, [pts], col, aa)
-            else:
-                cv2.polylines(img, [pts], True, col, thick, aa)
-        elif kind < 0.7:
-            k = 3 + int(u_all[i] * 4)
+        else:  # a polygon of 3 to 6 corners
+            k = 3 + int(u * 4)
             angs = a * 2 + np.cumsum(rng.uniform(0.5, 1.0, k)) * (2 * np.pi / k)
             rad = r * rng.uniform(0.4, 1.0, k)
             pts = np.stack([cx + rad * np.cos(angs), cy + rad * np.sin(angs)], 1).astype(np.int32)
-            if filled:
-                cv2.fillPoly(img, [pts], col, aa)
-            else:
-                cv2.polylines(img, [pts], True, col, thick, aa)
-        elif kind < 0.85:
-            dx, dy = np.cos(a) * r * 1.5, np.sin(a) * r * 1.5
-            cv2.line(
-                img,
-                (int(cx - dx), int(cy - dy)),
-                (int(cx + dx), int(cy + dy)),
-                col,
-                1 + int(u_all[i] * max(1.0, r / 5)),
-                aa,
-            )
+        if filled:
+            cv2.fillPoly(img, [pts], col, aa)
         else:
-            cv2.circle(img, (int(cx), int(cy)), max(1, int(r)), col, thick, aa)
+            cv2.polylines(img, [pts], True, col, thick, aa)
+    elif kind < 0.85:
+        dx, dy = np.cos(a) * r * 1.5, np.sin(a) * r * 1.5
+        cv2.line(img, (int(cx - dx), int(cy - dy)), (int(cx + dx), int(cy + dy)), col, 1 + int(u * max(1.0, r / 5)), aa)
+    else:
+        cv2.circle(img, (int(cx), int(cy)), max(1, int(r)), col, thick, aa)
 
-    # text at several sizes (scale 1 ~ 22 texels high ~ 5.5 cm at 400 texels per unit)
-    m = int(35 * area_units) + 3
+
+def _draw_texts(img: np.ndarray, rng: np.random.Generator, palette: np.ndarray, tpu: float, m: int) -> None:
+    """``m`` random strings at several sizes (scale 1 ~ 22 texels high ~ 5.5 cm at 400 texels per unit)."""
+    h, w = img.shape[:2]
     lens = rng.integers(2, 7, m)
     chars = rng.integers(0, len(_CHARS), int(lens.sum()))
     styles = rng.integers(0, len(_STYLES), m)
@@ -168,13 +171,12 @@ def make_texture(width: int, height: int, rng: np.random.Generator, texels_per_u
     thicks = rng.integers(1, 4, m)
     ox = rng.integers(-20, w, m)
     oy = rng.integers(0, h + 20, m)
-    tcol = colours(m)
+    tcol = _colours(rng, palette, m)
     pos = 0
     for i in range(m):
         s = "".join(_CHARS[c] for c in chars[pos : pos + lens[i]])
         pos += lens[i]
         draw_text(img, s, (int(ox[i]), int(oy[i])), float(scales[i]), int(styles[i]), tuple(tcol[i]), int(thicks[i]))
-    return img
 
 
 def _pack_atlas(textures: list) -> tuple[np.ndarray, np.ndarray]:

@@ -12,9 +12,10 @@ from ..lazy import lazy_exports
 
 if TYPE_CHECKING:
     from .config import QUALITY_PRESETS, TrainingRays, VoxelConfig, VoxelGrids
+    from .quality import render_training_rays
     from .render import render_from_camera
     from .render_numpy import render_from_camera_numpy
-    from .train import render_training_rays, train_voxels
+    from .train import train_voxels
 
 _LAZY = {
     "render_from_camera": ".render",
@@ -23,7 +24,7 @@ _LAZY = {
     "TrainingRays": ".config",
     "VoxelConfig": ".config",
     "VoxelGrids": ".config",
-    "render_training_rays": ".train",
+    "render_training_rays": ".quality",
     "train_voxels": ".train",
 }
 

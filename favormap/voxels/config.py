@@ -71,6 +71,11 @@ class VoxelConfig:
     max_batch_rays: int = 1 << 18  # rays rendered per forward pass (landmark groups; memory bound)
     seed: int = 0
 
+    def per_batch(self, rays_each: int) -> int:
+        """How many landmarks (or observations) of ``rays_each`` rays each one forward pass takes within
+        ``max_batch_rays``: at least one."""
+        return max(1, self.max_batch_rays // rays_each)
+
     @classmethod
     def preset(cls, quality: str = "fast", **overrides) -> VoxelConfig:
         """A config of a quality preset (``QUALITY_PRESETS``) with some fields overridden."""

@@ -1,7 +1,8 @@
 """Training all landmark voxel grids at once (paper sec. 3.3 and supplement "Training and Losses").
 
-(One module for both solvers, Adam and the closed form: they share the rays, the view-extrapolation prior and
-the evaluation below; the settings and stage types are in :mod:`.config`.)
+(One module for both solvers, Adam and the closed form: they share the rays, the view-extrapolation prior
+(:mod:`.prior`) and the evaluation below; Adam's optimiser is in :mod:`.optim`, the losses in :mod:`.losses`,
+the settings and stage types in :mod:`.config`.)
 
 Every landmark is an independent little model, so they are stacked into tensors of shape
 (L, R^3, C) and optimised together: each iteration draws rays for every landmark and takes one Adam
@@ -34,40 +35,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..features.base import ExtractorPolicy
 from .config import TrainingRays, VoxelConfig, VoxelGrids
-from .render import composite, composite_uniform, ray_stencils, render, to_local
+from .losses import descriptor_losses, ray_loss
+from .optim import BatchedAdam, TVGradient, grid_laplacian, node_visibility
+from .prior import PriorRays, prior_bank
+from .quality import evaluate, fit_quality, render_training_rays
+from .render import composite, composite_uniform, ray_stencils, to_local
 
-
-class _BatchedAdam:
-    """Adam on stacked per-landmark tensors with a per-node learning-rate factor."""
-
-    def __init__(self, params, lrs, factors, betas=(0.9, 0.99), eps=1e-15):
-        self.params, self.lrs, self.factors = params, lrs, factors
-        self.m = [torch.zeros_like(p) for p in params]
-        self.v = [torch.zeros_like(p) for p in params]
-        self.buf = [torch.empty_like(p) for p in params]
-        self.b1, self.b2, self.eps, self.t = betas[0], betas[1], eps, 0
-
-    @torch.no_grad()
-    def step(self, lr_scale=1.0):
-        self.t += 1
-        c1 = 1 - self.b1**self.t
-        c2 = 1 - self.b2**self.t
-        for p, m, v, lr, f, buf in zip(self.params, self.m, self.v, self.lrs, self.factors, self.buf):
-            g = p.grad
-            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
-            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
-            # p -= lr f (m / c1) / (sqrt(v / c2) + eps), in place in one buffer per parameter
-            torch.div(v, c2, out=buf).sqrt_().add_(self.eps)
-            torch.div(m, buf, out=buf).mul_(f.view(f.shape + (1,) * (p.dim() - f.dim())))
-            p.sub_(buf, alpha=lr * lr_scale / c1)
-            p.grad = None
+# the losses, the TV term and the evaluation importable from here, where they were defined before
+_losses, _TVGradient = descriptor_losses, TVGradient
+__all__ = ["BlockGenerator", "evaluate", "render_training_rays", "train_voxels"]
 
 
 class BlockGenerator:
@@ -96,98 +79,35 @@ class BlockGenerator:
         return self._cat(lambda n, g: torch.randint(0, high, (n, *shape), generator=g))
 
 
-class _TVGradient:
-    """The total-variation term of the training, ``tv_weight * (TV(desc) + TV(density))``, added to
-    the parameters' gradients in closed form. TV of a stack of grids (L, R^3, C) is the mean squared
-    difference of neighbouring nodes along each axis, summed over the axes: a quadratic form x^T M x
-    over the node axis, M the grid's graph Laplacian (the sum over the three axes of D^T D, D the
-    differences of neighbouring nodes) over the number of squared differences each mean averages
-    ((R - 1) R^2 per axis, times the landmarks and channels). So its gradient is 2 M x, one
-    (R^3 x R^3) matrix product (tests/test_core.py checks it against autograd through the slices,
-    which took ~0.1 s per iteration on two cores for the fox's 3,000 landmarks)."""
+@dataclass
+class _Landmarks:
+    """The training data's landmarks on the training device, and where each one's observations lie."""
 
-    def __init__(self, R: int, L: int, C: int, device):
-        lap = _grid_laplacian(R, dtype=torch.float32, device=device) / ((R - 1) * R * R * L)
-        self.m_desc, self.m_dens = lap / C, lap
+    centers: torch.Tensor  # (L, 3)
+    sizes: torch.Tensor  # (L,) box side
+    obs_lm: torch.Tensor  # (O,) landmark of each observation (long)
+    counts: torch.Tensor  # (L,) observations of each landmark
+    first: torch.Tensor  # (L,) its first observation (the observations are grouped by landmark)
+    mean_desc: torch.Tensor  # (L, C) unit mean descriptor of its track (_track_means)
 
-    @torch.no_grad()
-    def add_to(self, desc: torch.Tensor, dens: torch.Tensor, weight: float) -> float:
-        """Adds ``weight`` times the term's gradient to ``desc.grad`` and ``dens.grad``; returns its value."""
-        y = torch.matmul(self.m_desc, desc)  # (L, R^3, C)
-        z = dens @ self.m_dens  # (L, R^3); M is symmetric
-        for p in (desc, dens):
-            if p.grad is None:  # no rendering loss reached it this step
-                p.grad = torch.zeros_like(p)
-        desc.grad.add_(y, alpha=2 * weight)
-        dens.grad.add_(z, alpha=2 * weight)
-        return weight * float((desc * y).sum() + (dens * z).sum())
+    def prior_bank(self, data: TrainingRays, cfg: VoxelConfig, targets: torch.Tensor, gen) -> PriorRays:
+        """The view-extrapolation prior's virtual rays of these landmarks (:func:`.prior.prior_bank`)."""
+        return prior_bank(data, cfg, self.centers, self.sizes, targets, self.mean_desc, self.counts, self.first, gen)
 
 
-def _visibility(data, origins_l, dirs_all, R, cfg, device) -> torch.Tensor:
-    """(L, R^3) number of training observations whose patch rays touch each node."""
+def _landmarks(data: TrainingRays, dev: torch.device) -> _Landmarks:
+    f32 = dict(dtype=torch.float32, device=dev)
     L = len(data.centers)
-    counts = torch.zeros(L, R**3, device=device)
-    O = len(data.obs_landmark)
-    chunk = max(1, 60000 // dirs_all.shape[1])
-    lm = torch.as_tensor(data.obs_landmark, device=device).long()
-    for s in range(0, O, chunk):
-        sl = slice(s, min(O, s + chunk))
-        st, _, hit = ray_stencils(
-            origins_l[sl][:, None, :].expand(-1, dirs_all.shape[1], -1), dirs_all[sl], R, cfg.samples
-        )
-        touched = ((st > 0) & hit[:, None, :, None]).flatten(2).any(-1)  # (n, R^3)
-        counts.index_add_(0, lm[sl], touched.float())
-    return counts
-
-
-def _prior_bank(data: TrainingRays, cfg: VoxelConfig, centers, sizes, targets, mean_desc, counts, first, gen):
-    """Virtual centre rays per landmark (L, V): local origins, local directions and targets.
-
-    A virtual direction is a training view's direction turned by a uniform random angle in
-    [0, prior_spread_deg] about a random axis (the ray starts at that view's distance and goes
-    through the landmark, like the rays the localizer renders). Its target blends the centre
-    descriptors of the landmark's training views with weights exp(-(a - a_min)^2 / 2 b^2), a the
-    angles to them and b = prior_kernel_deg, so that far from the training views it tends to the
-    nearest view's descriptor (flat extrapolation) instead of whatever the grid's interpolation
-    continues to; with prior_mean_deg = tau > 0 that blend is mixed with the mean descriptor,
-    weight exp(-a_min / tau) for the views. (prior_mean_deg None here: ExtractorPolicy's default.)"""
-    dev = centers.device
-    L, V, P = len(centers), cfg.prior_bank, targets.shape[1]
-    origins = torch.as_tensor(data.obs_origin, dtype=torch.float32, device=dev)
-    base = torch.minimum((gen.rand(V).to(dev) * counts[:, None]).long(), counts[:, None] - 1)
-    g = gen.randn(V, 3).to(dev)
-    theta = gen.rand(V, 1).to(dev) * math.radians(cfg.prior_spread_deg)
-    out_o, out_d, out_t = [], [], []
-    chunk = max(1, (1 << 22) // max(1, V * int(counts.max())))
-    for s in range(0, L, chunk):
-        ls = slice(s, min(L, s + chunk))
-        n_max = int(counts[ls].max())
-        ar = torch.arange(n_max, device=dev)
-        valid = ar[None] < counts[ls, None]
-        idx = torch.where(valid, first[ls, None] + ar[None], first[ls, None])  # (l, n_max) observations
-        vec = origins[idx] - centers[ls, None]
-        dist = vec.norm(dim=-1)
-        U = vec / dist[..., None].clamp_min(1e-12)  # landmark -> camera, unit
-        D = targets[idx, P // 2].to(torch.float32)  # (l, n_max, C) centre descriptors
-        u0 = torch.gather(U, 1, base[ls, :, None].expand(-1, -1, 3))
-        t = F.normalize(g[ls] - (g[ls] * u0).sum(-1, keepdim=True) * u0, dim=-1)
-        v = torch.cos(theta[ls]) * u0 + torch.sin(theta[ls]) * t
-        ang = torch.rad2deg(torch.acos(torch.einsum("lvd,lod->lvo", v, U).clamp(-1, 1)))
-        ang = torch.where(valid[:, None, :], ang, torch.full_like(ang, 1e4))
-        w = (
-            torch.exp(-0.5 * ((ang - ang.amin(-1, keepdim=True)) / max(cfg.prior_kernel_deg, 1e-3)) ** 2)
-            * valid[:, None, :]
-        )
-        tgt = F.normalize(torch.bmm(w, D), dim=-1)
-        tau = cfg.prior_mean_deg if cfg.prior_mean_deg is not None else ExtractorPolicy.view_prior_deg
-        if tau > 0:
-            beta = torch.exp(-ang.amin(-1, keepdim=True) / tau)  # (l, V, 1)
-            tgt = F.normalize(beta * tgt + (1 - beta) * mean_desc[ls, None, :], dim=-1)
-        out_t.append(tgt)
-        r = torch.gather(dist, 1, base[ls])  # distance of the training view the direction came from
-        out_o.append(v * (r / sizes[ls, None])[..., None] + 0.5)
-        out_d.append(-v)
-    return torch.cat(out_o), torch.cat(out_d), torch.cat(out_t)
+    obs_lm = torch.as_tensor(data.obs_landmark, device=dev).long()
+    counts = torch.bincount(obs_lm, minlength=L)
+    return _Landmarks(
+        centers=torch.as_tensor(data.centers, **f32),
+        sizes=torch.as_tensor(data.sizes, **f32),
+        obs_lm=obs_lm,
+        counts=counts,
+        first=torch.cumsum(counts, 0) - counts,
+        mean_desc=_track_means(data, obs_lm, L, **f32),
+    )
 
 
 def _track_means(data: TrainingRays, obs_lm: torch.Tensor, L: int, **f32) -> torch.Tensor:
@@ -197,19 +117,159 @@ def _track_means(data: TrainingRays, obs_lm: torch.Tensor, L: int, **f32) -> tor
     return F.normalize(torch.zeros(L, means.shape[-1], **f32).index_add_(0, obs_lm, means), dim=-1)
 
 
-def _losses(a: torch.Tensor, desc: torch.Tensor, targets: list[torch.Tensor], target_sq: torch.Tensor):
-    """Squared L2 distance and cosine similarity (G, K) of the rendered descriptors a @ desc to the
-    targets, without forming the rendered descriptors: with p = a D and D the (R^3, C) node
-    descriptors, p.t = a (D t) and |p|^2 = a (D D^T) a. The per-ray tensors are (G, K, R^3)
-    instead of (G, K, C), which takes the C-wide elementwise work of the loss (and of its
-    gradient) out of the training loop. ``targets``: (G, K_i, C) blocks, concatenated along K."""
-    dt = torch.cat([torch.bmm(desc, t.transpose(1, 2)) for t in targets], 2)  # (G, R^3, K)
-    dot = (a * dt.transpose(1, 2)).sum(-1)
-    gram = torch.bmm(desc, desc.transpose(1, 2))  # (G, R^3, R^3)
-    p_sq = (torch.bmm(a, gram) * a).sum(-1)
-    se = (p_sq - 2 * dot + target_sq).clamp_min(0.0)
-    cos = dot / (p_sq.clamp_min(1e-16) * target_sq.clamp_min(1e-16)).sqrt().clamp_min(1e-8)
-    return se, cos
+@dataclass
+class _Rays:
+    """The rays Adam draws from, as float32 tensors on the training device: the real patch rays of every
+    observation and the prior's virtual rays. The patch rays are also kept as flat rows, for one
+    index_select per gather (2-4x faster on a CPU than advanced indexing or torch.gather with an
+    expanded index; the same values)."""
+
+    origins: torch.Tensor  # (O, 3) each observation's camera centre, in its landmark's local frame
+    dirs: torch.Tensor  # (O, P, 3) its patch rays' directions, in local units
+    targets: torch.Tensor  # (O, P, C)
+    target_sq: torch.Tensor  # (O, P) |target|^2
+    prior: PriorRays | None  # (L * V, ...) rows; None without prior rays
+    prior_sq: torch.Tensor | None  # (L * V,) |prior target|^2
+
+    @property
+    def flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(O * P, 3) directions, (O * P, C) targets and (O * P,) |target|^2."""
+        return self.dirs.view(-1, 3), self.targets.view(-1, self.targets.shape[-1]), self.target_sq.view(-1)
+
+
+def _real_rays(data: TrainingRays, lm: _Landmarks, dev: torch.device) -> _Rays:
+    f32 = dict(dtype=torch.float32, device=dev)
+    # ray origins in each landmark's local frame; directions scaled to local units
+    origins = to_local(torch.as_tensor(data.obs_origin, **f32), lm.centers[lm.obs_lm], lm.sizes[lm.obs_lm])
+    targets = torch.as_tensor(data.targets, **f32)
+    target_sq = (targets * targets).sum(-1)  # (1 for unit descriptors)
+    return _Rays(origins, torch.as_tensor(data.ray_dirs, **f32), targets, target_sq, None, None)
+
+
+def _with_prior(rays: _Rays, prior: PriorRays) -> _Rays:
+    """``rays`` with the prior's virtual rays as flat rows."""
+    C = prior.targets.shape[-1]
+    sq = (prior.targets * prior.targets).sum(-1)
+    flat = PriorRays(prior.origins.view(-1, 3), prior.dirs.view(-1, 3), prior.targets.view(-1, C))
+    return replace(rays, prior=flat, prior_sq=sq.view(-1))
+
+
+def _initial_grids(data: TrainingRays, cfg: VoxelConfig, lm: _Landmarks, dev, seed_blocks):
+    """The grids Adam starts from (descriptors (L, R^3, C), raw densities (L, R^3), both requiring
+    gradients): every node holds the mean descriptor (or zero, or the closed-form fit), the density is
+    uniform; a landmark that already has grids (fine-tuning) starts from them."""
+    R, C, L = cfg.resolution, data.targets.shape[-1], len(data.centers)
+    if cfg.init not in ("mean", "zero", "lstsq"):
+        raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero, lstsq)")
+    if cfg.init == "lstsq":  # start from the closed-form fit at the initial densities
+        fit = _train_lstsq(data, cfg, None, dev, evaluate_fit=False, seed_blocks=seed_blocks)
+        desc = fit.descriptors.contiguous().requires_grad_(True)
+    else:
+        init = lm.mean_desc if cfg.init == "mean" else torch.zeros_like(lm.mean_desc)
+        desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
+    raw0 = math.log(math.expm1(cfg.density_init))
+    dens = torch.full((L, R**3), raw0, dtype=torch.float32, device=dev)
+    if data.init_descriptors is not None:  # fine-tuning: the landmarks with grids start from them
+        d0 = torch.as_tensor(np.asarray(data.init_descriptors, np.float32).reshape(L, R**3, C), device=dev)
+        s0 = torch.as_tensor(np.asarray(data.init_density, np.float32).reshape(L, R**3), device=dev)
+        has = torch.isfinite(d0).flatten(1).all(1) & torch.isfinite(s0).all(1)
+        with torch.no_grad():
+            desc[has] = d0[has]
+            dens[has] = s0[has]
+    return desc, dens.requires_grad_(True)
+
+
+def _optimizer(data: TrainingRays, cfg: VoxelConfig, rays: _Rays, desc, dens) -> BatchedAdam:
+    """Adam on both grids, each node's learning rate scaled by how many training views see it (relative
+    to its landmark's best-seen node; ``cfg.pervoxel_lr``)."""
+    L, R3 = desc.shape[:2]
+    if cfg.pervoxel_lr:
+        vis = node_visibility(data, rays.origins, rays.dirs, cfg.resolution, cfg, desc.device)
+        factor = vis / vis.amax(1, keepdim=True).clamp_min(1.0)
+    else:
+        factor = torch.ones(L, R3, dtype=torch.float32, device=desc.device)
+    return BatchedAdam([desc, dens], [cfg.lr_descriptors, cfg.lr_density], [factor, factor])
+
+
+@dataclass
+class _Draw:
+    """One iteration's rays: K real ones per landmark (observation and patch row) and Kp prior ones."""
+
+    obs: torch.Tensor  # (L, K) observations
+    ray: torch.Tensor  # (L, K) rows of the flat (O * P) patch rays
+    prior: torch.Tensor | None  # (L, Kp) virtual rays of each landmark's bank; None without prior rays
+
+
+def _draw(gen: BlockGenerator, cfg: VoxelConfig, lm: _Landmarks, P: int, dev) -> _Draw:
+    K, Kp = cfg.rays_per_landmark, cfg.prior_rays
+    r = gen.rand(K).to(dev)
+    counts = lm.counts[:, None]
+    obs = lm.first[:, None] + torch.minimum((r * counts).long(), counts - 1)
+    pix = gen.randint(P, K)
+    if cfg.centre_rays > 0:  # a share of the rays through the patch centre
+        pix = torch.where(gen.rand(K) < cfg.centre_rays, P // 2, pix)
+    ray = obs * P + pix.to(dev)
+    return _Draw(obs, ray, gen.randint(cfg.prior_bank, Kp).to(dev) if Kp > 0 else None)
+
+
+def _group_rays(rays: _Rays, draw: _Draw, gs: slice, cfg: VoxelConfig):
+    """The drawn rays of landmarks ``gs``: origins and directions (G, K + Kp, 3), targets as (G, K, C)
+    and (G, Kp, C) blocks, |target|^2 (G, K + Kp)."""
+    G, K, Kp, dev = gs.stop - gs.start, cfg.rays_per_landmark, cfg.prior_rays, draw.obs.device
+    dirs_flat, targets_flat, tsq_flat = rays.flat
+    C = targets_flat.shape[-1]
+    rg = draw.ray[gs].reshape(-1)
+    o = rays.origins.index_select(0, draw.obs[gs].reshape(-1)).view(G, K, 3)
+    d = dirs_flat.index_select(0, rg).view(G, K, 3)
+    tgts = [targets_flat.index_select(0, rg).view(G, K, C)]
+    tn2 = tsq_flat.index_select(0, rg).view(G, K)
+    if Kp > 0:
+        pb = rays.prior
+        pr = (torch.arange(gs.start, gs.stop, device=dev)[:, None] * cfg.prior_bank + draw.prior[gs]).reshape(-1)
+        o = torch.cat([o, pb.origins.index_select(0, pr).view(G, Kp, 3)], 1)
+        d = torch.cat([d, pb.dirs.index_select(0, pr).view(G, Kp, 3)], 1)
+        tgts.append(pb.targets.index_select(0, pr).view(G, Kp, C))
+        tn2 = torch.cat([tn2, rays.prior_sq.index_select(0, pr).view(G, Kp)], 1)
+    return o, d, tgts, tn2
+
+
+def _optimise(
+    cfg: VoxelConfig, rays: _Rays, lm: _Landmarks, desc, dens, opt: BatchedAdam, gen: BlockGenerator, progress
+) -> list:
+    """Adam's iterations on ``desc`` and ``dens`` (in place); returns the training curve, (iteration, loss,
+    PSNR of the real rays) every 25 iterations and at the last."""
+    L, P, C = len(lm.centers), rays.dirs.shape[1], rays.targets.shape[-1]
+    R, K, Kp, dev = cfg.resolution, cfg.rays_per_landmark, cfg.prior_rays, desc.device
+    f32 = dict(dtype=torch.float32, device=dev)
+    ray_w = torch.cat([torch.ones(K, **f32), torch.full((Kp,), cfg.prior_weight, **f32)])
+    norm = float(L * ray_w.sum())  # loss = weighted mean over all rays of all landmarks
+    group = cfg.per_batch(K + Kp)
+    history = []
+    tv_start = int(cfg.iterations * cfg.tv_from)
+    tv_grad = TVGradient(R, L, C, dev) if cfg.tv_weight > 0 else None
+    for it in range(cfg.iterations):
+        draw = _draw(gen, cfg, lm, P, dev)
+        total, se_real = 0.0, 0.0
+        for g0 in range(0, L, group):
+            gs = slice(g0, min(L, g0 + group))
+            o, d, tgts, tn2 = _group_rays(rays, draw, gs, cfg)
+            st, delta, hit = ray_stencils(o, d, R, cfg.samples)
+            a, opacity = composite(st, delta, dens[gs], hit)  # (G,K,R^3): pred = a @ desc
+            se, cos = descriptor_losses(a, desc[gs], tgts, tn2)
+            loss = ray_loss(cfg, se, cos, opacity, hit.float() * ray_w, norm)
+            loss.backward()
+            total += float(loss.detach())
+            se_real += float(se[:, :K].detach().sum())
+        if it >= tv_start and tv_grad is not None:
+            total += tv_grad.add_to(desc, dens, cfg.tv_weight)
+        lr_scale = cfg.lr_final ** (it / max(1, cfg.iterations - 1))  # exponential decay to lr_final
+        opt.step(lr_scale)
+        if it % 25 == 0 or it == cfg.iterations - 1:
+            mse = se_real / (L * K * C)  # real rays only
+            history.append((it, total, 10 * math.log10(4.0 / max(mse, 1e-12))))
+            if progress:
+                progress(it, history[-1][1], history[-1][2])
+    return history
 
 
 def train_voxels(
@@ -231,127 +291,17 @@ def train_voxels(
         raise ValueError(f"unknown VoxelConfig.solver {cfg.solver!r} (lstsq, adam)")
     dev = torch.device(device)
     gen = BlockGenerator(seed_blocks or [len(data.centers)], cfg.seed)
-    R, C = cfg.resolution, data.targets.shape[-1]
-    L, P = len(data.centers), data.ray_dirs.shape[1]
-    f32 = dict(dtype=torch.float32, device=dev)
-    centers = torch.as_tensor(data.centers, **f32)
-    sizes = torch.as_tensor(data.sizes, **f32)
-    obs_lm = torch.as_tensor(data.obs_landmark, device=dev).long()
-    # ray origins in each landmark's local frame; directions scaled to local units
-    origins_l = (torch.as_tensor(data.obs_origin, **f32) - centers[obs_lm]) / sizes[obs_lm, None] + 0.5
-    dirs_all = torch.as_tensor(data.ray_dirs, **f32)
-    targets = torch.as_tensor(data.targets, **f32)
-
-    target_sq = (targets * targets).sum(-1)  # (O, P) |target|^2 (1 for unit descriptors)
-    counts = torch.bincount(obs_lm, minlength=L)
-    first = torch.cumsum(counts, 0) - counts
-
-    mean_desc = _track_means(data, obs_lm, L, **f32)
-    # init: every node holds the mean descriptor (or zero); uniform density
-    if cfg.init not in ("mean", "zero", "lstsq"):
-        raise ValueError(f"unknown VoxelConfig.init {cfg.init!r} (mean, zero, lstsq)")
-    if cfg.init == "lstsq":  # start from the closed-form fit at the initial densities
-        fit = _train_lstsq(data, cfg, None, dev, evaluate_fit=False, seed_blocks=seed_blocks)
-        desc = fit.descriptors.contiguous().requires_grad_(True)
-    else:
-        init = mean_desc if cfg.init == "mean" else torch.zeros_like(mean_desc)
-        desc = init[:, None, :].repeat(1, R**3, 1).contiguous().requires_grad_(True)
-    raw0 = math.log(math.expm1(cfg.density_init))
-    dens = torch.full((L, R**3), raw0, **f32)
-    if data.init_descriptors is not None:  # fine-tuning: the landmarks with grids start from them
-        d0 = torch.as_tensor(np.asarray(data.init_descriptors, np.float32).reshape(L, R**3, C), device=dev)
-        s0 = torch.as_tensor(np.asarray(data.init_density, np.float32).reshape(L, R**3), device=dev)
-        has = torch.isfinite(d0).flatten(1).all(1) & torch.isfinite(s0).all(1)
-        with torch.no_grad():
-            desc[has] = d0[has]
-            dens[has] = s0[has]
-    dens.requires_grad_(True)
-
-    if cfg.pervoxel_lr:
-        vis = _visibility(data, origins_l, dirs_all, R, cfg, dev)
-        factor = vis / vis.amax(1, keepdim=True).clamp_min(1.0)
-    else:
-        factor = torch.ones(L, R**3, **f32)
-    opt = _BatchedAdam([desc, dens], [cfg.lr_descriptors, cfg.lr_density], [factor, factor])
-
-    K, Kp = cfg.rays_per_landmark, cfg.prior_rays
-    if Kp > 0:
-        pb_o, pb_d, pb_t = _prior_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, gen)
-        pb_sq = (pb_t * pb_t).sum(-1)
-    ray_w = torch.cat([torch.ones(K, **f32), torch.full((Kp,), cfg.prior_weight, **f32)])
-    norm = float(L * ray_w.sum())  # loss = weighted mean over all rays of all landmarks
-    group = max(1, cfg.max_batch_rays // (K + Kp))
-    history = []
-    tv_start = int(cfg.iterations * cfg.tv_from)
-    # flat row views: one index_select per gather (2-4x faster on a CPU than advanced indexing or
-    # torch.gather with an expanded index; the same values)
-    dirs_flat, targets_flat, tsq_flat = dirs_all.view(-1, 3), targets.view(-1, C), target_sq.view(-1)
-    if Kp > 0:
-        pb_o, pb_d, pb_t, pb_sq = pb_o.view(-1, 3), pb_d.view(-1, 3), pb_t.view(-1, C), pb_sq.view(-1)
-    tv_grad = _TVGradient(R, L, C, dev) if cfg.tv_weight > 0 else None
-    for it in range(cfg.iterations):
-        r = gen.rand(K).to(dev)
-        obs = first[:, None] + torch.minimum((r * counts[:, None]).long(), counts[:, None] - 1)  # (L,K) observations
-        pix = gen.randint(P, K)
-        if cfg.centre_rays > 0:
-            pix = torch.where(gen.rand(K) < cfg.centre_rays, P // 2, pix)
-        ray = obs * P + pix.to(dev)  # (L,K) rows of the flat (O*P) patch rays
-        sel = gen.randint(cfg.prior_bank, Kp).to(dev) if Kp > 0 else None
-        total, se_real = 0.0, 0.0
-        for g0 in range(0, L, group):
-            gs = slice(g0, min(L, g0 + group))
-            G = gs.stop - gs.start
-            rg = ray[gs].reshape(-1)
-            o = origins_l.index_select(0, obs[gs].reshape(-1)).view(G, K, 3)
-            d = dirs_flat.index_select(0, rg).view(G, K, 3)
-            tgts = [targets_flat.index_select(0, rg).view(G, K, C)]
-            tn2 = tsq_flat.index_select(0, rg).view(G, K)
-            if Kp > 0:
-                pr = (torch.arange(g0, gs.stop, device=dev)[:, None] * cfg.prior_bank + sel[gs]).reshape(-1)
-                o = torch.cat([o, pb_o.index_select(0, pr).view(G, Kp, 3)], 1)
-                d = torch.cat([d, pb_d.index_select(0, pr).view(G, Kp, 3)], 1)
-                tgts.append(pb_t.index_select(0, pr).view(G, Kp, C))
-                tn2 = torch.cat([tn2, pb_sq.index_select(0, pr).view(G, Kp)], 1)
-            st, delta, hit = ray_stencils(o, d, R, cfg.samples)
-            a, opacity = composite(st, delta, dens[gs], hit)  # (G,K,R^3): pred = a @ desc
-            se, cos = _losses(a, desc[gs], tgts, tn2)
-            m = hit.float() * ray_w
-            op = opacity.clamp(1e-6, 1 - 1e-6)
-            ent = -(op * op.log() + (1 - op) * (1 - op).log())
-            loss = ((cfg.mse_weight * se + cfg.cosine_weight * (1 - cos) + cfg.entropy_weight * ent) * m).sum() / norm
-            loss.backward()
-            total += float(loss.detach())
-            se_real += float(se[:, :K].detach().sum())
-        if it >= tv_start and tv_grad is not None:
-            total += tv_grad.add_to(desc, dens, cfg.tv_weight)
-        lr_scale = cfg.lr_final ** (it / max(1, cfg.iterations - 1))  # exponential decay to lr_final
-        opt.step(lr_scale)
-        if it % 25 == 0 or it == cfg.iterations - 1:
-            mse = se_real / (L * K * C)  # real rays only
-            history.append((it, total, 10 * math.log10(4.0 / max(mse, 1e-12))))
-            if progress:
-                progress(it, history[-1][1], history[-1][2])
-
+    lm = _landmarks(data, dev)
+    rays = _real_rays(data, lm, dev)
+    desc, dens = _initial_grids(data, cfg, lm, dev, seed_blocks)
+    opt = _optimizer(data, cfg, rays, desc, dens)
+    if cfg.prior_rays > 0:
+        rays = _with_prior(rays, lm.prior_bank(data, cfg, rays.targets, gen))
+    history = _optimise(cfg, rays, lm, desc, dens, opt, gen, progress)
     desc = desc.detach()
     dens = dens.detach()
     psnr, cosine = evaluate(data, desc, dens, cfg)
     return VoxelGrids(desc, dens, psnr, cosine, history)
-
-
-def _grid_laplacian(R: int, **kw) -> torch.Tensor:
-    """(R^3, R^3) graph Laplacian of the node grid: x^T Lap x = sum over neighbouring nodes of the
-    squared difference (the TV term of the least-squares fit)."""
-    idx = torch.arange(R**3).view(R, R, R)
-    pairs = [
-        torch.stack([idx.narrow(ax, 0, R - 1).reshape(-1), idx.narrow(ax, 1, R - 1).reshape(-1)], 1) for ax in range(3)
-    ]
-    i, j = torch.cat(pairs).T
-    lap = torch.zeros(R**3, R**3, **kw)
-    lap.index_put_((i, i), torch.ones(len(i), **kw), accumulate=True)
-    lap.index_put_((j, j), torch.ones(len(j), **kw), accumulate=True)
-    lap.index_put_((i, j), torch.full((len(i),), -1.0, **kw), accumulate=True)
-    lap.index_put_((j, i), torch.full((len(i),), -1.0, **kw), accumulate=True)
-    return lap
 
 
 @torch.no_grad()
@@ -377,13 +327,9 @@ def _train_lstsq(
     f32 = dict(dtype=torch.float32, device=dev)
     R, C = cfg.resolution, data.targets.shape[-1]
     R3, L, P = R**3, len(data.centers), data.ray_dirs.shape[1]
-    centers = torch.as_tensor(data.centers, **f32)
-    sizes = torch.as_tensor(data.sizes, **f32)
-    obs_lm = torch.as_tensor(data.obs_landmark, device=dev).long()
-    counts = torch.bincount(obs_lm, minlength=L)
-    first = torch.cumsum(counts, 0) - counts
+    lms = _landmarks(data, dev)
+    obs_lm, counts = lms.obs_lm, lms.counts
     targets = torch.as_tensor(data.targets, device=dev)  # its own dtype (float16 from a build): float32 by chunk
-    mean_desc = _track_means(data, obs_lm, L, **f32)
     dens = torch.full((L, R3), math.log(math.expm1(cfg.density_init)), **f32)
     # the densities stay uniform (composite_uniform): softplus of the raw value, as composite takes it
     sigma = float(F.softplus(torch.tensor(math.log(math.expm1(cfg.density_init)))))
@@ -392,13 +338,13 @@ def _train_lstsq(
     A = torch.zeros(L, R3, R3, **f32)  # sum w a^T a
     B = torch.zeros(L, R3, C, **f32)  # sum w a^T t
     O = len(obs_lm)
-    chunk = max(1, cfg.max_batch_rays // max(1, P))
+    chunk = cfg.per_batch(max(1, P))
     kept: list[tuple[slice, torch.Tensor]] = []  # the real rays' stencils, for the fit's evaluation ...
     keep = evaluate_fit and O * P * R3 * 4 <= _KEEP_STENCIL_BYTES  # ... unless they would take much memory
     for s in range(0, O, chunk):
         sl = slice(s, min(O, s + chunk))
         lm = obs_lm[sl]
-        origins = (torch.as_tensor(data.obs_origin[sl], **f32) - centers[lm]) / sizes[lm, None] + 0.5
+        origins = to_local(torch.as_tensor(data.obs_origin[sl], **f32), lms.centers[lm], lms.sizes[lm])
         dirs = torch.as_tensor(data.ray_dirs[sl], **f32)
         a, _ = composite_uniform(origins[:, None, :].expand(-1, P, -1), dirs, R, cfg.samples, sigma)  # (n, P, R^3)
         if keep:  # a batch's (O, P, R^3) stencils: ~40 MB for 1,024 fox landmarks
@@ -410,19 +356,20 @@ def _train_lstsq(
             progress(int(0.8 * cfg.iterations * sl.stop / max(O, 1)), float("nan"), float("nan"))
     if cfg.prior_rays > 0 and cfg.lstsq_prior_weight > 0:
         gen = BlockGenerator(seed_blocks or [L], cfg.seed)
-        po, pd, pt = _prior_bank(data, cfg, centers, sizes, targets, mean_desc, counts, first, gen)
-        step = max(1, cfg.max_batch_rays // max(1, po.shape[1]))
+        prior = lms.prior_bank(data, cfg, targets, gen)
+        V = prior.origins.shape[1]
+        step = cfg.per_batch(max(1, V))
         for s in range(0, L, step):
             ls = slice(s, min(L, s + step))
-            a, _ = composite_uniform(po[ls], pd[ls], R, cfg.samples, sigma)
-            aw = (a * (cfg.lstsq_prior_weight / po.shape[1])).transpose(1, 2)
+            a, _ = composite_uniform(prior.origins[ls], prior.dirs[ls], R, cfg.samples, sigma)
+            aw = (a * (cfg.lstsq_prior_weight / V)).transpose(1, 2)
             A[ls] += torch.bmm(aw, a)
-            B[ls] += torch.bmm(aw, pt[ls])
-    A += cfg.lstsq_tv * _grid_laplacian(R, **f32) + cfg.lstsq_ridge * torch.eye(R3, **f32)
-    desc = torch.linalg.solve(A, B + cfg.lstsq_ridge * mean_desc[:, None, :])
+            B[ls] += torch.bmm(aw, prior.targets[ls])
+    A += cfg.lstsq_tv * grid_laplacian(R, **f32) + cfg.lstsq_ridge * torch.eye(R3, **f32)
+    desc = torch.linalg.solve(A, B + cfg.lstsq_ridge * lms.mean_desc[:, None, :])
     if not evaluate_fit:
         return VoxelGrids(desc, dens, np.zeros(0, np.float32), np.zeros(0, np.float32), [])
-    psnr, cosine = _fit_quality(data, desc, kept) if keep else evaluate(data, desc, dens, cfg)
+    psnr, cosine = fit_quality(data, desc, kept) if keep else evaluate(data, desc, dens, cfg)
     history = []
     if len(psnr):  # one point, the solution's: Adam's data terms and PSNR over the real rays, landmark-weighted
         mse = 4.0 / 10 ** (psnr.astype(np.float64) / 10)  # per descriptor element, as evaluate() has it
@@ -437,70 +384,3 @@ def _train_lstsq(
 # with 7 x 7 patches: ~40 MB on the fox, ~390 MB with the 72 observations per landmark of a 5,000-frame
 # build); beyond it the figures trace the rays again (evaluate), as before
 _KEEP_STENCIL_BYTES = 256 << 20
-
-
-def _fit_quality(data: TrainingRays, desc: torch.Tensor, stencils: list[tuple[slice, torch.Tensor]]):
-    """:func:`evaluate` of the closed form's solution from the composite stencils its fit made
-    (the densities are fixed, so they are the rendering's): the same figures without tracing every
-    ray again (that was 43 % of the fox's closed-form training on two cores)."""
-    L, O, C = len(data.centers), len(data.obs_landmark), desc.shape[-1]
-    se, cos = torch.zeros(O), torch.zeros(O)
-    obs_lm = torch.as_tensor(data.obs_landmark, device=desc.device).long()
-    for sl, a in stencils:
-        tgt = torch.as_tensor(data.targets[sl], dtype=torch.float32, device=desc.device)
-        s_, c_ = _losses(a, desc[obs_lm[sl]], [tgt], (tgt * tgt).sum(-1))
-        se[sl], cos[sl] = (s_.mean(-1) / C).cpu(), c_.mean(-1).cpu()
-    return _per_landmark(data, se, cos, L)
-
-
-def _per_landmark(data: TrainingRays, se: torch.Tensor, cos: torch.Tensor, L: int):
-    """Per-landmark PSNR (MAX = 2) and mean cosine from per-observation squared errors and cosines."""
-    lm = torch.as_tensor(data.obs_landmark).long()
-    n = torch.bincount(lm, minlength=L).clamp_min(1).float()
-    mse = torch.zeros(L).index_add_(0, lm, se) / n
-    cs = torch.zeros(L).index_add_(0, lm, cos) / n
-    psnr = 10 * torch.log10(4.0 / mse.clamp_min(1e-12))
-    return psnr.numpy().astype(np.float32), cs.numpy().astype(np.float32)
-
-
-@torch.no_grad()
-def _training_ray_chunks(
-    data: TrainingRays, desc: torch.Tensor, obs_index: np.ndarray, samples: int, chunk: int = 2048
-):
-    """Per chunk of observations: (positions in ``obs_index``, their landmarks, stencil geometry of
-    their S*S patch rays as :func:`ray_stencils` returns it)."""
-    dev = desc.device
-    R = round(desc.shape[1] ** (1 / 3))
-    for s in range(0, len(obs_index), chunk):
-        sel = obs_index[s : s + chunk]
-        lm = torch.as_tensor(data.obs_landmark[sel], device=dev).long()
-        c = torch.as_tensor(data.centers[data.obs_landmark[sel]], dtype=torch.float32, device=dev)
-        sz = torch.as_tensor(data.sizes[data.obs_landmark[sel]], dtype=torch.float32, device=dev)
-        o = to_local(torch.as_tensor(data.obs_origin[sel], dtype=torch.float32, device=dev)[:, None, :], c, sz)
-        d = torch.as_tensor(data.ray_dirs[sel], dtype=torch.float32, device=dev)
-        yield slice(s, s + len(sel)), lm, ray_stencils(o.expand(-1, d.shape[1], -1), d, R, samples)
-
-
-@torch.no_grad()
-def render_training_rays(
-    data: TrainingRays, desc: torch.Tensor, dens: torch.Tensor, cfg: VoxelConfig, obs_index: np.ndarray | None = None
-):
-    """Rendered descriptors (O', S*S, C) of the training patches (all or ``obs_index``)."""
-    idx = np.arange(len(data.obs_landmark)) if obs_index is None else np.asarray(obs_index)
-    out = torch.zeros(len(idx), data.ray_dirs.shape[1], desc.shape[-1])
-    for sl, lm, geom in _training_ray_chunks(data, desc, idx, cfg.samples):
-        out[sl] = render(desc[lm], dens[lm], *geom)[0].cpu()
-    return out
-
-
-@torch.no_grad()
-def evaluate(data: TrainingRays, desc, dens, cfg: VoxelConfig):
-    """Per-landmark training PSNR (MAX = 2) and mean cosine similarity of the rendered patches."""
-    L, O, C = len(data.centers), len(data.obs_landmark), desc.shape[-1]
-    se, cos = torch.zeros(O), torch.zeros(O)
-    for sl, lm, (st, delta, hit) in _training_ray_chunks(data, desc, np.arange(O), cfg.samples):
-        a, _ = composite(st, delta, dens[lm], hit)
-        tgt = torch.as_tensor(data.targets[sl], dtype=torch.float32, device=desc.device)
-        s_, c_ = _losses(a, desc[lm], [tgt], (tgt * tgt).sum(-1))
-        se[sl], cos[sl] = (s_.mean(-1) / C).cpu(), c_.mean(-1).cpu()  # per observation (se per element)
-    return _per_landmark(data, se, cos, L)
