@@ -137,6 +137,20 @@ def check_output(out) -> Path:
     return out
 
 
+def _check_camera(camera: Camera | None, image: Path) -> None:
+    """A given camera must have the images' size (COLMAP would take its parameters at the wrong scale)."""
+    if camera is None:
+        return
+    import cv2
+
+    im = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if im is None:
+        raise InputError(f"cannot read the image {image}")
+    h, w = im.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(f"the camera is {camera.width}x{camera.height} but the images are {w}x{h} ({image.name})")
+
+
 def _pycolmap_options(opts: SfmOptions):
     import pycolmap
 
@@ -271,6 +285,7 @@ def estimate_poses(
             names = opts.image_names if opts.image_names is not None else list_images(image_dir)
         if not names:
             raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
+        _check_camera(opts.camera, image_dir / names[0])
         matcher = opts.resolved_matcher(len(names))
         models = _reconstruct(image_dir, names, work, opts, matcher, report)
         if not models or models[0].num_reg_images() == 0:
