@@ -201,7 +201,7 @@ def _reconstruct(image_dir: Path, names: list[str], work: Path, opts: SfmOptions
         registered[0] += 1
         report("sfm poses", min(registered[0], len(names)), len(names))
 
-    with quiet_colmap():
+    with quiet_colmap("FATAL"):  # what fails is told by the result (PosesNotFound, unregistered images)
         report("sfm features", 0, 1)
         pycolmap.extract_features(db, image_dir, names, mode, reader, extraction, device=pycolmap.Device.cpu)
         report("sfm features", 1, 1)
