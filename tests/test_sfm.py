@@ -177,3 +177,31 @@ def test_bad_options_of_unposed_images(small_sequence, tmp_path, args, message):
 def test_sfm_options_on_a_posed_sequence_are_refused(small_sequence, tmp_path):
     r = favormap("build", small_sequence.root, "-o", tmp_path / "m.h5", "--scale", "2")
     assert r.returncode != 0 and "applies to images without poses" in r.stderr, r.stderr
+
+
+def test_extend_with_images_without_poses(small_map, small_sequence, tmp_path):
+    from favormap.mapfile import Map
+    from favormap.synthetic import make_room, random_views_near, render
+
+    scene = make_room(0)
+    poses = [f.cam_from_world for f in small_sequence.frames[4:11]]
+    views = random_views_near(poses, 6, seed=3, max_trans=0.05, max_rot_deg=3.0, scene=scene)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, T in enumerate(views):
+        rgb = render(scene, small_sequence.cameras[0], T)[0]
+        cv2.imwrite(str(photos / f"new{i}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    _, path = small_map
+    out = tmp_path / "bigger.h5"
+    r = favormap("extend", path, photos, "-o", out, "--threads", 2, "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["frames_added"] == len(views) and s["poses"]["registered"] == len(views) and s["alignment"]
+    assert (tmp_path / "bigger.h5.sfm" / "sparse" / "0").is_dir()
+    with Map.open(out) as m:
+        names = list(m.frame_names)
+        added = {n: m.cam_from_world[names.index(n)] for n in names if n.startswith("new")}
+    # the map's frame is the true one (exact poses): the new frames' poses, moved into it, are the true poses up
+    # to the alignment of six frames' landmarks with the map's (~1 cm in a room ~4 units across)
+    errs = np.array([pose_error(added[f"new{i}.png"], T) for i, T in enumerate(views)])
+    assert np.median(errs[:, 0]) < 0.03 and np.median(errs[:, 1]) < 0.5, errs

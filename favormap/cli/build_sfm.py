@@ -6,16 +6,18 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def add_sfm_args(p) -> None:
+def add_sfm_args(p, scale: bool = True, then: str = "the build") -> None:
+    """The options of images without poses; ``scale``: with --scale (a build; extend takes the map's units)."""
     g = p.add_argument_group(
         "images without poses",
         "a folder of images in no sequence format, or a video file, is posed by structure from motion (COLMAP's "
-        "incremental mapper, through pycolmap) before the build; the reconstruction is kept in COLMAP's layout",
+        f"incremental mapper, through pycolmap) before {then}; the reconstruction is kept in COLMAP's layout",
     )
     g.add_argument(
         "--sfm-dir",
         metavar="DIR",
-        help="where the reconstruction goes (COLMAP's database.db and sparse/0; default: MAP.sfm next to the map)",
+        help="where the reconstruction goes (COLMAP's database.db and sparse/0; default: OUTPUT.sfm next to the "
+        "map written)",
     )
     g.add_argument(
         "--matcher",
@@ -32,13 +34,14 @@ def add_sfm_args(p) -> None:
         "either (default: estimated, one camera for all images)",
     )
     g.add_argument("--camera-per-image", action="store_true", help="estimate one camera for each image")
-    g.add_argument(
-        "--scale",
-        type=float,
-        metavar="S",
-        help="multiply the reconstruction's units by S (e.g. metres per unit, measured between two known points); "
-        "without it the map's units are arbitrary",
-    )
+    if scale:
+        g.add_argument(
+            "--scale",
+            type=float,
+            metavar="S",
+            help="multiply the reconstruction's units by S (e.g. metres per unit, measured between two known "
+            "points); without it the map's units are arbitrary",
+        )
     g.add_argument(
         "--video-every",
         type=int,
@@ -75,7 +78,7 @@ def _check_args(args, kind: str | None) -> None:
 
     sfm_only = ("sfm_dir", "camera", "scale")
     if kind is None:
-        given = [n for n in sfm_only if getattr(args, n) is not None]
+        given = [n for n in sfm_only if getattr(args, n, None) is not None]
         given += [n for n in ("camera_per_image",) if getattr(args, n)] + (
             ["matcher"] if args.matcher != "auto" else []
         )
@@ -111,27 +114,29 @@ def estimate_poses_from_args(args, out: Path, progress):
         matcher=args.matcher,
         camera=read_camera(args.camera) if args.camera else None,
         camera_per_image=args.camera_per_image,
-        scale=args.scale,
+        scale=getattr(args, "scale", None),
         threads=getattr(args, "threads", None),
         ordered=kind == "video",
     )
+    every = getattr(args, "exclude_every", 0)
     if kind == "images":
-        opts.image_names = _kept(list_images(args.sequence), args.exclude_every)
+        opts.image_names = _kept(list_images(args.sequence), every)
         return estimate_poses(args.sequence, sfm_dir, opts, progress)
 
     def frames(work: Path):
         v = extract_frames(args.sequence, work / "images", args.video_every, args.video_motion, progress)
-        return v.folder, _kept(v.names, args.exclude_every)
+        return v.folder, _kept(v.names, every)
 
     return estimate_poses(None, sfm_dir, opts, progress, prepare=frames)
 
 
-def print_sfm_summary(p: dict) -> None:
-    """The build summary's lines of the estimated poses (``SfmResult.to_dict()``)."""
+def print_sfm_summary(p: dict, units: bool = True) -> None:
+    """The summary's lines of the estimated poses (``SfmResult.to_dict()``); ``units``: say the map's units (a
+    build; an extension keeps the map's)."""
     from .common import estimated_poses_line
 
     total = p["registered"] + len(p["unregistered"])
-    print(estimated_poses_line(p))
+    print(estimated_poses_line(p, units))
     print(
         f"registered          {p['registered']} of {total} frames  (mean reprojection error "
         f"{p['mean_reprojection_error_px']:.2f} px, {p['points']} points, {p['seconds']:.1f} s)"
