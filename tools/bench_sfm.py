@@ -7,14 +7,16 @@ For each set, every 5th frame is held out as a query and the rest are the mappin
 accuracy suite's holdout split). Two maps are built from the mapping frames with the build defaults:
 one with the shipped poses, one with poses estimated from the images alone (favormap.io.sfm, the
 poses withheld: what ``favormap build PHOTOS/`` does; exhaustive matching for the fox's 32 photos,
-sequential for the TUM recording). The estimated frame is put onto the shipped one by the similarity
-of the mapping cameras' centres (Umeyama); its residual says how well the two sets of poses agree.
-Each query is then localized against both maps from the same noise priors (10 % of the path extent
-and 10 deg off the shipped pose, moved into the estimated frame by the similarity for its map), each
-query's result the median over ``--priors`` priors, and its error measured in the shipped frame. The
-table gives the pose estimation's time, the alignment residual, both maps' median errors and the
-paired ratio (geometric mean over the queries of the estimated-pose map's error over the
-shipped-pose map's, with its 95 % bootstrap interval).
+sequential for the TUM recording; ``fox-camera``: the fox with its shipped camera given and held
+fixed, as ``--camera`` does). The estimated frame is put onto the shipped one by the similarity of
+the mapping cameras (their centres and orientations, Umeyama); its residual says how well the two
+sets of poses agree. Each query is then localized against both maps from the same noise priors (10 %
+of the path extent and 10 deg off the shipped pose, moved into the estimated frame by the similarity
+for its map), each query's result the median over ``--priors`` priors, and its error measured in the
+shipped frame. The table gives the pose estimation's time, the alignment residual, both maps' median
+errors and the paired ratio (geometric mean over the queries of the estimated-pose map's error over
+the shipped-pose map's, with its 95 % bootstrap interval). ``--reuse`` takes an earlier run's
+reconstructions and maps from ``--workdir``.
 """
 
 from __future__ import annotations
@@ -34,10 +36,12 @@ from accuracy.report import paired_ratio  # noqa: E402
 from accuracy.runners import build_or_load, median_over_priors  # noqa: E402
 from accuracy.splits import DATA, FOX, Split  # noqa: E402
 
-# name -> (folder, matcher): the sets measured
+# name -> (folder, matcher, known camera): the sets measured; a known camera: the shipped one given to the pose
+# estimation (--camera), held fixed, else estimated (one SIMPLE_RADIAL camera, COLMAP's default)
 SETS = {
-    "fox": (FOX, "exhaustive"),
-    "tum-desk": (DATA / "tum_fr1_desk_xyz" / "rgbd_dataset_freiburg1_desk", "sequential"),
+    "fox": (FOX, "exhaustive", False),
+    "fox-camera": (FOX, "exhaustive", True),
+    "tum-desk": (DATA / "tum_fr1_desk_xyz" / "rgbd_dataset_freiburg1_desk", "sequential", False),
 }
 HOLDOUT = 5
 PRIOR_SHARE, PRIOR_DEG = 0.10, 10.0  # the noise priors: share of the path extent, degrees
@@ -51,28 +55,55 @@ def holdout_split(name: str, root: Path) -> Split:
     return Split(name, seq.subset([i for i in range(n) if i % HOLDOUT]), seq.subset(list(range(0, n, HOLDOUT))))
 
 
-def estimate(split: Split, workdir: Path, matcher: str, threads: int | None):
-    """The SfmResult of the mapping frames' images, their shipped poses withheld."""
-    from favormap.io.sfm import SfmOptions, estimate_poses
+def estimate(split: Split, workdir: Path, matcher: str, camera, threads: int | None, reuse: bool):
+    """The SfmResult of the mapping frames' images, their shipped poses withheld (``reuse``: an earlier run's)."""
+    from favormap.io.sfm import MARKER, SfmOptions, estimate_poses, read_result
 
+    out = workdir / f"{split.name}.sfm"
+    if reuse and (out / MARKER).is_file():
+        return read_result(out)
     folders = {Path(f.image_path).parent for f in split.mapping.frames}
     if len(folders) != 1:
         raise SystemExit(f"{split.name}: the mapping images lie in {len(folders)} folders; one expected")
     names = [Path(f.image_path).name for f in split.mapping.frames]
-    opts = SfmOptions(matcher=matcher, image_names=names, threads=threads)
-    return estimate_poses(folders.pop(), workdir / f"{split.name}.sfm", opts)
+    opts = SfmOptions(matcher=matcher, camera=camera, image_names=names, threads=threads)
+    return estimate_poses(folders.pop(), out, opts)
 
 
-def alignment(sfm, split: Split) -> tuple[np.ndarray, np.ndarray]:
-    """(S, residuals): the similarity taking the estimated mapping camera centres onto the shipped ones, and
-    each registered camera's distance from its shipped centre after it (shipped units)."""
-    from favormap.geometry import camera_centers, transform_points, umeyama
+def scene_depth(sfm) -> float:
+    """The median depth of the reconstruction's points in the cameras that see them (its units)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(sfm.reconstruction_path))
+    depths = []
+    for im in rec.images.values():
+        T = im.cam_from_world().matrix()
+        X = np.array([rec.point3D(p.point3D_id).xyz for p in im.points2D if p.has_point3D()])
+        if len(X):
+            depths.append(X @ T[2, :3] + T[2, 3])
+    return float(np.median(np.concatenate(depths)))
+
+
+def alignment(sfm, split: Split) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S, centre residuals, rotation residuals in deg): the similarity taking the estimated mapping cameras onto
+    the shipped ones, fitted to their centres and orientations (each camera's centre and three points the
+    scene's median depth along its axes, Umeyama: the centres alone leave the rotation about a flat or straight
+    path loose), and each registered camera's distance from its shipped centre after it (shipped units) and
+    angle from its shipped orientation."""
+    from favormap.geometry import camera_centers, move_poses, rotation_angle_deg, umeyama
 
     shipped = {Path(f.image_path).name: f.cam_from_world for f in split.mapping.frames}
-    est = camera_centers(np.stack([f.cam_from_world for f in sfm.sequence.frames]))
-    gt = camera_centers(np.stack([shipped[f.name] for f in sfm.sequence.frames]))
-    S = umeyama(est, gt)
-    return S, np.linalg.norm(transform_points(S, est) - gt, axis=1)
+    est = np.stack([f.cam_from_world for f in sfm.sequence.frames])
+    gt = np.stack([shipped[f.name] for f in sfm.sequence.frames])
+    c_est, c_gt = camera_centers(est), camera_centers(gt)
+    scale = np.cbrt(np.linalg.det(umeyama(c_est, c_gt)[:3, :3]))  # the lever in each frame's units
+    lever = scene_depth(sfm)
+    src = np.concatenate([c_est[:, None], c_est[:, None] + lever * est[:, :3, :3]], 1).reshape(-1, 3)
+    dst = np.concatenate([c_gt[:, None], c_gt[:, None] + lever * scale * gt[:, :3, :3]], 1).reshape(-1, 3)
+    S = umeyama(src, dst)
+    moved = move_poses(est, S)
+    turn = rotation_angle_deg(np.einsum("nij,nkj->nik", moved[:, :3, :3], gt[:, :3, :3]))
+    return S, np.linalg.norm(camera_centers(moved) - c_gt, axis=1), turn
 
 
 def localize_all(map_path: Path, split: Split, S: np.ndarray | None, extent: float, n_priors: int) -> np.ndarray:
@@ -103,18 +134,19 @@ def run_set(name: str, args) -> dict:
     from favormap.build import BuildConfig
     from favormap.geometry import camera_centers
 
-    root, matcher = SETS[name]
+    root, matcher, known = SETS[name]
     split = holdout_split(name, root)
+    camera = next(iter(split.mapping.cameras.values())) if known else None
     centres = camera_centers(np.stack([f.cam_from_world for f in split.mapping.frames]))
     extent = float(np.linalg.norm(np.ptp(centres, axis=0)))
     print(f"{name}: {len(split.mapping)} mapping frames, {len(split.queries)} queries", file=sys.stderr)
-    sfm = estimate(split, args.workdir, matcher, args.threads)
-    S, residual = alignment(sfm, split)
+    sfm = estimate(split, args.workdir, matcher, camera, args.threads, args.reuse)
+    S, residual, turn = alignment(sfm, split)
     config = BuildConfig(threads=args.threads)
     shipped_map, _ = build_or_load(split, args.workdir, config, args.reuse, tag="-shipped")
     sfm_split = Split(name, sfm.sequence, split.queries)
     t = time.perf_counter()
-    sfm_map, _ = build_or_load(sfm_split, args.workdir, config, False, tag="-estimated")
+    sfm_map, _ = build_or_load(sfm_split, args.workdir, config, args.reuse, tag="-estimated")
     build_s = time.perf_counter() - t
     e_shipped = localize_all(shipped_map, split, None, extent, args.priors)
     e_sfm = localize_all(sfm_map, split, S, extent, args.priors)
@@ -126,6 +158,7 @@ def run_set(name: str, args) -> dict:
         "registered": len(sfm.registered),
         "unregistered": sfm.unregistered,
         "matcher": sfm.matcher,
+        "camera": "shipped, fixed" if known else "estimated",
         "sfm_seconds": round(sfm.seconds, 1),
         "sfm_reprojection_px": round(sfm.mean_reprojection_error_px, 3),
         "estimated_map_build_seconds": round(build_s, 1),
@@ -133,6 +166,7 @@ def run_set(name: str, args) -> dict:
         "alignment_scale": round(float(np.cbrt(np.linalg.det(S[:3, :3]))), 5),
         "alignment_residual_median": float(np.median(residual)),
         "alignment_residual_max": float(residual.max()),
+        "alignment_rotation_median_deg": float(np.median(turn)),
         "shipped": _stats(e_shipped),
         "estimated": _stats(e_sfm),
         "ratio": None if ratio is None else {k: ratio[k] for k in ("queries", "ratio", "ci95", "lower", "higher")},
@@ -151,7 +185,8 @@ def _stats(e: np.ndarray) -> dict:
 
 def table(rows: list[dict]) -> str:
     out = [
-        "| set | registered | SfM s | residual (median / max, % of path) | shipped-pose map: localized, median "
+        "| set | registered | SfM s | residual: centres (median / max, % of path), rotation (median) | "
+        "shipped-pose map: localized, median "
         "t / R | estimated-pose map: localized, median t / R | ratio [95 % CI] |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -161,7 +196,8 @@ def table(rows: list[dict]) -> str:
         ratio = "n/a" if x is None else f"{x['ratio']:.3f} [{x['ci95'][0]:.3f}, {x['ci95'][1]:.3f}]"
         out.append(
             f"| {r['set']} | {r['registered']}/{r['mapping_frames']} | {r['sfm_seconds']:.0f} | "
-            f"{r['alignment_residual_median'] * pct:.2f} / {r['alignment_residual_max'] * pct:.2f} | "
+            f"{r['alignment_residual_median'] * pct:.2f} / {r['alignment_residual_max'] * pct:.2f} %, "
+            f"{r['alignment_rotation_median_deg']:.3f} deg | "
             f"{_cell(a, r['queries'])} | {_cell(b, r['queries'])} | {ratio} |"
         )
     return "\n".join(out)
@@ -177,7 +213,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="fox", help=f"comma-separated: {', '.join(SETS)} (default fox)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/favormap-bench-sfm"))
-    ap.add_argument("--reuse", action="store_true", help="reuse the shipped-pose maps of an earlier run")
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="reuse an earlier run's reconstructions and maps (pose estimation time: the earlier run's)",
+    )
     ap.add_argument("--priors", type=int, default=3, help="noise priors per query (default 3)")
     ap.add_argument("--threads", type=int, default=None, help="threads of pose estimation and build")
     ap.add_argument("--json", type=Path, help="write the rows here")

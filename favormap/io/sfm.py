@@ -303,6 +303,36 @@ def estimate_poses(
     return result
 
 
+def read_result(out) -> SfmResult:
+    """The SfmResult of the reconstruction an earlier :func:`estimate_poses` wrote to ``out``."""
+    import pycolmap
+
+    out = Path(out).absolute()
+    try:
+        note = json.loads((out / MARKER).read_text())
+        rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    except (OSError, ValueError, RuntimeError) as e:
+        raise InputError(f"{out} holds no reconstruction of favormap ({e})") from None
+    image_dir = Path(note["image_dir"])
+    seq = sequence_from_reconstruction(rec, image_dir)
+    seq.extra["sfm"] = {"reconstruction": str(out / "sparse" / "0")}
+    return SfmResult(
+        sequence=seq,
+        reconstruction_path=out / "sparse" / "0",
+        image_dir=image_dir,
+        registered=[f.name for f in seq.frames],
+        unregistered=list(note["unregistered"]),
+        mean_reprojection_error_px=float(note["mean_reprojection_error_px"]),
+        mapper=note["mapper"],
+        matcher=note["matcher"],
+        num_models=int(note["models"]),
+        num_points=int(note["points"]),
+        scale=note["scale"],
+        seconds=float(note["seconds"]),
+        other_models=list(note["other_models_registered"]),
+    )
+
+
 def _result(models, names, out, image_dir, matcher, opts, seconds) -> SfmResult:
     rec = models[0]
     seq = sequence_from_reconstruction(rec, image_dir)
