@@ -65,6 +65,11 @@ def test_estimated_poses_agree_with_the_truth_up_to_a_similarity(sfm, small_sequ
     assert colmap.find_model(sfm.reconstruction_path.parent.parent) == sfm.reconstruction_path
     note = json.loads((sfm.reconstruction_path.parent.parent / "favormap-sfm.json").read_text())
     assert note["registered"] == len(truth) and note["units"] == "arbitrary"
+    from favormap.io.sfm import read_result
+
+    again = read_result(sfm.reconstruction_path.parent.parent)
+    assert again.to_dict() == sfm.to_dict()
+    np.testing.assert_allclose(np.stack([f.cam_from_world for f in again.sequence.frames]), est)
 
 
 def test_query_localizes_against_the_map_of_unposed_images(sfm, small_sequence, tmp_path):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FavormapError, InputError
+from ..errors import FavormapError, InputError, first_line
 from ..geometry import from_rigid3d
 from .types import SUPPORTED_MODELS, Camera, Frame, Sequence
 
@@ -287,7 +287,10 @@ def estimate_poses(
             raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
         _check_camera(opts.camera, image_dir / names[0])
         matcher = opts.resolved_matcher(len(names))
-        models = _reconstruct(image_dir, names, work, opts, matcher, report)
+        try:
+            models = _reconstruct(image_dir, names, work, opts, matcher, report)
+        except (RuntimeError, ValueError) as e:  # pycolmap's failures (an unreadable database, ...)
+            raise FavormapError(f"pose estimation of the images of {image_dir} failed: {first_line(e)}") from None
         if not models or models[0].num_reg_images() == 0:
             raise PosesNotFound(
                 f"no pose could be estimated for any of the {len(names)} images of {image_dir} (too little overlap "
