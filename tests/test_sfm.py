@@ -101,7 +101,7 @@ def test_query_localizes_against_the_map_of_unposed_images(sfm, small_sequence, 
 
 def test_video_builds_a_map_in_arbitrary_units(small_sequence, tmp_path):
     video = tmp_path / "room.avi"
-    frames = [cv2.imread(str(f.image_path)) for f in small_sequence.frames]
+    frames = [cv2.imread(str(f.image_path)) for f in small_sequence.frames[:10]]
     h, w = frames[0].shape[:2]
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
     for im in frames:
@@ -115,7 +115,7 @@ def test_video_builds_a_map_in_arbitrary_units(small_sequence, tmp_path):
     s = json.loads(r.stdout)
     assert s["poses"]["registered"] == len(frames) and s["poses"]["matcher"] == "sequential"
     assert s["poses"]["units"] == "arbitrary" and s["frames"] == len(frames)
-    assert (tmp_path / "video.h5.sfm" / "images" / "frame_000030.jpg").is_file()
+    assert (tmp_path / "video.h5.sfm" / "images" / "frame_000018.jpg").is_file()
     info = favormap("info", out)
     assert info.returncode == 0 and "units arbitrary" in info.stdout, info.stdout
 
