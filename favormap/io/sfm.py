@@ -3,7 +3,8 @@
 SIFT features are extracted from every image into a COLMAP database, matched (``sequential``: each
 image with the images that follow it, for video and ordered captures; ``exhaustive``: every pair,
 for small unordered sets; ``auto``: exhaustive up to ``EXHAUSTIVE_MAX`` images, sequential above),
-and COLMAP's incremental mapper poses the images it can. The reconstruction is written in COLMAP's
+and COLMAP's incremental mapper poses the images it can; an estimated camera shared by all images is then
+refined once more with its principal point (:func:`refine_camera`). The reconstruction is written in COLMAP's
 layout to a folder of its own, so that COLMAP's GUI opens it::
 
     DIR/database.db            features and matches
@@ -92,6 +93,7 @@ class SfmResult:
     scale: float | None
     seconds: float
     other_models: list[int] = field(default_factory=list)  # registered images of the models not used
+    camera_refined: bool = False  # the final adjustment of the camera kept (refine_camera)
 
     @property
     def units(self) -> str:
@@ -111,6 +113,7 @@ class SfmResult:
             "points": self.num_points,
             "models": self.num_models,
             "other_models_registered": list(self.other_models),
+            "camera_refined": self.camera_refined,
             "units": self.units,
             "scale": self.scale,
             "seconds": round(self.seconds, 2),
@@ -215,6 +218,41 @@ def _reconstruct(image_dir: Path, names: list[str], work: Path, opts: SfmOptions
     return sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
 
 
+# the final refinement of an estimated camera is kept when its principal point stays this share of the image's
+# size from the centre and the reprojection error does not grow
+PRINCIPAL_POINT_SHARE = 0.1
+
+
+def refine_camera(rec):
+    """``rec`` (one estimated SIMPLE_RADIAL camera) after a final bundle adjustment with the principal point free
+    and the camera as OPENCV (two focal lengths, two radial and two tangential terms): COLMAP's incremental
+    mapper holds the principal point at the image centre, a phone's lies pixels away, and the cameras then turn
+    by a fraction of a degree against their true orientations. A new reconstruction, or None (``rec`` is
+    kept) when the principal point leaves the centre by more than PRINCIPAL_POINT_SHARE of the image or the
+    reprojection error grows."""
+    import pycolmap
+
+    if len(rec.cameras) != 1 or next(iter(rec.cameras.values())).model.name != "SIMPLE_RADIAL":
+        return None
+    out = pycolmap.Reconstruction(rec)
+    cid, cam = next(iter(out.cameras.items()))
+    f, cx, cy, k = cam.params
+    out.cameras[cid] = pycolmap.Camera(
+        model="OPENCV", width=cam.width, height=cam.height, params=[f, f, cx, cy, k, 0, 0, 0], camera_id=cid
+    )
+    from ..pose_refinement import quiet_colmap
+
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_principal_point = True
+    options.print_summary = False
+    with quiet_colmap("FATAL"):
+        pycolmap.bundle_adjustment(out, options)
+    c = out.cameras[cid]
+    off = np.abs(np.array(c.params[2:4]) - [c.width / 2, c.height / 2]) / [c.width, c.height]
+    keep = np.all(off <= PRINCIPAL_POINT_SHARE)
+    return out if keep and out.compute_mean_reprojection_error() <= rec.compute_mean_reprojection_error() else None
+
+
 def _camera(c) -> Camera:
     model = c.model.name
     if model not in SUPPORTED_MODELS:
@@ -296,9 +334,12 @@ def estimate_poses(
                 f"no pose could be estimated for any of the {len(names)} images of {image_dir} (too little overlap "
                 "between them, too little texture, or a camera that moves too little)"
             )
+        refined = None if opts.camera is not None or opts.camera_per_image else refine_camera(models[0])
+        models[0] = refined or models[0]
         _write(models, work, opts)
         final_dir = out / image_dir.relative_to(work) if image_dir.is_relative_to(work) else image_dir
         result = _result(models, names, out, final_dir, matcher, opts, time.perf_counter() - t0)
+        result.camera_refined = refined is not None
         (work / MARKER).write_text(json.dumps(result.to_dict(), indent=1) + "\n")
         _commit(work, out)
     finally:
@@ -333,6 +374,7 @@ def read_result(out) -> SfmResult:
         scale=note["scale"],
         seconds=float(note["seconds"]),
         other_models=list(note["other_models_registered"]),
+        camera_refined=bool(note.get("camera_refined", False)),
     )
 
 
