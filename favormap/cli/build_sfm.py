@@ -105,7 +105,7 @@ def estimate_poses_from_args(args, out: Path, progress):
     from ..io.sfm import SfmOptions, check_output, default_output, estimate_poses, list_images
     from ..io.video import extract_frames
 
-    kind = unposed_kind(args.sequence)
+    kind = None if getattr(args, "format", None) else unposed_kind(args.sequence)  # --format: a posed sequence
     _check_args(args, kind)
     if kind is None:
         return None
