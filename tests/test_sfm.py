@@ -181,7 +181,7 @@ def test_bad_options_of_unposed_images(small_sequence, tmp_path, args, message):
 
 def test_sfm_options_on_a_posed_sequence_are_refused(small_sequence, tmp_path):
     r = favormap("build", small_sequence.root, "-o", tmp_path / "m.h5", "--scale", "2")
-    assert r.returncode != 0 and "applies to images without poses" in r.stderr, r.stderr
+    assert r.returncode != 0 and "--scale applies to images without poses" in r.stderr, r.stderr
 
 
 def test_extend_with_images_without_poses(small_map, small_sequence, tmp_path):

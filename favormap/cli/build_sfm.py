@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+VIDEO_MOTION = 0.05  # the default of io.video.extract_frames (not imported here: the CLI starts without OpenCV)
+
 
 def add_sfm_args(p, scale: bool = True, then: str = "the build") -> None:
     """The options of images without poses; ``scale``: with --scale (a build; extend takes the map's units)."""
@@ -52,7 +54,7 @@ def add_sfm_args(p, scale: bool = True, then: str = "the build") -> None:
     g.add_argument(
         "--video-motion",
         type=float,
-        default=0.05,
+        default=VIDEO_MOTION,
         metavar="F",
         help="video: keep a frame when tracked corners have moved F times the image width since the last kept "
         "one (median; default %(default)s)",
@@ -60,7 +62,7 @@ def add_sfm_args(p, scale: bool = True, then: str = "the build") -> None:
 
 
 def unposed_kind(path) -> str | None:
-    """ "video", "images" (a folder of images in no sequence format) or None (a posed sequence)."""
+    """What ``path`` holds: "video", "images" (a folder of images in no sequence format) or None (a sequence)."""
     from ..io import detect_format_or_none
     from ..io.sfm import list_images
     from ..io.video import is_video
@@ -84,9 +86,10 @@ def _check_args(args, kind: str | None) -> None:
         )
         if given:
             raise InputError(
-                f"--{given[0].replace('_', '-')} applies to images without poses; {args.sequence} has poses"
+                f"--{given[0].replace('_', '-')} applies to images without poses (a folder of images in no sequence "
+                f"format, or a video), not to {args.sequence}"
             )
-    if kind != "video" and (args.video_every or args.video_motion != 0.05):
+    if kind != "video" and (args.video_every or args.video_motion != VIDEO_MOTION):
         raise InputError(f"--video-every and --video-motion apply to a video, not to {args.sequence}")
     if args.video_every < 0:
         raise InputError(f"--video-every must be >= 1 (or 0: by motion), not {args.video_every}")
