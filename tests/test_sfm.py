@@ -99,15 +99,20 @@ def test_query_localizes_against_the_map_of_unposed_images(sfm, small_sequence, 
     assert np.median(errs[:, 0]) <= 0.01 and np.median(errs[:, 1]) <= 0.3, errs
 
 
+def write_video(path, frames, repeat: int) -> None:
+    """A Motion-JPEG video of ``frames``, each shown ``repeat`` times (a still camera between moves)."""
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+    for im in frames:
+        for _ in range(repeat):
+            writer.write(im)
+    writer.release()
+
+
 def test_video_builds_a_map_in_arbitrary_units(small_sequence, tmp_path):
     video = tmp_path / "room.avi"
     frames = [cv2.imread(str(f.image_path)) for f in small_sequence.frames[:10]]
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
-    for im in frames:
-        for _ in range(2):  # each view twice: a still camera between moves
-            writer.write(im)
-    writer.release()
+    write_video(video, frames, 2)
     out = tmp_path / "video.h5"
     args = ("--quality", "quick", "--max-keypoints", 1024, "--max-landmarks", 400, "--threads", 2, "--json")
     r = favormap("build", video, "-o", out, "--video-every", 2, *args)
@@ -124,13 +129,7 @@ def test_video_frames_by_motion_skip_a_still_camera(small_sequence, tmp_path):
     from favormap.io.video import extract_frames
 
     video = tmp_path / "still.avi"
-    frames = [cv2.imread(str(f.image_path)) for f in small_sequence.frames[:6]]
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
-    for im in frames:
-        for _ in range(3):
-            writer.write(im)
-    writer.release()
+    write_video(video, [cv2.imread(str(f.image_path)) for f in small_sequence.frames[:6]], 3)
     v = extract_frames(video, tmp_path / "frames", motion=0.01)
     assert v.frames_read == 18
     assert 2 <= len(v.names) <= 6 and all(n % 3 == 0 for n in v.frame_numbers), v.frame_numbers
