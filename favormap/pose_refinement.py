@@ -260,12 +260,12 @@ def _rms(lms: Landmarks, cam_from_world: np.ndarray, cameras: list[Camera], posi
 
 
 @contextlib.contextmanager
-def quiet_colmap():
-    """COLMAP's glog output at ERROR only, for the duration of the block."""
+def quiet_colmap(level: str = "ERROR"):
+    """COLMAP's glog output at ``level`` (ERROR, FATAL) only, for the duration of the block."""
     import pycolmap
 
     old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
+    pycolmap.logging.minloglevel = int(getattr(pycolmap.logging.Level, level))
     try:
         yield
     finally:

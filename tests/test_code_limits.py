@@ -12,12 +12,6 @@ MAX_MODULE_LINES = 450
 MAX_FUNCTION_LINES = 80
 LONG_MARK = "# long:"
 
-# offenders in modules being split elsewhere right now ("path" for a module, "path:function" for a
-# function): they must shrink off this list, and nothing may join it
-PENDING = {
-    "favormap/cli/build.py:register",
-}
-
 
 def _functions(tree: ast.AST, prefix: str = ""):
     """(qualified name, node) of every function and method, nested ones included."""
@@ -65,14 +59,8 @@ def offenders() -> dict[str, str]:
 
 
 def test_modules_and_functions_within_the_limits():
-    found = {k: v for k, v in offenders().items() if k not in PENDING}
+    found = offenders()
     assert not found, "split these along their stages:\n" + "\n".join(f"  {k}: {v}" for k, v in found.items())
-
-
-def test_pending_offenders_still_exist():
-    """An entry of PENDING that no longer breaks a limit leaves the list."""
-    stale = PENDING - set(offenders())
-    assert not stale, f"no longer over the limits, remove from PENDING: {sorted(stale)}"
 
 
 def test_the_long_mark_is_read_from_the_first_body_line():

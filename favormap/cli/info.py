@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .common import human_size, print_json, reproj_error_line
+from .common import estimated_poses_line, human_size, print_json, reproj_error_line
 
 
 def register(sub):
@@ -43,6 +43,8 @@ def run(args) -> int:
     if info["aligns_by_default"]:
         why = "built with --exact-poses" if info["exact_poses"] else f"{info['extractor']} keypoints"
         print(f"keypoint alignment  on by default in localize ({why}; --no-align turns it off)")
+    if info["estimated_poses"]:
+        print(estimated_poses_line(info["estimated_poses"]))
     print(f"file size           {human_size(info['file_size'])}")
     from ..mapfile.reader import DEFAULT_CACHE_BYTES
 

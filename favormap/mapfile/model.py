@@ -49,6 +49,14 @@ def map_aligns_by_default(provenance: dict | None) -> bool:
     return bool((provenance or {}).get("localize_defaults", {}).get("align", False))
 
 
+def map_estimated_poses(provenance: dict | None) -> dict | None:
+    """How the map's poses were estimated from its images (:meth:`favormap.io.sfm.SfmResult.to_dict`: mapper,
+    frames registered, ``units`` "arbitrary" or "scaled" by ``scale``), or None: poses given with the images,
+    in their units."""
+    poses = (provenance or {}).get("poses")
+    return dict(poses) if isinstance(poses, dict) and poses.get("source") == "sfm" else None
+
+
 def median_landmark_reproj_error(reproj_error, track_length=None) -> float | None:
     """The map's reprojection-error figure, one definition for build's summary and ``info``: the
     median over landmarks of each landmark's mean reprojection error over its observations (px), over

@@ -13,7 +13,14 @@ import numpy as np
 from ..errors import FavormapError, InputError, MapFormatError, first_line
 from ..io import Camera
 from .fields import bulk_datasets, field_name, metadata_datasets
-from .model import MapCounts, MapData, built_for_exact_poses, map_aligns_by_default, median_landmark_reproj_error
+from .model import (
+    MapCounts,
+    MapData,
+    built_for_exact_poses,
+    map_aligns_by_default,
+    map_estimated_poses,
+    median_landmark_reproj_error,
+)
 from .schema import FORMAT, MapView, check_structure, check_values, open_view
 
 
@@ -257,6 +264,8 @@ class Map(MapCounts):
             "median_psnr": float(np.median(self.quality)) if len(self) else None,
             "bbox": [self.positions.min(0).tolist(), self.positions.max(0).tolist()] if len(self) else None,
             "build_stats": st,
+            # poses estimated from the images (build of unposed images): how, and the units (None: poses given)
+            "estimated_poses": map_estimated_poses(self.provenance),
         }
 
     # -- lazy voxel access -------------------------------------------------------------------------
