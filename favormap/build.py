@@ -54,7 +54,7 @@ from .mapfile.model import MapData
 from .pose_refinement import refine_poses
 from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
-from .triangulation import Landmarks, TriangulationConfig, refine_observations, triangulate
+from .triangulation import Landmarks, refine_observations, triangulate
 from .voxels import TrainingRays
 from .voxels.batches import TrainTask, batch_bounds, rays_subset, train_batch, train_batches
 from .voxels.config import VoxelGrids, voxel_config_for
@@ -169,8 +169,7 @@ def refine_mapping_poses(lms: Landmarks, ff: FrameFeatures, config: BuildConfig,
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
     """The build's triangulation stage: every track that triangulates (before :func:`select_landmarks`)."""
-    tri_cfg = TriangulationConfig(config.max_reproj_px, config.min_angle_deg, min_track=config.min_track)
-    return triangulate(tracks, ff.cam_from_world, np.stack([c.K for c in ff.cameras]), tri_cfg)
+    return triangulate(tracks, ff.cam_from_world, np.stack([c.K for c in ff.cameras]), config.triangulation())
 
 
 def landmark_budget(

@@ -101,6 +101,13 @@ class BuildConfig:
             self.refine_window = self.refine_window or EXACT_POSES_REFINE_WINDOW
             self.align_patches = self.align_patches or EXACT_POSES_PATCHES
 
+    def triangulation(self):
+        """This build's triangulation settings (:class:`favormap.triangulation.TriangulationConfig`), for
+        the build and for an extension of its map."""
+        from .triangulation import TriangulationConfig
+
+        return TriangulationConfig(self.max_reproj_px, self.min_angle_deg, min_track=self.min_track)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("threads")

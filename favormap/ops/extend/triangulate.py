@@ -63,10 +63,10 @@ def regrow(m, att: Attachment, ff, frames: Frames, cfg) -> tuple[Landmarks | Non
     its new observations fit. The existing observations carry their observation row as keypoint index (so
     their stored patches can be found)."""
     from ...tracking import Tracks
-    from ...triangulation import TriangulationConfig, triangulate
+    from ...triangulation import triangulate
 
     L0, M0 = m.num_landmarks, m.num_frames
-    tri_cfg = TriangulationConfig(cfg.max_reproj_px, cfg.min_angle_deg, min_track=cfg.min_track)
+    tri_cfg = cfg.triangulation()
     grown = np.unique(att.landmark)
     old_tl, old_tf, old_xy = np.asarray(m.track_landmark), np.asarray(m.track_frame), np.asarray(m.track_xy)
     slot = np.full(L0, -1, np.int64)
