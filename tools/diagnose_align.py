@@ -41,16 +41,8 @@ from favormap.ops.align_refine import (  # noqa: E402
     _residuals,
     guided_matches,
     refine_alignment,
+    rotation_jacobian,
 )
-
-
-def _skew_jacobian(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3): d (R v) / d rotation vector at R = I, i.e. -[v]x."""
-    J = np.zeros((len(v), 3, 3))
-    J[:, 0, 1], J[:, 0, 2] = v[:, 2], -v[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = -v[:, 2], v[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = v[:, 1], -v[:, 0]
-    return J
 
 
 def fit(P: _Problem, X, a_to_b, offset, free_similarity: bool, free_offset: bool, c: float, iterations: int = 40):
@@ -79,9 +71,9 @@ def fit(P: _Problem, X, a_to_b, offset, free_similarity: bool, free_offset: bool
         Dp = (P.focal / z)[:, None, None] * dproj
         J_Y = Dp @ (offset[:3, :3] @ P.cam_from_world[:, :3, :3])
         J_X = np.where(P.from_b[:, None, None], J_Y @ a_to_b[:3, :3], J_Y)
-        dY = np.concatenate([_skew_jacobian(Y), np.broadcast_to(np.eye(3), (len(Y), 3, 3)), Y[:, :, None]], 2)
+        dY = np.concatenate([rotation_jacobian(Y), np.broadcast_to(np.eye(3), (len(Y), 3, 3)), Y[:, :, None]], 2)
         J_S = np.where(P.from_b[:, None, None], J_Y @ dY, 0.0) * free_similarity
-        J_E = Dp @ np.concatenate([_skew_jacobian(xc), np.broadcast_to(np.eye(3), (len(xc), 3, 3))], 2) * free_offset
+        J_E = Dp @ np.concatenate([rotation_jacobian(xc), np.broadcast_to(np.eye(3), (len(xc), 3, 3))], 2) * free_offset
         J_G = np.concatenate([J_S, J_E], 2)
         wG, wX = w[:, None, None] * J_G, w[:, None, None] * J_X
         H_GG = wG.reshape(-1, 13).T @ J_G.reshape(-1, 13)

@@ -193,9 +193,7 @@ def _step(P: _Problem, X: np.ndarray, a_to_b: np.ndarray, c: float, weight: np.n
     sR = a_to_b[:3, :3]
     J_X = np.where(P.from_b[:, None, None], J_Y @ sR, J_Y)
     dY = np.zeros((len(z), 3, 7))  # d Y / d (rotation vector, translation, log-scale)
-    dY[:, 0, 1], dY[:, 0, 2] = Y[:, 2], -Y[:, 1]
-    dY[:, 1, 0], dY[:, 1, 2] = -Y[:, 2], Y[:, 0]
-    dY[:, 2, 0], dY[:, 2, 1] = Y[:, 1], -Y[:, 0]
+    dY[:, :, :3] = rotation_jacobian(Y)
     dY[:, :, 3:6] = np.eye(3)
     dY[:, :, 6] = Y
     J_S = np.where(P.from_b[:, None, None], J_Y @ dY, 0.0)
@@ -214,6 +212,15 @@ def _step(P: _Problem, X: np.ndarray, a_to_b: np.ndarray, c: float, weight: np.n
     d_S = -np.linalg.solve(H_red + 1e-12 * np.eye(7), g_red)
     d_X = -(H_XX_inv @ (g_X + np.swapaxes(H_SX, 1, 2) @ d_S)[:, :, None])[:, :, 0]
     return d_S, d_X
+
+
+def rotation_jacobian(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): d (R v) / d (rotation vector) at R = I for points ``v`` (N, 3), i.e. -[v]x."""
+    J = np.zeros((len(v), 3, 3))
+    J[:, 0, 1], J[:, 0, 2] = v[:, 2], -v[:, 1]
+    J[:, 1, 0], J[:, 1, 2] = -v[:, 2], v[:, 0]
+    J[:, 2, 0], J[:, 2, 1] = v[:, 1], -v[:, 0]
+    return J
 
 
 def _apply(a_to_b: np.ndarray, d_S: np.ndarray) -> np.ndarray:
