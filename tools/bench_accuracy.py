@@ -100,6 +100,7 @@ from accuracy.runners import (
 )
 from accuracy.splits import (
     ANGLE_BINS,
+    BLURRED_SPLITS,
     CROSS_PRIORS,
     CROSS_SPLITS,
     DATA,
@@ -162,6 +163,7 @@ __all__ = [
     "same_build",
     # accuracy/splits.py
     "ANGLE_BINS",
+    "BLURRED_SPLITS",
     "CROSS_PRIORS",
     "CROSS_SPLITS",
     "DATA",
@@ -387,7 +389,7 @@ def main():
         splits.append(Split("custom", mapping, queries, nearest_view_angle(queries, mapping)))
     else:
         which = args.splits.split(",")
-        real = [w for w in which if w in REAL_SPLITS or w in EXTRA_SPLITS or w in CROSS_SPLITS]
+        real = [w for w in which if w in REAL_SPLITS or w in EXTRA_SPLITS or w in CROSS_SPLITS or w in BLURRED_SPLITS]
         if args.suite or any(w not in ("fox-holdout", "fox-extrap") for w in real):
             splits += real_splits(real)
         else:

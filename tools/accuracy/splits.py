@@ -113,12 +113,17 @@ CROSS_SPLITS = {
         (0.10, 10.0),
     ),
 }
+# a cross-recording split whose queries are motion-blurred: name -> (the split, blur length range in px). A
+# handheld camera turning at 30-100 deg/s smears a Kinect frame (~20 ms exposure, 517 px focal) over 5-20 px;
+# each query gets a straight blur of a length and direction drawn once (seeded), the map and the baseline
+# are the unblurred split's
+BLURRED_SPLITS = {"tum-desk-xyz-blur": ("tum-desk-xyz", (6.0, 20.0))}
 # the prior modes every cross-recording split runs: none, the nearest mapping frame (what image retrieval would
 # give) and the noise prior
 CROSS_PRIORS = ("noise", "nearest", "none")
 SUITES = {
-    "real": list(REAL_SPLITS) + list(CROSS_SPLITS),
-    "cross": list(CROSS_SPLITS),
+    "real": list(REAL_SPLITS) + list(CROSS_SPLITS) + list(BLURRED_SPLITS),
+    "cross": list(CROSS_SPLITS) + list(BLURRED_SPLITS),
     "real-quick": ["7scenes-holdout", "cup-holdout", "castle-holdout", "dino-holdout", "fern-holdout"],
     "7scenes-pgt": ["7scenes-holdout", "7scenes-sparse", "7scenes-holdout-pgt", "7scenes-sparse-pgt"],
 }
@@ -147,6 +152,9 @@ def real_splits(which: list[str]) -> list[Split]:
     for name in which:
         if name in CROSS_SPLITS:
             out += cross_split(name)
+            continue
+        if name in BLURRED_SPLITS:
+            out += blurred_split(name)
             continue
         spec = REAL_SPLITS.get(name) or EXTRA_SPLITS.get(name)
         if spec is None:
@@ -203,6 +211,49 @@ def cross_split(name: str) -> list[Split]:
     sp.priors, sp.cross = CROSS_PRIORS, True
     sp.angle = nearest_view_angle(queries, mapping)
     return [sp]
+
+
+def blurred_split(name: str, seed: int = 0) -> list[Split]:
+    """The cross-recording split of BLURRED_SPLITS ``name``: its base split with every query image blurred
+    along a straight line (length and direction drawn per query from ``seed``), the images written once to a
+    folder under the temporary directory; the map and baseline files are the base split's."""
+    import tempfile
+
+    import cv2
+
+    base, (lo, hi) = BLURRED_SPLITS[name]
+    splits = cross_split(base)
+    if not splits:
+        return []
+    sp = splits[0]
+    folder = Path(tempfile.gettempdir()) / "favormap-bench-blur" / f"{name}-{lo:g}-{hi:g}-{seed}"
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    frames = []
+    for f in sp.queries.frames:
+        length, angle = rng.uniform(lo, hi), rng.uniform(0.0, np.pi)
+        path = folder / (Path(f.name).stem + ".png")
+        if not path.exists():
+            img = cv2.imread(str(f.image_path), cv2.IMREAD_UNCHANGED)
+            tmp = path.with_suffix(".part.png")
+            cv2.imwrite(str(tmp), cv2.filter2D(img, -1, line_kernel(length, angle)))
+            tmp.replace(path)
+        frames.append(dataclasses.replace(f, image_path=path))
+    queries = dataclasses.replace(sp.queries, frames=frames)
+    out = dataclasses.replace(sp, name=name, queries=queries, map_name=base)
+    return [out]
+
+
+def line_kernel(length: float, angle: float) -> np.ndarray:
+    """A normalised straight motion-blur kernel of ``length`` px at ``angle`` (radians), anti-aliased."""
+    import cv2
+
+    r = int(np.ceil(length / 2)) + 1
+    k = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+    d = np.array([np.cos(angle), np.sin(angle)]) * length / 2
+    a, b = np.round(r - d).astype(int), np.round(r + d).astype(int)
+    cv2.line(k, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 1.0, 1, cv2.LINE_AA)
+    return k / k.sum()
 
 
 def with_pseudo_ground_truth(seq, path: Path):
