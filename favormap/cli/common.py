@@ -108,7 +108,7 @@ def estimated_poses_line(poses: dict, units: bool = True) -> str:
         a = poses.get("anchors") or {}
         return line + (
             f"; units: metres, in the frame of {a.get('anchors', '?')} anchor poses (scale {poses['scale']:.6g}, "
-            f"camera centres off by {a.get('residual_rms', float('nan')):.3g} RMS)"
+            f"camera centres off by {a.get('residual_rms', float('nan')):.3g} m RMS)"
         )
     if poses.get("units") == "scaled":
         return line + f"; units: the reconstruction's times {poses['scale']:g}"
