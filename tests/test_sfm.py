@@ -209,3 +209,106 @@ def test_extend_with_images_without_poses(small_map, small_sequence, tmp_path):
     # to the alignment of six frames' landmarks with the map's (~1 cm in a room ~4 units across)
     errs = np.array([pose_error(added[f"new{i}.png"], T) for i, T in enumerate(views)])
     assert np.median(errs[:, 0]) < 0.03 and np.median(errs[:, 1]) < 0.5, errs
+
+
+ANCHORS = (0, 5, 10, 15)  # four frames spread along the orbit
+
+
+def write_anchors(path, poses: dict) -> Path:
+    """An anchor-poses file: a line 'NAME tx ty tz qx qy qz qw' (world_from_cam) per image."""
+    from favormap.io.posefile import format_pose_tum
+
+    path.write_text("# name tx ty tz qx qy qz qw\n" + "".join(f"{n} {format_pose_tum(T)}\n" for n, T in poses.items()))
+    return path
+
+
+def true_poses(small_sequence) -> dict:
+    return {f.name.removeprefix("images/"): f.cam_from_world for f in small_sequence.frames}
+
+
+def test_anchor_poses_put_the_reconstruction_in_their_frame_and_units(sfm, small_sequence):
+    import pycolmap
+
+    from favormap.io.sfm import sequence_from_reconstruction
+    from favormap.io.sfm_anchors import anchor_reconstruction
+
+    truth = true_poses(small_sequence)
+    names = sorted(truth)
+    rec = pycolmap.Reconstruction(str(sfm.reconstruction_path))
+    fit = anchor_reconstruction(rec, {names[i]: truth[names[i]] for i in ANCHORS} | {"ghost.png": np.eye(4)})
+    assert fit.used == [names[i] for i in ANCHORS] and fit.unregistered == ["ghost.png"]
+    assert fit.rms < 0.002 and fit.max < 0.005 and fit.rotation_median_deg < 0.5, fit
+    # every frame, not just the anchors, lands on its true pose within 5 mm (the room is ~4 units across: think
+    # metres) and half a degree (the orientations COLMAP estimates differ from the truth by ~0.3 degrees)
+    frames = sequence_from_reconstruction(rec, Path()).frames
+    errs = np.array([pose_error(f.cam_from_world, truth[f.name]) for f in frames])
+    assert len(errs) == len(truth) and errs[:, 0].max() < 0.005 and errs[:, 1].max() < 0.5, errs
+    again = pycolmap.Reconstruction(str(sfm.reconstruction_path))
+    with pytest.raises(Exception, match="need 3 images at least that registered, found 2.*not registered: ghost"):
+        anchor_reconstruction(again, {names[0]: truth[names[0]], names[9]: truth[names[9]], "ghost.png": np.eye(4)})
+
+
+def test_build_with_anchor_poses_is_metric(small_sequence, tmp_path):
+    truth = true_poses(small_sequence)
+    names = sorted(truth)
+    anchors = write_anchors(tmp_path / "anchors.txt", {names[i]: truth[names[i]] for i in ANCHORS})
+    with anchors.open("a") as f:
+        f.write(f"nosuch.png {' '.join(['0'] * 6)} 1\n")
+    out = tmp_path / "anchored.h5"
+    args = ("--quality", "quick", "--max-keypoints", 1024, "--max-landmarks", 400, "--threads", 2, "--json")
+    r = favormap("build", small_sequence.root / "images", "-o", out, "--anchor-poses", anchors, *args)
+    assert r.returncode == 0, r.stderr
+    p = json.loads(r.stdout)["poses"]
+    a = p["anchors"]
+    assert p["units"] == "anchors" and a["anchors"] == 4 and a["missing"] == ["nosuch.png"], p
+    assert a["residual_rms"] < 0.002 and a["residual_max"] < 0.005 and a["rotation_median_deg"] < 0.5, a
+    from favormap.mapfile import Map
+
+    with Map.open(out) as m:
+        errs = np.array([pose_error(T, truth[n]) for n, T in zip(m.frame_names, m.cam_from_world, strict=True)])
+        assert m.provenance["poses"]["anchors"] == a
+    assert len(errs) == len(truth) and errs[:, 0].max() < 0.005 and errs[:, 1].max() < 0.5, errs
+    info = favormap("info", out)
+    assert info.returncode == 0 and "units: metres, in the frame of 4 anchor poses" in info.stdout, info.stdout
+
+
+def test_anchor_summary_names_the_anchors_not_used(capsys):
+    from favormap.cli.build_sfm import print_anchors_summary
+
+    fit = {"anchors": 3, "scale": 0.5, "residual_rms": 0.01, "residual_max": 0.02, "rotation_median_deg": 0.4}
+    print_anchors_summary(fit | {"missing": ["a.png"], "unregistered": ["b.png", "c.png"]})
+    lines = capsys.readouterr().out.splitlines()
+    assert "3 images: scale 0.5" in lines[0] and "0.01 m RMS, 0.02 m max" in lines[0]
+    assert lines[1:] == [
+        "anchors not used    1 name no image: a.png",
+        "anchors not used    2 not registered: b.png, c.png",
+    ]
+
+
+@pytest.mark.parametrize(
+    "which, message",
+    [
+        ("two", "need 3 images at least, found 2"),
+        ("missing", "need 3 images at least, found 2 (000000.png, 000005.png); naming no image: nosuch"),
+        ("collinear", "lie on one line"),
+        ("scale", "--anchor-poses and --scale exclude each other"),
+    ],
+)
+def test_bad_anchor_poses_one_error_line_no_map(small_sequence, tmp_path, which, message):
+    truth = true_poses(small_sequence)
+    names = sorted(truth)
+    poses = {names[i]: truth[names[i]] for i in ANCHORS[:2]}
+    extra = ()
+    if which == "missing":
+        poses["nosuch"] = np.eye(4)
+    if which == "collinear":
+        poses[names[10]] = truth[names[10]].copy()
+        for k, n in enumerate(poses):  # the same orientations, the centres 1 apart on the x axis
+            poses[n] = np.eye(4)
+            poses[n][:3, 3] = [-k, 0, 0]
+    if which == "scale":
+        poses[names[10]], extra = truth[names[10]], ("--scale", "2")
+    anchors = write_anchors(tmp_path / "anchors.txt", poses)
+    r = favormap("build", small_sequence.root / "images", "-o", tmp_path / "m.h5", "--anchor-poses", anchors, *extra)
+    assert r.returncode != 0 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anchors.txt"]

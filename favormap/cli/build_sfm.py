@@ -44,6 +44,14 @@ def add_sfm_args(p, scale: bool = True, then: str = "the build") -> None:
             help="multiply the reconstruction's units by S (e.g. metres per unit, measured between two known "
             "points); without it the map's units are arbitrary",
         )
+        g.add_argument(
+            "--anchor-poses",
+            metavar="FILE",
+            help="known poses of 3 or more of the images, not on one line (GPS/RTK, motion capture, a surveyed "
+            "tripod): lines 'IMAGE_NAME tx ty tz qx qy qz qw' or 'IMAGE_NAME' + 16 numbers (world_from_cam, "
+            "row-major); the reconstruction is moved into their frame and units by the similarity that best fits "
+            "its camera centres to theirs (instead of --scale)",
+        )
     g.add_argument(
         "--video-every",
         type=int,
@@ -78,7 +86,7 @@ def unposed_kind(path) -> str | None:
 def _check_args(args, kind: str | None) -> None:
     from ..errors import InputError
 
-    sfm_only = ("sfm_dir", "camera", "scale")
+    sfm_only = ("sfm_dir", "camera", "scale", "anchor_poses")
     if kind is None:
         given = [n for n in sfm_only if getattr(args, n, None) is not None]
         given += [n for n in ("camera_per_image",) if getattr(args, n)] + (
@@ -89,6 +97,8 @@ def _check_args(args, kind: str | None) -> None:
                 f"--{given[0].replace('_', '-')} applies to images without poses (a folder of images in no sequence "
                 f"format, or a video), not to {args.sequence}"
             )
+    if getattr(args, "scale", None) is not None and getattr(args, "anchor_poses", None) is not None:
+        raise InputError("--anchor-poses and --scale exclude each other: the anchors' poses set the scale")
     if kind != "video" and (args.video_every or args.video_motion != VIDEO_MOTION):
         raise InputError(f"--video-every and --video-motion apply to a video, not to {args.sequence}")
     if args.video_every < 0:
@@ -107,6 +117,7 @@ def estimate_poses_from_args(args, out: Path, progress):
     from ..io.posefile import read_camera
     from ..io.sfm import SfmOptions, check_output, default_output, estimate_poses, list_images
     from ..io.video import extract_frames
+    from .queries import read_priors
 
     kind = None if getattr(args, "format", None) else unposed_kind(args.sequence)  # --format: a posed sequence
     _check_args(args, kind)
@@ -118,6 +129,7 @@ def estimate_poses_from_args(args, out: Path, progress):
         camera=read_camera(args.camera) if args.camera else None,
         camera_per_image=args.camera_per_image,
         scale=getattr(args, "scale", None),
+        anchors=read_priors(Path(args.anchor_poses), "anchor poses") if getattr(args, "anchor_poses", None) else None,
         threads=getattr(args, "threads", None),
         ordered=kind == "video",
     )
@@ -149,4 +161,19 @@ def print_sfm_summary(p: dict, units: bool = True) -> None:
     if p["models"] > 1:
         others = ", ".join(str(n) for n in p["other_models_registered"])
         print(f"models              {p['models']}: the largest used; the others posed {others} frames (sparse/1, ...)")
+    if p.get("anchors"):
+        print_anchors_summary(p["anchors"])
     print(f"reconstruction      {p['reconstruction']}  (COLMAP model; images in {p['image_dir']})")
+
+
+def print_anchors_summary(a: dict) -> None:
+    """The summary's lines of the fit to the anchor poses (``AnchorFit.to_dict()``)."""
+    print(
+        f"anchors             {a['anchors']} images: scale {a['scale']:.6g}; camera centres off by "
+        f"{a['residual_rms']:.3g} m RMS, {a['residual_max']:.3g} m max, turned {a['rotation_median_deg']:.2f} deg "
+        "(median) from the anchors' orientations"
+    )
+    if a["missing"]:
+        print(f"anchors not used    {len(a['missing'])} name no image: {', '.join(a['missing'])}")
+    if a["unregistered"]:
+        print(f"anchors not used    {len(a['unregistered'])} not registered: {', '.join(a['unregistered'])}")

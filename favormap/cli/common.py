@@ -104,9 +104,15 @@ def estimated_poses_line(poses: dict, units: bool = True) -> str:
     line = f"poses               estimated from the images ({poses['mapper']} mapper, {poses['matcher']} matching)"
     if not units:
         return line + "; moved into the map's frame by the alignment"
+    if poses.get("units") == "anchors":
+        a = poses.get("anchors") or {}
+        return line + (
+            f"; units: metres, in the frame of {a.get('anchors', '?')} anchor poses (scale {poses['scale']:.6g}, "
+            f"camera centres off by {a.get('residual_rms', float('nan')):.3g} m RMS)"
+        )
     if poses.get("units") == "scaled":
         return line + f"; units: the reconstruction's times {poses['scale']:g}"
-    return line + "; units arbitrary (no metric scale: --scale sets one)"
+    return line + "; units arbitrary (no metric scale: --scale or --anchor-poses sets one)"
 
 
 def reproj_error_line(px: float) -> str:

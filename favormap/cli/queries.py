@@ -21,8 +21,9 @@ class Query:
     result: object = None  # LocalizationResult
 
 
-def read_priors(path: Path) -> dict:
-    """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world."""
+def read_priors(path: Path, what: str = "priors") -> dict:
+    """'NAME tx ty tz qx qy qz qw' or 'NAME m00 ... m33' (world_from_cam) per line -> cam_from_world.
+    ``what`` names the file in the errors."""
     import numpy as np
 
     from ..errors import InputError
@@ -31,7 +32,7 @@ def read_priors(path: Path) -> dict:
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"priors file not found: {path}")
+        raise InputError(f"{what} file not found: {path}")
     out = {}
     for ln, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         parts = line.split()
@@ -43,7 +44,7 @@ def read_priors(path: Path) -> dict:
             raise InputError(f"{path}:{ln}: expected 'NAME' followed by 7 or 16 numbers") from None
         out[parts[0]] = inverse(parse_pose(nums, 1, f"{path}:{ln}"))
     if not out:
-        raise InputError(f"priors file {path} holds no poses")
+        raise InputError(f"{what} file {path} holds no poses")
     return out
 
 

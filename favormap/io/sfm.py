@@ -14,7 +14,9 @@ layout to a folder of its own, so that COLMAP's GUI opens it::
     DIR/favormap-sfm.json      what was done: matcher, registered and unregistered images, ...
 
 The folder is written under a temporary name and renamed into place when complete. Its units and
-world frame are arbitrary (COLMAP's), unless ``scale`` gives a factor to multiply them by.
+world frame are arbitrary (COLMAP's), unless ``scale`` gives a factor to multiply them by, or ``anchors``
+give the known poses of a few images: the model used is then moved into their frame and units by the
+similarity that fits its camera centres to theirs (:mod:`.sfm_anchors`; the other models stay as they are).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 
 from ..errors import FavormapError, InputError, first_line
 from ..geometry import from_rigid3d
+from .sfm_anchors import anchor_reconstruction, check_anchors
 from .types import SUPPORTED_MODELS, Camera, Frame, Sequence
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
@@ -49,7 +52,9 @@ class PosesNotFound(FavormapError):
 class SfmOptions:
     """How the poses are estimated. ``camera``: known intrinsics (held fixed), else estimated, one camera
     for all images unless ``camera_per_image``. ``image_names``: the images of the folder to use (default:
-    every image, in name order). ``scale``: multiplies the reconstruction's units (None: arbitrary)."""
+    every image, in name order). ``scale``: multiplies the reconstruction's units (None: arbitrary).
+    ``anchors``: {image name (or name without extension): cam_from_world} of images whose poses are known,
+    3 or more, not on one line: the reconstruction is moved into their frame (instead of ``scale``)."""
 
     matcher: str = "auto"
     camera: Camera | None = None
@@ -61,12 +66,15 @@ class SfmOptions:
     threads: int | None = None
     seed: int = 0
     ordered: bool = False  # the images are frames of a video: auto matches sequentially
+    anchors: dict | None = None
 
     def __post_init__(self):
         if self.matcher not in MATCHERS:
             raise InputError(f"unknown matcher {self.matcher!r} (choose from {', '.join(MATCHERS)})")
         if self.scale is not None and not (np.isfinite(self.scale) and self.scale > 0):
             raise InputError(f"the scale must be a positive number, not {self.scale}")
+        if self.scale is not None and self.anchors is not None:
+            raise InputError("a scale and anchor poses exclude each other: the anchors' poses set the scale")
         if self.camera is not None and self.camera_per_image:
             raise InputError("a given camera is shared by all images; it cannot go with one camera per image")
 
@@ -94,9 +102,12 @@ class SfmResult:
     seconds: float
     other_models: list[int] = field(default_factory=list)  # registered images of the models not used
     camera_refined: bool = False  # the final adjustment of the camera kept (refine_camera)
+    anchors: dict | None = None  # the fit to the anchor poses (sfm_anchors.AnchorFit.to_dict()), if given
 
     @property
     def units(self) -> str:
+        if self.anchors is not None:
+            return "anchors"
         return "arbitrary" if self.scale is None else "scaled"
 
     def to_dict(self) -> dict:
@@ -116,6 +127,7 @@ class SfmResult:
             "camera_refined": self.camera_refined,
             "units": self.units,
             "scale": self.scale,
+            **({"anchors": dict(self.anchors)} if self.anchors is not None else {}),
             "seconds": round(self.seconds, 2),
         }
 
@@ -331,6 +343,7 @@ def estimate_poses(
         if not names:
             raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
         _check_camera(opts.camera, image_dir / names[0])
+        anchors, missing = check_anchors(opts.anchors, names) if opts.anchors is not None else (None, [])
         matcher = opts.resolved_matcher(len(names))
         try:
             models = _reconstruct(image_dir, names, work, opts, matcher, report)
@@ -343,10 +356,13 @@ def estimate_poses(
             )
         refined = None if opts.camera is not None or opts.camera_per_image else refine_camera(models[0])
         models[0] = refined or models[0]
+        fit = anchor_reconstruction(models[0], anchors, missing) if anchors is not None else None
         _write(models, work, opts)
         final_dir = out / image_dir.relative_to(work) if image_dir.is_relative_to(work) else image_dir
         result = _result(models, names, out, final_dir, matcher, opts, time.perf_counter() - t0)
         result.camera_refined = refined is not None
+        if fit is not None:
+            result.anchors, result.scale = fit.to_dict(), fit.scale
         (work / MARKER).write_text(json.dumps(result.to_dict(), indent=1) + "\n")
         _commit(work, out)
     finally:
@@ -382,6 +398,7 @@ def read_result(out) -> SfmResult:
         seconds=float(note["seconds"]),
         other_models=list(note["other_models_registered"]),
         camera_refined=bool(note.get("camera_refined", False)),
+        anchors=note.get("anchors"),
     )
 
 

@@ -51,7 +51,8 @@ def map_aligns_by_default(provenance: dict | None) -> bool:
 
 def map_estimated_poses(provenance: dict | None) -> dict | None:
     """How the map's poses were estimated from its images (:meth:`favormap.io.sfm.SfmResult.to_dict`: mapper,
-    frames registered, ``units`` "arbitrary" or "scaled" by ``scale``), or None: poses given with the images,
+    frames registered, ``units`` "arbitrary", "scaled" by ``scale``, or "anchors": moved into the frame of
+    known poses of some images, ``anchors`` the fit), or None: poses given with the images,
     in their units."""
     poses = (provenance or {}).get("poses")
     return dict(poses) if isinstance(poses, dict) and poses.get("source") == "sfm" else None
