@@ -174,6 +174,7 @@ def test_a_prior_free_estimate_too_weak_to_localize_can_still_confirm(small_map,
     prior = perturb_pose(T, 0.3, 10.0, np.random.default_rng(4))
     weak = dict(global_ratio=0.45)  # a strict ratio test: a prior-free estimate of few inliers
     n = Localizer(path, LocalizeConfig(**weak)).localize(img).iterations[0].num_inliers  # the prior-free estimate's
+    weak["coarse_min_inliers"] = n + 1
     res = Localizer(path, LocalizeConfig(checks=SuccessChecks(confirm_below_inliers=10**6, min_inliers=n + 1), **weak))
     assert res.localize(img).iterations[0].success is False  # too weak to localize from
     for confirm, confirmed in ((n, True), (n + 1, False), (0, False)):
@@ -184,6 +185,28 @@ def test_a_prior_free_estimate_too_weak_to_localize_can_still_confirm(small_map,
             assert pose_error(res.cam_from_world, T)[0] < 0.01
         else:
             assert "without the prior no pose was found" in res.message
+
+
+def test_a_prior_free_estimate_below_min_inliers_is_refined_into_a_pose(small_map, queries):
+    """LocalizeConfig.coarse_min_inliers: a prior-free estimate with fewer inliers than a pose to report needs
+    (a blurred query's few keypoints) is still a starting point: the rendering iterations from it match the
+    landmarks it makes visible, and the refined pose must pass every check itself."""
+    from favormap.localize import SuccessChecks
+
+    _, path = small_map
+    img, T = queries[2]
+    weak = dict(global_ratio=0.45)  # a strict ratio test: a prior-free estimate of few inliers
+    n = Localizer(path, LocalizeConfig(**weak)).localize(img).iterations[0].num_inliers
+    checks = SuccessChecks(min_inliers=n + 1, confirm_min_inliers=n)  # the estimate alone is too weak to report
+    for coarse, localized in ((n, True), (n + 1, False)):
+        res = Localizer(path, LocalizeConfig(checks=checks, coarse_min_inliers=coarse, **weak)).localize(img)
+        assert res.iterations[0].kind == "global" and res.iterations[0].num_inliers == n
+        assert res.success is localized, (coarse, res.message)
+        if localized:
+            assert res.num_inliers > n and len(res.iterations) > 1
+            assert pose_error(res.cam_from_world, T)[0] < 0.01
+        else:
+            assert len(res.iterations) == 1 and "found no pose" in res.message
 
 
 def test_the_final_pose_is_refined_with_landmark_uncertainty(small_map, queries):

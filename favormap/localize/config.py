@@ -92,6 +92,9 @@ class LocalizeConfig:
     align_references: int = 1  # mapping frames each inlier is aligned to (AlignConfig.references)
     global_fallback: bool = True  # no prior, or the prior failed: coarse pose from all landmarks' mean descriptors
     global_max_landmarks: int = 200_000  # longest-track landmarks searched without a prior
+    # the least inliers of that coarse pose for the rendering iterations to start from: it is a starting point,
+    # not a result (the refined pose must pass every check); 12, the structure baseline's success threshold
+    coarse_min_inliers: int = 12
     # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
     # (translation relative to the median landmark distance): rendering again from there gives the same
     # descriptors

@@ -241,8 +241,8 @@ class Localizer(SuccessChecking, FinalRefinement):
         q.global_matches = (self.positions[rows[m[:, 0]]], m[:, 1])
         ans = self._pnp(q, *q.global_matches, t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
-        ok = ans is not None and n_in >= cfg.checks.min_inliers
-        # a RANSAC pose below min_inliers is kept in the iteration: it may still confirm a refined pose
+        ok = ans is not None and n_in >= cfg.coarse_min_inliers
+        # a RANSAC pose below coarse_min_inliers is kept in the iteration: it may still confirm a refined pose
         # (SuccessChecks.confirm_min_inliers), but it is no coarse pose to refine from
         pose = from_rigid3d(ans["cam_from_world"]) if ans is not None else np.eye(4)
         return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
