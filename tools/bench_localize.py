@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_ops import peak_rss_mb  # tools/ is this script's first path entry
+from bench_ops import peak_rss_mb, rss_mb  # tools/ is this script's first path entry
 
 
 def write_tiled(src: Path, dst: Path, target: int) -> dict:
@@ -202,7 +202,8 @@ def real_split_timing(args) -> int:
     built = "reused" if build_s is None else f"built in {build_s:.0f} s"
     print(
         f"{sp.name}: map {path.name} ({len(m):,} landmarks, {built}"
-        f", voxel cache {m.cache_bytes / 2**20:.0f} MB), {len(frames)} queries; baseline {len(base.points3d):,} "
+        f", voxel cache {m.cache_bytes / 2**20:.0f} MB; a warm localizer's process {warm_memory(args, path)})"
+        f", {len(frames)} queries; baseline {len(base.points3d):,} "
         f"points (built in {base_build:.0f} s); device {args.device}, load average {os.getloadavg()[0]:.1f}"
     )
     print("median ms per query\n")
@@ -218,6 +219,41 @@ def real_split_timing(args) -> int:
     print("| pycolmap-SIFT baseline | " + " | ".join("-" for _ in stages) + f" | {b:.0f} | 1.00 | - |")
     m.close()
     return 0
+
+
+def warm_memory(args, path) -> str:
+    """Memory of a warm localizer of map ``path``, measured in a fresh process that imports only what
+    localizing needs: the split's queries localized twice from the nearest mapping frame."""
+    out = subprocess.run(
+        [sys.executable, __file__, "--split", args.split, "--memory-of", str(path), "--device", args.device],
+        capture_output=True,
+        text=True,
+    )
+    if out.returncode != 0:
+        return "memory not measured"
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    return f"{r['rss_mb']:.0f} MB resident, peak {r['peak_mb']:.0f} MB{', torch imported' if r['torch'] else ''}"
+
+
+def memory_child(args) -> dict:
+    """``--memory-of MAP``: localize the split's queries twice with one Localizer; the process's memory."""
+    from accuracy.splits import real_splits
+
+    from favormap.geometry import camera_centers
+    from favormap.localize import LocalizeConfig, Localizer
+    from favormap.mapfile import Map
+
+    sp = real_splits([args.split])[0]
+    m = Map.open(args.memory_of)
+    loc = Localizer(m, LocalizeConfig(device=args.device))
+    # the nearest mapping frame's pose (favormap.localize.evaluate, which imports torch for its diagnostics)
+    centres = camera_centers(m.cam_from_world)
+    near = [np.argmin(np.linalg.norm(centres - camera_centers(f.cam_from_world), axis=1)) for f in sp.queries.frames]
+    priors = [m.cam_from_world[i] for i in near]
+    for _ in range(2):
+        for f, p in zip(sp.queries.frames, priors):
+            loc.localize(f.image_path, p, sp.queries.cameras[f.camera_id])
+    return {"rss_mb": rss_mb(), "peak_mb": peak_rss_mb(), "torch": "torch" in sys.modules}
 
 
 def main():
@@ -239,7 +275,11 @@ def main():
     ap.add_argument("--large-map", help="file for the large map (kept; reused when it exists)")
     ap.add_argument("--measure", help=argparse.SUPPRESS)  # child process: measure this map
     ap.add_argument("--sequence", help=argparse.SUPPRESS)
+    ap.add_argument("--memory-of", help=argparse.SUPPRESS)  # child process: a warm localizer's memory
     args = ap.parse_args()
+    if args.memory_of:
+        print(json.dumps(memory_child(args)))
+        return 0
     if args.measure:
         print(json.dumps(measure(args)))
         return 0

@@ -51,6 +51,17 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
+def rss_mb() -> float:
+    """Resident memory of this process now (VmRSS, MB); 0 where /proc is not there."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 # -------------------------------------------------------------------------------------------------
 # synthetic map
 # -------------------------------------------------------------------------------------------------
