@@ -39,27 +39,27 @@ FOOT = 25.0  # building footprint side
 CAMERA = dict(model="PINHOLE", width=640, height=480, params=[500.0, 500.0, 320.0, 240.0])
 
 
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process (VmHWM: unlike ru_maxrss, not inherited from the
-    parent across fork + exec, so child processes report their own peak)."""
+def _status_mb(key: str) -> float | None:
+    """A memory line of /proc/self/status (MB), or None where there is none."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    return None
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (VmHWM: unlike ru_maxrss, not inherited from the
+    parent across fork + exec, so child processes report their own peak)."""
+    mb = _status_mb("VmHWM")
+    return mb if mb is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def rss_mb() -> float:
     """Resident memory of this process now (VmRSS, MB); 0 where /proc is not there."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return 0.0
+    return _status_mb("VmRSS") or 0.0
 
 
 # -------------------------------------------------------------------------------------------------
