@@ -58,3 +58,17 @@ def test_localize_takes_the_cache_in_megabytes(small_map, small_sequence, capsys
     fr = small_sequence.frames[0]
     assert main(["localize", str(small_map[1]), str(fr.image_path), "--cache-mb", "0"]) != 0
     assert "--cache-mb must be at least 1" in capsys.readouterr().err
+
+
+def test_the_build_summary_states_a_warm_localizers_voxel_memory(small_map, capsys):
+    """The build summary gives the memory every grid of the map takes in a warm localizer, as favormap info does."""
+    from favormap.cli.build_summary import print_summary, summary
+    from favormap.mapfile import Map
+
+    m, path = small_map
+    s = summary(m, path)
+    with Map.open(path) as opened:
+        assert s["voxel_memory_bytes"] == opened.info()["voxel_memory_bytes"] == len(opened) * opened.grid_bytes > 0
+    print_summary(s)
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("voxel memory"))
+    assert "a warm localizer holds them all" in line

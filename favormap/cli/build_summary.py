@@ -4,14 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import human_size, reproj_error_line
+from .common import human_size, reproj_error_line, voxel_memory_line
 
 
 def summary(m, path: Path) -> dict:
     from ..build_config import default_max_epipolar
+    from ..mapfile import Map
     from ..mapfile.model import built_for_exact_poses, map_aligns_by_default
 
     st = m.provenance["stats"]
+    with Map.open(path) as written:  # metadata only
+        voxel_memory = written.info()["voxel_memory_bytes"]
     return {
         **st,
         "exact_poses": built_for_exact_poses(m.provenance),
@@ -19,6 +22,7 @@ def summary(m, path: Path) -> dict:
         "keypoint_precision_px": default_max_epipolar(m.extractor),
         "file": str(path),
         "file_size": path.stat().st_size,
+        "voxel_memory_bytes": voxel_memory,
         "timings": m.provenance["timings"],
         "total_seconds": round(sum(m.provenance["timings"].values()), 2),
         **({"poses": m.provenance["poses"]} if "poses" in m.provenance else {}),
@@ -94,6 +98,8 @@ def print_summary(s: dict) -> None:
         )
     print(f"median PSNR         {s['median_psnr']:.2f} dB   (median cosine {s['median_cosine']:.3f})")
     print(f"file                {s['file']}  ({human_size(s['file_size'])})")
+    if "voxel_memory_bytes" in s:
+        print(voxel_memory_line(s["voxel_memory_bytes"]))
     print(
         "seconds per stage   "
         + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items())

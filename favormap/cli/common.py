@@ -118,3 +118,14 @@ def estimated_poses_line(poses: dict, units: bool = True) -> str:
 def reproj_error_line(px: float) -> str:
     """The one wording of the map's reprojection-error figure (build summary and info)."""
     return f"median reproj error {px:.3f} px  (landmarks of 3 or more views, each the mean over its observations)"
+
+
+def voxel_memory_line(mem: int) -> str:
+    """The line of ``favormap info`` and the build summary on the memory a warm localizer's voxel cache takes."""
+    from ..mapfile.reader import DEFAULT_CACHE_BYTES
+
+    return f"voxel memory        {human_size(mem)} for every grid: a warm localizer " + (
+        f"holds them all (default cache {human_size(DEFAULT_CACHE_BYTES)})"
+        if mem <= DEFAULT_CACHE_BYTES
+        else "reads them as queries need them (localize --cache-mb)"
+    )

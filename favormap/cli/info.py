@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .common import estimated_poses_line, human_size, print_json, reproj_error_line
+from .common import estimated_poses_line, human_size, print_json, reproj_error_line, voxel_memory_line
 
 
 def register(sub):
@@ -46,16 +46,5 @@ def run(args) -> int:
     if info["estimated_poses"]:
         print(estimated_poses_line(info["estimated_poses"]))
     print(f"file size           {human_size(info['file_size'])}")
-    from ..mapfile.reader import DEFAULT_CACHE_BYTES
-
-    mem = info["voxel_memory_bytes"]
-    fits = mem <= DEFAULT_CACHE_BYTES
-    print(
-        f"voxel memory        {human_size(mem)} for every grid: a warm localizer "
-        + (
-            f"holds them all (default cache {human_size(DEFAULT_CACHE_BYTES)})"
-            if fits
-            else "reads them as queries need them (localize --cache-mb)"
-        )
-    )
+    print(voxel_memory_line(info["voxel_memory_bytes"]))
     return 0
