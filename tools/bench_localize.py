@@ -239,17 +239,14 @@ def memory_child(args) -> dict:
     """``--memory-of MAP``: localize the split's queries twice with one Localizer; the process's memory."""
     from accuracy.splits import real_splits
 
-    from favormap.geometry import camera_centers
     from favormap.localize import LocalizeConfig, Localizer
+    from favormap.localize.evaluate import EvalConfig, make_priors
     from favormap.mapfile import Map
 
     sp = real_splits([args.split])[0]
     m = Map.open(args.memory_of)
     loc = Localizer(m, LocalizeConfig(device=args.device))
-    # the nearest mapping frame's pose (favormap.localize.evaluate, which imports torch for its diagnostics)
-    centres = camera_centers(m.cam_from_world)
-    near = [np.argmin(np.linalg.norm(centres - camera_centers(f.cam_from_world), axis=1)) for f in sp.queries.frames]
-    priors = [m.cam_from_world[i] for i in near]
+    priors = make_priors(sp.queries, m.cam_from_world, EvalConfig(prior_mode="nearest"))
     for _ in range(2):
         for f, p in zip(sp.queries.frames, priors):
             loc.localize(f.image_path, p, sp.queries.cameras[f.camera_id])

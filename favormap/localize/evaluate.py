@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-import torch
 
 from ..errors import InputError
 from ..geometry import camera_centers, perturb_pose, pose_error, project
@@ -196,11 +195,9 @@ def summarize(
 def _nearest_keypoint_distance(uv: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     if len(uv) == 0 or len(keypoints) == 0:
         return np.full(len(uv), np.inf)
-    return (
-        torch.cdist(torch.as_tensor(uv, dtype=torch.float64), torch.as_tensor(keypoints, dtype=torch.float64))
-        .min(1)
-        .values.numpy()
-    )
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(keypoints, np.float64)).query(np.asarray(uv, np.float64))[0]
 
 
 def diagnostics_from_matches(
