@@ -51,7 +51,7 @@ from .features.cache import FeatureCache
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
 from .mapfile.model import MapData
-from .pose_refinement import refine_poses
+from .pose_refinement import estimate_camera_rotation, poses_need_refinement, refine_poses
 from .threads import rebalance, thread_count
 from .tracking import Tracks, track_features
 from .triangulation import Landmarks, refine_observations, triangulate
@@ -165,6 +165,14 @@ def refine_mapping_poses(lms: Landmarks, ff: FrameFeatures, config: BuildConfig,
     precision = default_max_epipolar(config.extractor)  # the extractor's keypoint precision (px)
     noise = max(precision, float(epipolar_median_px)) if np.isfinite(epipolar_median_px) else precision
     return refine_poses(lms, ff.cam_from_world, ff.cameras, noise, loss_px=precision)
+
+
+def estimates_camera_rotation(config: BuildConfig, epipolar_median_px: float) -> bool:
+    """Whether the build estimates the camera's rotation against the given poses (BuildConfig.camera_rotation;
+    None: where the tracks' median epipolar distance exceeds the extractor's keypoint precision)."""
+    if config.camera_rotation is not None:
+        return bool(config.camera_rotation)
+    return poses_need_refinement(epipolar_median_px, default_max_epipolar(config.extractor))
 
 
 def triangulate_tracks(tracks: Tracks, ff: FrameFeatures, config: BuildConfig) -> Landmarks:
@@ -364,10 +372,16 @@ def _landmark_stage(
     landmarks within the budget selected; only their observations go on."""
     with pr.stage("triangulate"):
         all_lms = triangulate_tracks(tracks, ff, config)
-        refinement = None
+        refinement, rotation = None, None
         if len(all_lms) and config.refine_poses:
             refinement = refine_mapping_poses(all_lms, ff, config, tracks.epipolar_median_px)
             ff = replace(ff, cam_from_world=refinement.cam_from_world)
+            all_lms = triangulate_tracks(tracks, ff, config)
+        elif len(all_lms) and estimates_camera_rotation(config, tracks.epipolar_median_px):
+            rotation = estimate_camera_rotation(
+                all_lms, ff.cam_from_world, ff.cameras, loss_px=default_max_epipolar(config.extractor)
+            )
+            ff = replace(ff, cam_from_world=rotation.camera_poses(ff.cam_from_world))
             all_lms = triangulate_tracks(tracks, ff, config)
         if config.refine_window:
             all_lms = refine_landmarks(all_lms, seq, ff, config)
@@ -376,7 +390,7 @@ def _landmark_stage(
         del tracks, all_lms  # every track's observations: only the selected landmarks' go on
         release_free_memory()
         pr.callback("triangulate", 1, 1)
-    return BuildLandmarks(lms, ff, refinement, summary)
+    return BuildLandmarks(lms, ff, refinement, summary, rotation)
 
 
 def _patch_stage(

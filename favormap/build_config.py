@@ -75,6 +75,13 @@ class BuildConfig:
     # that fit the images less well than the extractor places keypoints (the build says so: the right tracking
     # matches' median epipolar distance above ExtractorPolicy.keypoint_precision_px), such as motion capture's
     refine_poses: bool = False
+    # estimate the one rotation by which the images' camera is turned against the given poses (a hand-eye
+    # calibration's error, shared by every frame; favormap.pose_refinement.estimate_camera_rotation) and
+    # triangulate with the camera's poses; the map stores it (frames/cam_from_rig) and the localizer takes and
+    # reports poses in the given poses' frame. None: where the poses fit the images less well than the
+    # extractor places keypoints (the rule under which the build suggests refine_poses), which refine_poses
+    # already covers
+    camera_rotation: bool | None = None
     max_reproj_px: float = 5.0  # a landmark's largest reprojection error in its observations
     min_angle_deg: float = 1.0  # a landmark's least triangulation angle
     max_landmarks: int = 3000  # the longest tracks are kept

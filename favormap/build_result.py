@@ -18,7 +18,7 @@ from .geometry import camera_centers, sum_by_group, view_geometry
 from .io import Sequence
 from .io.images import decode_and_prepare, patches_around
 from .mapfile.model import MapData, median_landmark_reproj_error, new_landmark_ids
-from .pose_refinement import PoseRefinement
+from .pose_refinement import CameraRotation, PoseRefinement
 from .tracking import Tracks
 from .triangulation import Landmarks
 from .voxels import TrainingRays
@@ -57,6 +57,14 @@ class BuildLandmarks:
     ff: FrameFeatures
     refinement: PoseRefinement | None
     summary: TrackSummary
+    rotation: CameraRotation | None = None  # the camera's rotation against the given poses, where estimated
+
+    @property
+    def cam_from_rig(self) -> np.ndarray | None:
+        """The camera's pose in the frame of the given poses (None: the given poses are the camera's)."""
+        if self.rotation is not None:
+            return self.rotation.cam_from_rig
+        return None if self.refinement is None else self.refinement.cam_from_rig
 
 
 @dataclass
@@ -149,6 +157,7 @@ def build_stats(seq: Sequence, config: BuildConfig, found: BuildLandmarks, grids
             lms.mean_reproj_error.astype(np.float32), lms.tracks.lengths
         ),
         **({"poses_refined": False} if found.refinement is None else found.refinement.stats()),
+        **({} if found.rotation is None else found.rotation.stats()),
         "median_psnr": float(np.median(grids.psnr)),
         "median_cosine": float(np.median(grids.cosine)),
     }
@@ -193,6 +202,7 @@ def build_map_data(
         frame_names=[f.name for f in seq.frames],
         frame_camera_ids=np.array([f.camera_id for f in seq.frames], np.int32),
         cam_from_world=ff.cam_from_world,
+        cam_from_rig=found.cam_from_rig,
         track_landmark=lms.tracks.track_of_obs.astype(np.int32),
         track_frame=lms.tracks.frame_idx.astype(np.int32),
         track_xy=lms.tracks.xy.astype(np.float32),

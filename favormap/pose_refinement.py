@@ -28,6 +28,8 @@ from .geometry import (
     nearest_rotation,
     project,
     rotation_angle_deg,
+    rotvec_to_rotmat,
+    sum_by_group,
     to_rigid3d,
     transform_points,
     umeyama,
@@ -47,6 +49,13 @@ class PoseRefinement:
     prior_sigma: float  # standard deviation of the camera-centre prior (world units)
     initial_rms_px: float  # reprojection error of the observations before and after (RMS over the residuals)
     final_rms_px: float
+
+    @property
+    def cam_from_rig(self) -> np.ndarray:
+        """The camera's pose in the frame of the given poses: the rotation they share on the camera side."""
+        T = np.eye(4)
+        T[:3, :3] = self.camera_offset.T
+        return T
 
     def stats(self) -> dict:
         """The build summary's figures of the refinement."""
@@ -270,3 +279,99 @@ def quiet_colmap(level: str = "ERROR"):
         yield
     finally:
         pycolmap.logging.minloglevel = old
+
+
+@dataclass
+class CameraRotation:
+    """Stage boundary: the rotation between the given poses and the camera the images see.
+
+    Poses from motion capture or from a depth camera's tracker describe a body the camera rides on; a
+    hand-eye calibration that is off by a fraction of a degree turns every camera the same way, and every
+    landmark is triangulated with that error, in a direction that changes with the view. Here that
+    rotation is estimated from the tracks with the given poses held fixed."""
+
+    cam_from_rig: np.ndarray  # (4, 4) the camera's pose in the frame of the given poses (rotation only)
+    initial_rms_px: float  # the tracks' reprojection error (RMS over the residuals), before and after
+    final_rms_px: float
+
+    @property
+    def angle_deg(self) -> float:
+        return float(rotation_angle_deg(self.cam_from_rig[:3, :3]))
+
+    def camera_poses(self, rig_from_world: np.ndarray) -> np.ndarray:
+        """(M, 4, 4) the cameras' poses ``cam_from_world`` of the given poses ``rig_from_world``."""
+        return np.einsum("ij,njk->nik", self.cam_from_rig, rig_from_world)
+
+    def stats(self) -> dict:
+        """The build summary's figures of the estimate."""
+        return {
+            "camera_rotation_deg": round(self.angle_deg, 4),
+            "camera_rotation_rms_px": [round(self.initial_rms_px, 3), round(self.final_rms_px, 3)],
+        }
+
+
+def estimate_camera_rotation(
+    lms: Landmarks, rig_from_world: np.ndarray, cameras: list[Camera], loss_px: float = 1.0, iterations: int = 30
+) -> CameraRotation:
+    """The one rotation ``cam_from_rig`` shared by every frame that, with the landmarks, best explains the
+    observations of ``lms`` when the given poses ``rig_from_world`` (M, 4, 4) stay fixed: Levenberg-Marquardt
+    on the joint problem (the three rotation parameters and every landmark's position, Cauchy loss of scale
+    ``loss_px``), each step solved through the Schur complement of the landmarks' 3x3 blocks."""
+    T = np.asarray(rig_from_world, np.float64)
+    tid = np.asarray(lms.tracks.track_of_obs, np.int64)
+    f = np.asarray(lms.tracks.frame_idx, np.int64)
+    xy = np.asarray(lms.tracks.xy, np.float64)
+    K = np.stack([c.K for c in cameras])[f]
+    R, t = T[f, :3, :3], T[f, :3, 3]
+    n = len(lms)
+    X = np.asarray(lms.positions, np.float64).copy()
+    Q = np.eye(3)
+
+    def residuals(Q, X):
+        c = np.einsum("ij,nj->ni", Q, np.einsum("nij,nj->ni", R, X[tid]) + t)
+        z = c[:, 2:3]
+        uv = np.stack([K[:, 0, 0], K[:, 1, 1]], 1) * c[:, :2] / z + K[:, :2, 2]
+        return uv - xy, c
+
+    def cost(r):
+        return float(np.sum(loss_px**2 * np.log1p(np.sum(r**2, 1) / loss_px**2)))
+
+    r, c = residuals(Q, X)
+    rms0, best, lam = float(np.sqrt(np.mean(np.sum(r**2, 1)))), cost(r), 1e-3
+    for _ in range(iterations):
+        w = 1.0 / (1.0 + np.sum(r**2, 1) / loss_px**2)  # Cauchy's IRLS weights
+        x, y, z = c[:, 0], c[:, 1], c[:, 2]
+        fx, fy = K[:, 0, 0], K[:, 1, 1]
+        P = np.zeros((len(c), 2, 3))
+        P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * x / z**2
+        P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * y / z**2
+        cx = np.zeros((len(c), 3, 3))  # [c]x
+        cx[:, 0, 1], cx[:, 0, 2], cx[:, 1, 2] = -z, y, -x
+        cx[:, 1, 0], cx[:, 2, 0], cx[:, 2, 1] = z, -y, x
+        Jw = -P @ cx  # d residual / d rotation update (Q <- exp([w]x) Q)
+        Jx = P @ (Q @ R)  # d residual / d landmark position
+        H = np.einsum("n,nki,nkj->ij", w, Jw, Jw)
+        g = np.einsum("n,nki,nk->i", w, Jw, r)
+        A = sum_by_group(np.einsum("n,nki,nkj->nij", w, Jx, Jx).reshape(-1, 9), tid, n).reshape(n, 3, 3)
+        B = sum_by_group(np.einsum("n,nki,nkj->nij", w, Jw, Jx).reshape(-1, 9), tid, n).reshape(n, 3, 3)
+        gx = sum_by_group(np.einsum("n,nki,nk->ni", w, Jx, r), tid, n)
+        for _ in range(10):  # damped until the cost falls
+            Ad = A + lam * (np.einsum("nii->ni", A)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
+            Ainv = np.linalg.inv(Ad)
+            BA = B @ Ainv
+            S = H + lam * np.diag(np.diag(H)) - np.einsum("nij,nkj->ik", BA, B)
+            dw = np.linalg.solve(S, -g + np.einsum("nij,nj->i", BA, gx))
+            dX = -np.einsum("nij,nj->ni", Ainv, gx + np.einsum("nji,j->ni", B, dw))
+            Qn, Xn = rotvec_to_rotmat(dw) @ Q, X + dX
+            rn, cn = residuals(Qn, Xn)
+            if np.all(cn[:, 2] > 0) and cost(rn) < best:
+                Q, X, r, c, best, lam = Qn, Xn, rn, cn, cost(rn), lam / 10
+                break
+            lam *= 10
+        else:
+            break
+        if np.linalg.norm(dw) < 1e-8:
+            break
+    cam_from_rig = np.eye(4)
+    cam_from_rig[:3, :3] = Q
+    return CameraRotation(cam_from_rig, rms0, float(np.sqrt(np.mean(np.sum(r**2, 1)))))

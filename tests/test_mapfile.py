@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from favormap.errors import FavormapError, MapFormatError
+from favormap.geometry import rotation_about
 from favormap.io import Camera
 from favormap.mapfile import (
     FORMAT_VERSION,
@@ -87,6 +88,7 @@ def random_map(seed: int = 0, L: int = 20, C: int = 8, R: int = 3, M: int = 5, o
         track_xy=rng.uniform(0, 300, (len(tl), 2)).astype(np.float32),
         track_patch=rng.integers(0, 256, (len(tl), 5, 5), dtype=np.uint8),
         provenance={"source": "random", "seed": seed, "stats": {"landmarks": L}},
+        cam_from_rig=np.block([[rotation_about(rng.normal(size=3), 0.02), np.zeros((3, 1))], [np.zeros((1, 3)), 1]]),
     )
 
 
@@ -136,14 +138,19 @@ def test_schema_is_consistent_with_the_code():
         "frames/names",
         "frames/camera_ids",
         "frames/cam_from_world",
+        "frames/cam_from_rig",
         "tracks/landmark_index",
         "tracks/frame_index",
         "tracks/xy",
         "tracks/patch",
     }
-    # the datasets a map may lack: the observation patches of `build --align-patches`, and the working
-    # field of view of cameras that all follow the default rule
-    assert {p for p, d in s["datasets"].items() if d.get("optional")} == {"tracks/patch", "cameras/working_fov"}
+    # the datasets a map may lack: the observation patches of `build --align-patches`, the working field of
+    # view of cameras that all follow the default rule, and the camera's rotation of maps built without one
+    assert {p for p, d in s["datasets"].items() if d.get("optional")} == {
+        "tracks/patch",
+        "cameras/working_fov",
+        "frames/cam_from_rig",
+    }
     known = {
         "finite",
         "not_nan",

@@ -50,7 +50,7 @@ def localize_errors(path: Path, queries, seed: int) -> np.ndarray:
 
     with Map.open(path) as m:
         loc = Localizer(m, LocalizeConfig())
-        priors = make_priors(queries, m.cam_from_world, EvalConfig(prior_mode="noise", seed=seed))
+        priors = make_priors(queries, m.rig_from_world, EvalConfig(prior_mode="noise", seed=seed))
         out = []
         for fr, prior in zip(queries.frames, priors):
             res = loc.localize(fr.image_path, prior, queries.cameras[fr.camera_id])

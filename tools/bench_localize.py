@@ -170,7 +170,7 @@ def real_split_timing(args) -> int:
     loc = Localizer(m, LocalizeConfig(device=args.device))
     frames = sp.queries.frames
     cams = [sp.queries.cameras[f.camera_id] for f in frames]
-    priors = make_priors(sp.queries, m.cam_from_world, EvalConfig(prior_mode="nearest"))
+    priors = make_priors(sp.queries, m.rig_from_world, EvalConfig(prior_mode="nearest"))
     stages = ("extraction", "visibility", "loading", "rendering", "matching", "pnp")
 
     def run(results_of):
@@ -246,7 +246,7 @@ def memory_child(args) -> dict:
     sp = real_splits([args.split])[0]
     m = Map.open(args.memory_of)
     loc = Localizer(m, LocalizeConfig(device=args.device))
-    priors = make_priors(sp.queries, m.cam_from_world, EvalConfig(prior_mode="nearest"))
+    priors = make_priors(sp.queries, m.rig_from_world, EvalConfig(prior_mode="nearest"))
     for _ in range(2):
         for f, p in zip(sp.queries.frames, priors):
             loc.localize(f.image_path, p, sp.queries.cameras[f.camera_id])

@@ -394,7 +394,7 @@ def localize_split(split, args) -> dict:
     fpts, bpts = favormap_points(m), baseline_points(base)
     cfg = dc.replace(bench.localizer_config({}), descriptors="rendered")
     loc = Localizer(m, cfg, descriptor_source=make_source("rendered", m, cfg.device))
-    priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode="noise", seed=args.seed))
+    priors = make_priors(split.queries, m.rig_from_world, EvalConfig(prior_mode="noise", seed=args.seed))
     fav, bas = [], []
     for fr, prior in zip(split.queries.frames, priors):
         cam = split.queries.cameras[fr.camera_id]

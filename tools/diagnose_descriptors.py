@@ -69,7 +69,7 @@ def main() -> int:
     seq = read_sequence(args.queries)
     seq = seq.subset(list(range(0, len(seq), max(args.every, 1))))
     loc = Localizer(m, LocalizeConfig())
-    priors = make_priors(seq, m.cam_from_world, EvalConfig(prior_mode=args.prior))
+    priors = make_priors(seq, m.rig_from_world, EvalConfig(prior_mode=args.prior))
     angles, c_rend, c_mean = [], [], []
     t0 = time.perf_counter()
     for fr, prior in zip(seq.frames, priors):

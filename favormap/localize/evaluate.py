@@ -293,8 +293,9 @@ def localizer_noise_floor(localizer: Localizer, image, camera, result) -> dict:
 def match_diagnostics(localizer: Localizer, image, camera, gt: np.ndarray, radius_px: float = 2.0) -> dict:
     """Diagnostics of the localizer's matching at the ground-truth pose: the landmarks visible from
     ``gt`` get their descriptors from the localizer's source at ``gt`` and are matched as in
-    localization."""
+    localization. ``gt`` is in the convention of the poses the map was built from, as priors are."""
     cfg = localizer.config
+    gt = localizer.camera_pose(gt)
     img, cam = localizer.prepare(image, camera)
     feats = localizer.extractor.extract(img)
     rows = visible_rows(
@@ -328,7 +329,7 @@ def evaluate(
 
     cfg = EvalConfig() if cfg is None else cfg
     first = next(iter(localizers.values()))
-    priors = make_priors(queries, first.map.cam_from_world, cfg)
+    priors = make_priors(queries, first.map.rig_from_world, cfg)
     extent = scene_extent(first.map.positions)
     reports = []
     for method, loc in localizers.items():

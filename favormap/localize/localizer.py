@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import from_rigid3d, pose_error, project, to_rigid3d
+from ..geometry import from_rigid3d, inverse, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
@@ -149,9 +149,27 @@ class Localizer(SuccessChecking, FinalRefinement):
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
         rebalance()  # pools sized by the rule follow the machine's load (favormap.threads; else a no-op)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
-        res = self._localize(image, prior, camera)
+        rig = self.map.stored_cam_from_rig is not None
+        res = self._localize(image, self.camera_pose(prior) if rig and prior is not None else prior, camera)
+        res.image_cam_from_world = res.cam_from_world
+        if rig:  # the map's cameras are turned against the poses it was built from: report in their frame
+            res.cam_from_world = self.rig_pose(res.cam_from_world)
+            res.estimate = None if res.estimate is None else self.rig_pose(res.estimate)
+            for it in res.iterations:
+                it.cam_from_world = self.rig_pose(it.cam_from_world)
+            if res.covariance is not None:
+                res.covariance = res.covariance.turned(inverse(self.map.cam_from_rig)[:3, :3])
         res.prior = prior
         return res
+
+    def camera_pose(self, rig_from_world: np.ndarray) -> np.ndarray:
+        """The pose of the map's camera for a pose in the convention of the poses the map was built from
+        (``Map.cam_from_rig @ rig_from_world``; the same pose for maps without frames/cam_from_rig)."""
+        return self.map.cam_from_rig @ np.asarray(rig_from_world, np.float64)
+
+    def rig_pose(self, cam_from_world: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`camera_pose`."""
+        return inverse(self.map.cam_from_rig) @ np.asarray(cam_from_world, np.float64)
 
     def _localize(self, image, prior: np.ndarray | None, camera: Camera | None) -> LocalizationResult:
         cfg = self.config

@@ -354,6 +354,13 @@ class PoseCovariance:
         A = -R.T
         return cls(cov6[:3, :3].copy(), A @ cov6[3:, 3:] @ A.T, cov6[:3, 3:] @ A.T)
 
+    def turned(self, A: np.ndarray) -> PoseCovariance:
+        """The covariance of ``[A | 0] @ cam_from_world`` (the same camera centre, its axes turned by the
+        rotation ``A``): exp(w) T becomes exp(A w) [A | 0] T."""
+        return PoseCovariance(
+            A @ self.rotation @ A.T, self.center.copy(), A @ self.cross, self.landmark_scale, self.keypoint_sigma_px
+        )
+
     @property
     def center_std(self) -> np.ndarray:
         """1-sigma of the camera centre along the world axes (map units)."""

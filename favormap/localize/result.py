@@ -48,6 +48,10 @@ class LocalizationResult:
     # the mapping images (NaN where not an inlier or not aligned); None when alignment is off
     aligned: np.ndarray | None = None
     prior: np.ndarray | None = None  # the cam_from_world prior localization started from (None: without one)
+    # the final estimate of the camera the image was taken with, in the frame of the map's landmarks and frames
+    # (Map.cam_from_rig @ cam_from_world); cam_from_world itself is in the convention of the poses the map was
+    # built from, as the prior is. The same matrix for maps without frames/cam_from_rig
+    image_cam_from_world: np.ndarray | None = None
 
     def to_json(self) -> dict:
         from ..geometry import inverse, rotmat_to_quat

@@ -180,7 +180,7 @@ class LandmarkRefinement:
         if len(inl) and self.min_uncertainty_px > 0:  # only landmarks this frame sees as uncertain
             inl = inl[self._projected_std(inl[:, 0], result) >= self.min_uncertainty_px]
         kp = np.asarray(result.keypoints, np.float64)
-        return self.core.add(result.cam_from_world, result.camera.K, inl[:, 0], kp[inl[:, 1]])
+        return self.core.add(result.image_cam_from_world, result.camera.K, inl[:, 0], kp[inl[:, 1]])
 
     def _projected_std(self, rows: np.ndarray, result) -> np.ndarray:
         """Largest standard deviation (px) of the map's position covariance of landmarks ``rows``
@@ -188,4 +188,4 @@ class LandmarkRefinement:
         from .refine import projected_std
 
         cov = self.localizer._landmark_covariances(rows)
-        return projected_std(self.positions[rows], cov, result.cam_from_world, result.camera.K)
+        return projected_std(self.positions[rows], cov, result.image_cam_from_world, result.camera.K)

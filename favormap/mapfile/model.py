@@ -121,6 +121,10 @@ class MapData(MapCounts):
     # (O,P,P) uint8 or None: each observation's grey pixels around its keypoint (optional dataset
     # tracks/patch, BuildConfig.align_patches), for the keypoint alignment without the mapping images
     track_patch: np.ndarray | None = None
+    # (4, 4) or None: the camera's pose in the frame of the poses the map was built from (optional dataset
+    # frames/cam_from_rig; a rotation the build estimated, BuildConfig.camera_rotation): cam_from_world holds
+    # the camera's poses, cam_from_rig @ rig_from_world, and the localizer takes and reports rig_from_world
+    cam_from_rig: np.ndarray | None = None
 
     def __getattr__(self, name: str):
         extra = self.__dict__.get("extra") or {}

@@ -11,6 +11,7 @@ import h5py
 import numpy as np
 
 from ..errors import FavormapError, InputError, MapFormatError, first_line
+from ..geometry import inverse, rotation_angle_deg
 from ..io import Camera
 from .fields import bulk_datasets, field_name, metadata_datasets
 from .model import (
@@ -162,7 +163,24 @@ class Map(MapCounts):
         self.frame_names = _strings(arrays["frames/names"])
         self.frame_camera_ids = arrays["frames/camera_ids"]
         self.cam_from_world = arrays["frames/cam_from_world"]
+        self.stored_cam_from_rig = None  # frames/cam_from_rig where the map has it
+        if self._ds("frames/cam_from_rig") is not None:
+            with _guard(self.path, "'frames/cam_from_rig'"):
+                self.stored_cam_from_rig = self._ds("frames/cam_from_rig")[()]
+                self._check_values({"frames/cam_from_rig": self.stored_cam_from_rig})
         return arrays
+
+    @property
+    def cam_from_rig(self) -> np.ndarray:
+        """(4, 4) the camera's pose in the frame of the poses the map was built from (frames/cam_from_rig; the
+        identity where the map has none): ``cam_from_world`` holds the cameras' poses, ``cam_from_rig @
+        rig_from_world``, and the localizer takes priors and reports poses as ``rig_from_world``."""
+        return np.eye(4) if self.stored_cam_from_rig is None else np.asarray(self.stored_cam_from_rig, np.float64)
+
+    @property
+    def rig_from_world(self) -> np.ndarray:
+        """(M, 4, 4) the mapping frames' poses in the convention of the poses the map was built from."""
+        return np.einsum("ij,njk->nik", inverse(self.cam_from_rig), self.cam_from_world)
 
     def _read_cameras(self, arrays: dict[str, np.ndarray]) -> dict[int, Camera]:
         """The cameras by id, with their working field of view where the map stores one."""
@@ -266,6 +284,8 @@ class Map(MapCounts):
             "build_stats": st,
             # poses estimated from the images (build of unposed images): how, and the units (None: poses given)
             "estimated_poses": map_estimated_poses(self.provenance),
+            # the angle by which the images' camera is turned against the poses the map was built from
+            "camera_rotation_deg": float(rotation_angle_deg(self.cam_from_rig[:3, :3])),
         }
 
     # -- lazy voxel access -------------------------------------------------------------------------
@@ -400,5 +420,6 @@ class Map(MapCounts):
             provenance=dict(self.provenance),
             extra=extra,
             track_patch=self.track_patches() if self.has_track_patches else None,
+            cam_from_rig=self.stored_cam_from_rig,
             **kw,
         )

@@ -387,6 +387,7 @@ def map_arrays(m: MapData) -> dict:
         "tracks/frame_index": m.track_frame,
         "tracks/xy": m.track_xy,
         **({} if m.track_patch is None else {"tracks/patch": m.track_patch}),
+        **({} if m.cam_from_rig is None else {"frames/cam_from_rig": np.asarray(m.cam_from_rig, np.float64)}),
     }
 
 

@@ -80,6 +80,13 @@ def check_compatible(maps: list) -> None:
             va, vb = getattr(a, k), getattr(b, k)
             if va != vb:
                 raise IncompatibleMapsError(f"cannot merge {a.path} and {b.path}: different {k} ({va!r} vs {vb!r})")
+        if not np.allclose(a.cam_from_rig, b.cam_from_rig, atol=1e-9):
+            # the frames hold camera poses either way; a merged map reports poses in one convention
+            angle = geometry.rotation_angle_deg(a.cam_from_rig[:3, :3].T @ b.cam_from_rig[:3, :3])
+            raise IncompatibleMapsError(
+                f"cannot merge {a.path} and {b.path}: their cameras are turned differently against the poses "
+                f"they were built from (frames/cam_from_rig, {angle:.3g} deg apart)"
+            )
 
 
 def resample_matrix(R_b_to_a: np.ndarray, res: int) -> np.ndarray | None:
@@ -387,7 +394,7 @@ def _merge(maps, out, dedup_radius, transform, min_cosine, dedup, chunk, progres
     L, M = len(s_all), len(names)
     with MapWriter(out, header, L, M) as w:
         write_landmark_metadata(w, lm)
-        write_frames_and_tracks(w, cameras, names, frame_cam, cfw, *tracks)
+        write_frames_and_tracks(w, cameras, names, frame_cam, cfw, *tracks, cam_from_rig=first.stored_cam_from_rig)
         resample = {k: sim.W for k in range(1, len(maps))} if sim is not None and sim.W is not None else {}
         copy_voxels(w, [(maps[k], rr) for k, rr in segs], chunk=chunk, resample=resample, progress=progress)
     return MergeResult(out, L, M, len(cameras), stats, n_regen, warnings)

@@ -235,6 +235,7 @@ def prune_map(
                 tf[obs],
                 txy[obs],
                 m.track_patches(np.flatnonzero(obs)) if m.has_track_patches else None,
+                cam_from_rig=m.stored_cam_from_rig,
             )
             copy_voxels(w, [(m, rows)], chunk=chunk, progress=progress)
     res.path = Path(out)

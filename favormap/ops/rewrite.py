@@ -27,13 +27,17 @@ def write_frames_and_tracks(
     track_frame,
     track_xy,
     track_patch=None,
+    cam_from_rig=None,
 ) -> None:
-    """The cameras/*, frames/* and tracks/* datasets (``track_patch``: the optional tracks/patch)."""
+    """The cameras/*, frames/* and tracks/* datasets (``track_patch``: the optional tracks/patch,
+    ``cam_from_rig``: the optional frames/cam_from_rig)."""
     for name, arr in camera_arrays(cameras).items():
         w.put(name, arr)
     w.put("frames/names", names)
     w.put("frames/camera_ids", camera_ids)
     w.put("frames/cam_from_world", cam_from_world)
+    if cam_from_rig is not None:
+        w.put("frames/cam_from_rig", np.asarray(cam_from_rig, np.float64))
     w.put("tracks/landmark_index", track_landmark)
     w.put("tracks/frame_index", track_frame)
     w.put("tracks/xy", track_xy)

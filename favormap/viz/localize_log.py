@@ -121,7 +121,11 @@ class LocalizeLog(RecordingBase):
             height=h,
             scale=s,
             depth=self._depth or 0.1,
-            cam_from_world=np.asarray(result.cam_from_world, np.float64),
+            # the image's camera, in the frame of the map's landmarks (the landmarks are projected with it)
+            cam_from_world=np.asarray(
+                result.cam_from_world if result.image_cam_from_world is None else result.image_cam_from_world,
+                np.float64,
+            ),
             keypoints=np.zeros((0, 2)) if result.keypoints is None else np.asarray(result.keypoints, np.float64) * s,
         )
         its = list(result.iterations)
@@ -282,7 +286,7 @@ class LocalizeLog(RecordingBase):
             else f"NOT localized: {result.message}"
         )
         if gt is not None:
-            dt, dr = geometry.pose_error(view.cam_from_world, np.asarray(gt, np.float64))
+            dt, dr = geometry.pose_error(np.asarray(result.cam_from_world, np.float64), np.asarray(gt, np.float64))
             pt, pr = geometry.pose_error(prior, np.asarray(gt, np.float64)) if prior is not None else (None, None)
             for metric, val, prior_val in (("translation_error", dt, pt), ("rotation_error_deg", dr, pr)):
                 self._series(f"metrics/{metric}/{method}", method, color)

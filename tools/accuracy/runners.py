@@ -284,10 +284,10 @@ def run_favormap(split: Split, args, build_cfg, tag: str, prefix: str, extent: f
         obs_desc = observation_descriptors(m, split.mapping)
 
     for prior_mode in args.priors + [p for p in split.priors if p not in args.priors]:
-        priors = make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
+        priors = make_priors(split.queries, m.rig_from_world, EvalConfig(prior_mode=prior_mode, seed=args.seed))
         # noise priors drawn with every --prior-seeds seed: each query's result is the seeds' median
         more = [
-            make_priors(split.queries, m.cam_from_world, EvalConfig(prior_mode=prior_mode, seed=s))
+            make_priors(split.queries, m.rig_from_world, EvalConfig(prior_mode=prior_mode, seed=s))
             for s in (args.prior_seeds[1:] if prior_mode == "noise" else [])
         ]
         variants = (

@@ -95,6 +95,13 @@ def moved_sequence(seq, transform):
     return dataclasses.replace(seq, frames=frames)
 
 
+def camera_sequence(seq, cam_from_rig: np.ndarray):
+    """``seq`` with the poses of the camera that the map's frames hold: ``cam_from_rig @ cam_from_world``
+    (Map.cam_from_rig: the camera's rotation against the poses the map was built from)."""
+    frames = [dataclasses.replace(fr, cam_from_world=cam_from_rig @ fr.cam_from_world) for fr in seq.frames]
+    return dataclasses.replace(seq, frames=frames)
+
+
 def _read_sequence(sequence, fmt):
     from ...io import Sequence, read_sequence
 
@@ -133,6 +140,8 @@ def extend_map(map_path, sequence, output, config: ExtendConfig | None = None, p
         timings["align"] = round(time.perf_counter() - t, 3)
     if transform is not None:
         seq = moved_sequence(seq, transform)
+    if m.cam_from_rig is not None:  # the map's frames hold its camera's poses: the new frames' are turned alike
+        seq = camera_sequence(seq, m.cam_from_rig)
     summary = run_extension(m, seq, Path(output), build_cfg, config, progress, timings)
     summary.transform = None if transform is None else np.asarray(transform, np.float64).tolist()
     summary.alignment = alignment

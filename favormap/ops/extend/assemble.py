@@ -74,6 +74,7 @@ def assemble_map(m, seq, new: NewFrames, frames: Frames, lms: Grown, trained: Tr
         track_frame=obs.frame[o],
         track_xy=obs.xy[o],
         track_patch=None if obs.patch is None else obs.patch[o],
+        cam_from_rig=m.cam_from_rig,
         provenance=_provenance(m, arrays, len(frames.names), cfg, record),
         extra=extra,
         **kw,
