@@ -381,8 +381,9 @@ def _landmark_stage(
             rotation = estimate_camera_rotation(
                 all_lms, ff.cam_from_world, ff.cameras, loss_px=default_max_epipolar(config.extractor)
             )
-            ff = replace(ff, cam_from_world=rotation.camera_poses(ff.cam_from_world))
-            all_lms = triangulate_tracks(tracks, ff, config)
+            if rotation.holds:
+                ff = replace(ff, cam_from_world=rotation.camera_poses(ff.cam_from_world))
+                all_lms = triangulate_tracks(tracks, ff, config)
         if config.refine_window:
             all_lms = refine_landmarks(all_lms, seq, ff, config)
         lms = select_landmarks(all_lms, config.max_landmarks, config.min_frame_landmarks)

@@ -63,7 +63,7 @@ class BuildLandmarks:
     def cam_from_rig(self) -> np.ndarray | None:
         """The camera's pose in the frame of the given poses (None: the given poses are the camera's)."""
         if self.rotation is not None:
-            return self.rotation.cam_from_rig
+            return self.rotation.cam_from_rig if self.rotation.holds else None
         return None if self.refinement is None else self.refinement.cam_from_rig
 
 

@@ -61,6 +61,8 @@ def test_a_turn_every_given_pose_shares_is_found_from_the_tracks(turned_stages, 
     again = triangulate_tracks(tracks, dataclasses.replace(ff, cam_from_world=est.camera_poses(ff.cam_from_world)), cfg)
     assert np.median(again.mean_reproj_error) < 0.8 * np.median(lms.mean_reproj_error)
     assert est.stats()["camera_rotation_deg"] == pytest.approx(est.angle_deg, abs=1e-3)
+    # both halves of the frames find the same turn
+    assert est.halves_apart_deg < 0.2 and est.holds and est.stats()["camera_rotation_applied"]
 
 
 def test_poses_without_a_shared_turn_give_none(small_sequence):

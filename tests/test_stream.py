@@ -92,6 +92,7 @@ def test_a_wrong_observation_cannot_drag_a_landmark_out_of_its_box(localizer, sm
     fake = SimpleNamespace(
         success=True,
         cam_from_world=fr.cam_from_world,
+        image_cam_from_world=fr.cam_from_world,
         camera=cam,
         keypoints=uv,
         matches=np.stack([rows, rows], 1),

@@ -147,6 +147,15 @@ def _add_pose_args(p) -> None:
         "recording) may seem to lose (docs/accuracy.md)",
     )
     p.add_argument(
+        "--camera-rotation",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="estimate the one rotation by which the images' camera is turned against the given poses (a hand-eye "
+        "calibration's error: motion capture, a robot's odometry), triangulate with the camera's poses and store "
+        "it, so that localize takes and reports poses in the given frame. auto: where the poses fit the images "
+        "less well than the keypoints (the build summary says so)",
+    )
+    p.add_argument(
         "--align-patches",
         type=int,
         default=None,
@@ -294,6 +303,7 @@ def config_from_args(args):
         align_patches=args.align_patches,
         exact_poses=getattr(args, "exact_poses", False) or None,
         refine_poses=getattr(args, "refine_poses", False) or None,
+        camera_rotation={"on": True, "off": False}.get(getattr(args, "camera_rotation", "auto")),
     )
     return BuildConfig(
         extractor=args.extractor,

@@ -85,6 +85,19 @@ def print_summary(s: dict) -> None:
             "                    (the tracks fit the poses as exact ones do: if they are, from a simulator or motion "
             "capture, --exact-poses localizes more precisely)"
         )
+    if "camera_rotation_deg" in s and s.get("camera_rotation_applied", True):
+        rms = s["camera_rotation_rms_px"]
+        print(
+            f"camera rotation     {s['camera_rotation_deg']:.2f} deg against the given poses (estimated from the "
+            f"tracks; their RMS reprojection {rms[0]:.2f} -> {rms[1]:.2f} px): localize takes and reports poses in "
+            "their frame"
+        )
+    elif "camera_rotation_deg" in s:
+        print(
+            f"camera rotation     none applied: the estimate ({s['camera_rotation_deg']:.2f} deg) is no shared "
+            f"calibration, the two halves of the frames give estimates {s['camera_rotation_halves_apart_deg']:.2f} "
+            "deg apart"
+        )
     if s.get("poses_refined"):
         rms = s["pose_refinement_rms_px"]
         print(

@@ -43,6 +43,11 @@ def run(args) -> int:
     if info["aligns_by_default"]:
         why = "built with --exact-poses" if info["exact_poses"] else f"{info['extractor']} keypoints"
         print(f"keypoint alignment  on by default in localize ({why}; --no-align turns it off)")
+    if info["camera_rotation_deg"]:
+        print(
+            f"camera rotation     {info['camera_rotation_deg']:.2f} deg against the poses the map was built from "
+            "(frames/cam_from_rig): localize takes and reports poses in their frame"
+        )
     if info["estimated_poses"]:
         print(estimated_poses_line(info["estimated_poses"]))
     print(f"file size           {human_size(info['file_size'])}")
