@@ -100,6 +100,9 @@ class LocalizeConfig:
     # descriptors
     stop_translation: float = 5e-3
     stop_rotation_deg: float = 0.5
+    # within one query, a landmark keeps the descriptor it got while the camera sees it along a ray at most this
+    # far from the one it was rendered for (favormap.localize.descriptors.SeenRays; 0: rendered every time)
+    rerender_angle_deg: float = 1.0
     # "rendered" (FaVoR: rendered from the voxel grids), "mean" (each landmark's mean observed descriptor) or
     # "nearest" (observed in the mapping frame nearest in direction; favormap.localize.descriptors)
     descriptors: str = "rendered"
@@ -133,6 +136,10 @@ class LocalizeConfig:
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
             raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
+        if not (isinstance(self.rerender_angle_deg, (int, float)) and 0 <= self.rerender_angle_deg <= 180):
+            raise InputError(
+                f"rerender_angle_deg must be a number of degrees in [0, 180], not {self.rerender_angle_deg!r}"
+            )
         if self.refine_noise not in ("fixed", "estimated"):
             raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         if not (isinstance(self.keypoint_sigma_px, (int, float)) and 0 < self.keypoint_sigma_px < float("inf")):

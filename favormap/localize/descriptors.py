@@ -11,7 +11,9 @@ A descriptor source turns landmark rows and the current pose estimate into unit 
   computes them from the mapping images.
 
 A user's source may return several descriptors per landmark (k len(rows) rows, block by block);
-:func:`describe` then names each descriptor's landmark.
+:func:`describe` then names each descriptor's landmark. A source that says ``one_per_landmark = True``
+lets the localizer keep a landmark's descriptor through one query while the camera sees it along
+nearly the same ray (:class:`SeenRays`, ``LocalizeConfig.rerender_angle_deg``).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class RenderedDescriptors:
     mapping of memory on every call; each landmark's descriptor is the same either way."""
 
     name = "rendered"
+    one_per_landmark = True  # SeenRays may keep its descriptors within a query
     chunk = 512
 
     def __init__(self, map_: Map, device: str = "cpu"):
@@ -99,6 +102,7 @@ class RenderedDescriptors:
 
 class MeanDescriptors:
     name = "mean"
+    one_per_landmark = True  # SeenRays may keep its descriptors within a query
 
     def __init__(self, map_: Map):
         self.map = map_
@@ -114,6 +118,7 @@ class NearestViewDescriptors:
     """The observed descriptor from the mapping frame nearest to the current estimate."""
 
     name = "nearest"
+    one_per_landmark = True  # SeenRays may keep its descriptors within a query
 
     def __init__(self, map_: Map, obs_descriptors: np.ndarray):
         from .observations import ObservationIndex
@@ -154,15 +159,67 @@ def observation_descriptors(map_: Map, sequence, extractor=None) -> np.ndarray:
     return out
 
 
-def describe(source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict):
+def describe(
+    source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict, seen: SeenRays | None = None
+):
     """(descriptors, their landmark rows): ``source``'s descriptors of ``rows`` and, per descriptor,
     its landmark (``rows`` itself for a source with one descriptor per landmark; repeated for a
-    source that returns several per landmark, block by block)."""
+    source that returns several per landmark, block by block). With ``seen`` (one query's), a landmark
+    seen along nearly the ray it was described for earlier in the query keeps that descriptor."""
     rows = np.asarray(rows, np.int64)
+    if seen is not None and len(rows):
+        return seen.describe(source, rows, cam_from_world, timings), rows
     d = source(rows, cam_from_world, timings)
     if len(rows) == 0 or len(d) == len(rows):
         return d, rows
     return d, np.tile(rows, len(d) // len(rows))
+
+
+class SeenRays:
+    """The descriptors one query's localization got from a source with one descriptor per landmark, by
+    landmark, with the direction of the ray each was computed along. A landmark asked for again from a
+    camera centre that sees it within ``max_angle_deg`` of that ray keeps its descriptor: the rendering
+    iterations and the guided step ask for mostly the same landmarks from estimates millimetres apart,
+    where a rendering changes by far less than the descriptors' own view dependence (the grids interpolate
+    the training views, degrees apart)."""
+
+    def __init__(self, positions: np.ndarray, max_angle_deg: float):
+        self.positions = positions
+        self.min_cos = float(np.cos(np.radians(max_angle_deg)))
+        self.rows = np.zeros(0, np.int64)  # sorted
+        self.desc: np.ndarray | None = None
+        self.dirs = np.zeros((0, 3), np.float32)
+
+    def describe(self, source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict):
+        dirs = np.asarray(self.positions[rows], np.float32) - np.asarray(camera_centers(cam_from_world), np.float32)
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+        at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
+        known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
+        keep = known.copy()
+        keep[known] = np.einsum("ij,ij->i", dirs[known], self.dirs[at[known]]) >= self.min_cos
+        fresh = np.flatnonzero(~keep)
+        d = source(rows[fresh], cam_from_world, timings)
+        if len(d) != len(fresh):
+            raise ValueError(f"descriptor source {getattr(source, 'name', source)!r} gives several per landmark")
+        out = np.empty((len(rows), d.shape[1] if len(fresh) else self.desc.shape[1]), np.float32)
+        out[fresh] = d
+        if keep.any():
+            out[keep] = self.desc[at[keep]]
+        self._store(rows[fresh], d, dirs[fresh])
+        return out
+
+    def _store(self, rows: np.ndarray, desc: np.ndarray, dirs: np.ndarray) -> None:
+        if len(rows) == 0:
+            return
+        if self.desc is None:
+            old = np.zeros(0, bool)
+        else:
+            old = ~np.isin(self.rows, rows)
+        all_rows = np.concatenate([self.rows[old], rows])
+        order = np.argsort(all_rows, kind="stable")
+        self.rows = all_rows[order]
+        self.desc = np.concatenate([self.desc[old], desc])[order] if self.desc is not None else desc[order]
+        self.dirs = np.concatenate([self.dirs[old], dirs])[order]
 
 
 def make_source(

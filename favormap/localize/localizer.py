@@ -39,7 +39,7 @@ from ..threads import rebalance, thread_count
 from ..visibility import SpatialIndex, visible_rows
 from .checks import SuccessChecking
 from .config import LocalizeConfig
-from .descriptors import DescriptorSource, describe, make_source, unit_rows
+from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
 from .matching import distinct_pairs, match_descriptors, pair_similarity
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
@@ -180,6 +180,8 @@ class Localizer(SuccessChecking, FinalRefinement):
         qdesc = np.asarray(feats.descriptors, np.float32)
         t["extraction"] = time.perf_counter() - t0
         q = Query(feats, qdesc, cam)
+        if cfg.rerender_angle_deg > 0 and getattr(self.source, "one_per_landmark", False):
+            q.seen = SeenRays(self.map.positions, cfg.rerender_angle_deg)
         if cfg.align:
             q.image = img
 
@@ -298,7 +300,7 @@ class Localizer(SuccessChecking, FinalRefinement):
         last = None
         for _ in range(cfg.iterations):
             rows = self._visible(q, pose, t)
-            rend, drows = describe(self.source, rows, pose, t)
+            rend, drows = describe(self.source, rows, pose, t, q.seen)
             s = time.perf_counter()
             m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
             m = distinct_pairs(m, drows, len(rows))

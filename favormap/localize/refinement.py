@@ -172,7 +172,7 @@ class FinalRefinement:
         noise model (times that variance factor); then PnP runs again with a tight threshold."""
         cfg = self.config
         rows = self._visible(q, pose, t)
-        rend, drows = describe(self.source, rows, pose, t)
+        rend, drows = describe(self.source, rows, pose, t, q.seen)
         s = time.perf_counter()
         gate = None
         if gate_scale:

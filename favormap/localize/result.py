@@ -95,3 +95,4 @@ class Query:
     image: np.ndarray | None = None  # the working image (LocalizeConfig.align)
     gray: np.ndarray | None = None  # its blurred grey version, once aligned
     aligned: np.ndarray | None = None  # (K, 2) the last final refinement's aligned keypoints by match
+    seen: object | None = None  # favormap.localize.descriptors.SeenRays: the descriptors it got, by landmark
