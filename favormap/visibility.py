@@ -322,24 +322,3 @@ def visible_rows(
     view_angle = np.asarray(view_angle)
     tiers = index.prepare_visibility(depth_range, float(limits.depth_scale[1]), view_dir, view_angle)
     return tiers.visible(camera, cam_from_world, limits)
-
-
-def spread_rows(
-    rows: np.ndarray, uv: np.ndarray, score: np.ndarray, size: tuple[int, int], n: int, grid: tuple[int, int] = (8, 6)
-) -> np.ndarray:
-    """At most ``n`` of ``rows`` (sorted), spread over an image of ``size`` (width, height): their projections
-    ``uv`` (len(rows), 2) binned into a ``grid`` of cells, each cell's rows ranked by ``score`` (higher first),
-    and the rows taken rank by rank across the cells (every cell's best, then every cell's second, ...), the
-    higher score first within a rank."""
-    rows = np.asarray(rows, np.int64)
-    if len(rows) <= n:
-        return rows
-    gx, gy = grid
-    cx = np.clip((uv[:, 0] / size[0] * gx).astype(np.int64), 0, gx - 1)
-    cy = np.clip((uv[:, 1] / size[1] * gy).astype(np.int64), 0, gy - 1)
-    cell = cx * gy + cy
-    order = np.lexsort((-score, cell))  # by cell, best score first
-    rank = np.empty(len(rows), np.int64)
-    rank[order] = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
-    pick = np.lexsort((-score, rank))[:n]
-    return np.sort(rows[pick])

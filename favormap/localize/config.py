@@ -107,10 +107,6 @@ class LocalizeConfig:
     # "nearest" (observed in the mapping frame nearest in direction; favormap.localize.descriptors)
     descriptors: str = "rendered"
     view_limits: ViewLimits = field(default_factory=_localizer_view_limits)  # which landmarks are tried
-    # at most this many of them a step (None: all): those seen most nearly along their training views, spread over
-    # the image (favormap.visibility.spread_rows). Queries of the real sets see 1,500-2,500, of a dense desk map
-    # ~6,000, where the rendering, reading and matching of the rest cost a fifth of the time (docs/measurements.md)
-    max_visible: int | None = 3000
     device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
     seed: int = 0  # RANSAC's
     # CPU threads for torch/OpenCV: None leaves the process's pools alone; "auto" sizes them by favormap.threads'
@@ -144,8 +140,6 @@ class LocalizeConfig:
             raise InputError(
                 f"rerender_angle_deg must be a number of degrees in [0, 180], not {self.rerender_angle_deg!r}"
             )
-        if self.max_visible is not None and not (isinstance(self.max_visible, int) and self.max_visible >= 1):
-            raise InputError(f"max_visible must be an integer >= 1 (or None: all), not {self.max_visible!r}")
         if self.refine_noise not in ("fixed", "estimated"):
             raise InputError(f"refine_noise must be 'fixed' or 'estimated', not {self.refine_noise!r}")
         if not (isinstance(self.keypoint_sigma_px, (int, float)) and 0 < self.keypoint_sigma_px < float("inf")):

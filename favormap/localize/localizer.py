@@ -30,13 +30,13 @@ import numpy as np
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import camera_centers, from_rigid3d, inverse, pose_error, project, to_rigid3d
+from ..geometry import from_rigid3d, inverse, pose_error, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
 from ..mapfile.model import map_aligns_by_default, map_epipolar_px
 from ..threads import rebalance, thread_count
-from ..visibility import SpatialIndex, spread_rows, visible_rows
+from ..visibility import SpatialIndex, visible_rows
 from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
@@ -269,7 +269,6 @@ class Localizer(SuccessChecking, FinalRefinement):
 
     def _visible(self, q: Query, pose: np.ndarray, t: dict) -> np.ndarray:
         """Rows of the landmarks visible from ``pose`` (timed into ``t["visibility"]``)."""
-        cfg = self.config
         s = time.perf_counter()
         rows = visible_rows(
             self.index,
@@ -280,13 +279,6 @@ class Localizer(SuccessChecking, FinalRefinement):
             self.map.depth_range,
             self.config.view_limits,
         )
-        if cfg.max_visible is not None and len(rows) > cfg.max_visible:
-            # the landmarks seen most nearly along their training views, spread over the image
-            X = self.positions[rows]
-            to_cam = camera_centers(pose)[None] - X
-            to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
-            score = np.einsum("ij,ij->i", to_cam, self.map.view_dir[rows])
-            rows = spread_rows(rows, project(q.cam.K, pose, X), score, (q.cam.width, q.cam.height), cfg.max_visible)
         t["visibility"] += time.perf_counter() - s
         return rows
 
