@@ -29,12 +29,12 @@ from .geometry import (
     project,
     rotation_angle_deg,
     rotvec_to_rotmat,
-    sum_by_group,
     to_rigid3d,
     transform_points,
     umeyama,
 )
 from .io import Camera
+from .least_squares import rotation_jacobian, schur_step
 from .triangulation import Landmarks
 
 
@@ -383,29 +383,13 @@ def _solve_camera_rotation(
         w = 1.0 / (1.0 + np.sum(r**2, 1) / loss_px**2)  # Cauchy's IRLS weights
         x, y, z = c[:, 0], c[:, 1], c[:, 2]
         fx, fy = K[:, 0, 0], K[:, 1, 1]
-        P = np.zeros((len(c), 2, 3))
+        P = np.zeros((len(c), 2, 3))  # d pixel / d camera-frame point
         P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * x / z**2
         P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * y / z**2
-        cx = np.zeros((len(c), 3, 3))  # [c]x
-        cx[:, 0, 1], cx[:, 0, 2], cx[:, 1, 2] = -z, y, -x
-        cx[:, 1, 0], cx[:, 2, 0], cx[:, 2, 1] = z, -y, x
-        Jw = -P @ cx  # d residual / d rotation update (Q <- exp([w]x) Q)
-        Jx = P @ (Q @ R)  # d residual / d landmark position
-        H = np.einsum("n,nki,nkj->ij", w, Jw, Jw)
-        g = np.einsum("n,nki,nk->i", w, Jw, r)
-        A = sum_by_group(np.einsum("n,nki,nkj->nij", w, Jx, Jx).reshape(-1, 9), tid, n).reshape(n, 3, 3)
-        B = sum_by_group(np.einsum("n,nki,nkj->nij", w, Jw, Jx).reshape(-1, 9), tid, n).reshape(n, 3, 3)
-        gx = sum_by_group(np.einsum("n,nki,nk->ni", w, Jx, r), tid, n)
+        J_w = P @ rotation_jacobian(c)  # d residual / d rotation update (Q <- exp([w]x) Q)
+        J_X = P @ (Q @ R)  # d residual / d landmark position
         for _ in range(10):  # damped until the cost falls
-            diag = np.einsum("nii->ni", A)
-            # damped, with a ridge of 1e-9 of the block's scale: a landmark seen along parallel rays stays solvable
-            ridge = 1e-9 * diag.sum(1)[:, None, None] / 3 + 1e-12
-            Ad = A + lam * diag[:, :, None] * np.eye(3) + ridge * np.eye(3)
-            Ainv = np.linalg.inv(Ad)
-            BA = B @ Ainv
-            S = H + lam * np.diag(np.diag(H)) - np.einsum("nij,nkj->ik", BA, B)
-            dw = np.linalg.solve(S, -g + np.einsum("nij,nj->i", BA, gx))
-            dX = -np.einsum("nij,nj->ni", Ainv, gx + np.einsum("nji,j->ni", B, dw))
+            dw, dX = schur_step(J_w, J_X, r, w, tid, n, lam, point_ridge=1e-9, shared_ridge=0.0)
             Qn, Xn = rotvec_to_rotmat(dw) @ Q, X + dX
             rn, cn = residuals(Qn, Xn)
             if np.all(cn[:, 2] > 0) and cost(rn) < best:

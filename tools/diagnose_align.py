@@ -30,7 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from favormap.geometry import rotation_angle_deg, rotvec_to_rotmat, sum_by_group, transform_points  # noqa: E402
+from favormap.geometry import rotation_angle_deg, rotvec_to_rotmat, transform_points  # noqa: E402
+from favormap.least_squares import rotation_jacobian, schur_step  # noqa: E402
 from favormap.mapfile import Map  # noqa: E402
 from favormap.ops.align import align_maps  # noqa: E402
 from favormap.ops.align_refine import (  # noqa: E402
@@ -41,7 +42,6 @@ from favormap.ops.align_refine import (  # noqa: E402
     _residuals,
     guided_matches,
     refine_alignment,
-    rotation_jacobian,
 )
 
 
@@ -75,17 +75,7 @@ def fit(P: _Problem, X, a_to_b, offset, free_similarity: bool, free_offset: bool
         J_S = np.where(P.from_b[:, None, None], J_Y @ dY, 0.0) * free_similarity
         J_E = Dp @ np.concatenate([rotation_jacobian(xc), np.broadcast_to(np.eye(3), (len(xc), 3, 3))], 2) * free_offset
         J_G = np.concatenate([J_S, J_E], 2)
-        wG, wX = w[:, None, None] * J_G, w[:, None, None] * J_X
-        H_GG = wG.reshape(-1, 13).T @ J_G.reshape(-1, 13)
-        g_G = wG.reshape(-1, 13).T @ r.reshape(-1)
-        H_GX = sum_by_group(np.swapaxes(wG, 1, 2) @ J_X, P.point, K)
-        H_XX = sum_by_group(np.swapaxes(wX, 1, 2) @ J_X, P.point, K)
-        g_X = sum_by_group((np.swapaxes(wX, 1, 2) @ r[:, :, None])[:, :, 0], P.point, K)
-        H_inv = np.linalg.inv(H_XX + damping * H_XX * np.eye(3) + 1e-12 * np.eye(3))
-        V = H_GX @ H_inv
-        H_red = H_GG + damping * np.diag(np.diag(H_GG)) - (V @ np.swapaxes(H_GX, 1, 2)).sum(0) + 1e-9 * np.eye(13)
-        d = -np.linalg.solve(H_red, g_G - (V @ g_X[:, :, None])[:, :, 0].sum(0))
-        dX = -(H_inv @ (g_X + np.swapaxes(H_GX, 1, 2) @ d)[:, :, None])[:, :, 0]
+        d, dX = schur_step(J_G, J_X, r, w, P.point, K, damping, shared_ridge=1e-9)
         D = np.eye(4)
         D[:3, :3], D[:3, 3] = rotvec_to_rotmat(d[7:10]), d[10:13]
         trial = (X + dX, _apply(a_to_b, d[:7]), D @ offset)

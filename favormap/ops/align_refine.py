@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import rotation_angle_deg, rotvec_to_rotmat, sum_by_group, transform_points
+from ..geometry import rotation_angle_deg, rotvec_to_rotmat, transform_points
+from ..least_squares import rotation_jacobian, schur_step
 
 
 @dataclass
@@ -197,30 +198,7 @@ def _step(P: _Problem, X: np.ndarray, a_to_b: np.ndarray, c: float, weight: np.n
     dY[:, :, 3:6] = np.eye(3)
     dY[:, :, 6] = Y
     J_S = np.where(P.from_b[:, None, None], J_Y @ dY, 0.0)
-    wJ_S, wJ_X = w[:, None, None] * J_S, w[:, None, None] * J_X
-    H_SS = wJ_S.reshape(-1, 7).T @ J_S.reshape(-1, 7)
-    g_S = wJ_S.reshape(-1, 7).T @ r.reshape(-1)
-    wJ_S_T, wJ_X_T = np.swapaxes(wJ_S, 1, 2), np.swapaxes(wJ_X, 1, 2)
-    H_SX = sum_by_group(wJ_S_T @ J_X, P.point, K)
-    H_XX = sum_by_group(wJ_X_T @ J_X, P.point, K)
-    g_X = sum_by_group((wJ_X_T @ r[:, :, None])[:, :, 0], P.point, K)
-    H_XX = H_XX + damping * H_XX * np.eye(3) + 1e-12 * np.eye(3)
-    H_XX_inv = np.linalg.inv(H_XX)
-    V = H_SX @ H_XX_inv
-    H_red = H_SS + damping * np.diag(np.diag(H_SS)) - (V @ np.swapaxes(H_SX, 1, 2)).sum(0)
-    g_red = g_S - (V @ g_X[:, :, None])[:, :, 0].sum(0)
-    d_S = -np.linalg.solve(H_red + 1e-12 * np.eye(7), g_red)
-    d_X = -(H_XX_inv @ (g_X + np.swapaxes(H_SX, 1, 2) @ d_S)[:, :, None])[:, :, 0]
-    return d_S, d_X
-
-
-def rotation_jacobian(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3): d (R v) / d (rotation vector) at R = I for points ``v`` (N, 3), i.e. -[v]x."""
-    J = np.zeros((len(v), 3, 3))
-    J[:, 0, 1], J[:, 0, 2] = v[:, 2], -v[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = -v[:, 2], v[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = v[:, 1], -v[:, 0]
-    return J
+    return schur_step(J_S, J_X, r, w, P.point, K, damping)
 
 
 def _apply(a_to_b: np.ndarray, d_S: np.ndarray) -> np.ndarray:
