@@ -344,21 +344,28 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     assert len(np.unique(near[:, 0])) == len(near) and len(np.unique(near[:, 1])) == len(near)
 
 
-def test_iterations_stop_once_the_estimate_stops_moving(small_map, queries):
-    """The rendering iterations stop when an estimate lies within stop_translation / stop_rotation_deg
-    of the pose its descriptors were rendered from: from a prior 15 deg off the first estimate moves
-    far, the second hardly, so no third iteration runs, and the pose is the one three give."""
+def test_iterations_stop_once_rendering_again_would_change_little(small_map, queries):
+    """The rendering iterations stop when rendering from the new estimate would change fewer than
+    stop_change of the landmarks to match (visible set, rays turned beyond rerender_angle_deg): from a
+    prior 15 deg off the first estimate moves far, the second hardly, so no third iteration runs, and
+    the pose is the one three give."""
     _, path = small_map
     img, T = queries[1]
     prior = perturb_pose(T, 0.3, 15.0, np.random.default_rng(4))
     cfg = dict(guided_radius_px=0)
-    early = Localizer(path, LocalizeConfig(**cfg)).localize(img, prior)
-    full = Localizer(path, LocalizeConfig(stop_translation=0.0, stop_rotation_deg=0.0, **cfg)).localize(img, prior)
+    loc = Localizer(path, LocalizeConfig(**cfg))
+    early = loc.localize(img, prior)
+    full = Localizer(path, LocalizeConfig(stop_change=0.0, **cfg)).localize(img, prior)
     assert early.success and full.success
     assert [it.kind for it in full.iterations] == ["render"] * 3
     assert [it.kind for it in early.iterations] == ["render"] * 2
-    moved = pose_error(early.iterations[1].cam_from_world, early.iterations[0].cam_from_world)
-    assert moved[1] < LocalizeConfig.stop_rotation_deg
+    from favormap.localize.result import Query
+
+    _, cam = loc.prepare(img)
+    poses = [prior] + [it.cam_from_world for it in early.iterations]
+    rows = [loc._visible(Query(None, None, cam), P, {"visibility": 0.0}) for P in poses]
+    assert loc._changed_share(rows[0], poses[0], rows[1], poses[1]) > 0.5  # the first estimate moved far
+    assert loc._changed_share(rows[1], poses[1], rows[2], poses[2]) < LocalizeConfig.stop_change
     assert pose_error(early.cam_from_world, full.cam_from_world)[0] < 1e-3
     assert pose_error(early.cam_from_world, T)[0] < 0.01
 

@@ -95,11 +95,11 @@ class LocalizeConfig:
     # the least inliers of that coarse pose for the rendering iterations to start from: it is a starting point,
     # not a result (the refined pose must pass every check); 12, the structure baseline's success threshold
     coarse_min_inliers: int = 12
-    # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
-    # (translation relative to the median landmark distance): rendering again from there gives the same
-    # descriptors
-    stop_translation: float = 5e-3
-    stop_rotation_deg: float = 0.5
+    # stop iterating once rendering from the new estimate would change fewer than this share of the landmarks
+    # to match: those that enter or leave the visible set, and those seen along a ray more than
+    # rerender_angle_deg from the one their descriptor was rendered along. The next iteration would match
+    # nearly the same descriptors and find nearly the same pose. 0: run every iteration
+    stop_change: float = 0.05
     # within one query, a landmark keeps the descriptor it got while the camera sees it along a ray at most this
     # far from the one it was rendered for (favormap.localize.descriptors.SeenRays; 0: rendered every time)
     rerender_angle_deg: float = 1.0
@@ -136,6 +136,8 @@ class LocalizeConfig:
             raise InputError("guided_radius_px and guided_gate_sigma must be numbers >= 0")
         if self.guided_below_inliers is not None and self.guided_below_inliers < 0:
             raise InputError("guided_below_inliers must be >= 0 (or None: every pose)")
+        if not (isinstance(self.stop_change, (int, float)) and 0 <= self.stop_change <= 1):
+            raise InputError(f"stop_change must be a share in [0, 1], not {self.stop_change!r}")
         if not (isinstance(self.rerender_angle_deg, (int, float)) and 0 <= self.rerender_angle_deg <= 180):
             raise InputError(
                 f"rerender_angle_deg must be a number of degrees in [0, 180], not {self.rerender_angle_deg!r}"

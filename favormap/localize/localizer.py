@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import from_rigid3d, inverse, pose_error, project, to_rigid3d
+from ..geometry import camera_centers, from_rigid3d, inverse, project, to_rigid3d
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
@@ -52,6 +53,9 @@ class Localizer(SuccessChecking, FinalRefinement):
 
     ``descriptor_source`` overrides ``config.descriptors`` (e.g. nearest-view descriptors, which
     need data the map does not hold).
+
+    From a prior, the features are extracted on a worker thread while the first iteration's landmarks are
+    looked up and rendered (one thread per query, ended with it).
 
     Thread safety: one Localizer may be shared by several threads; :meth:`localize` calls run
     concurrently and give the same results as one after the other (the map's voxel cache takes a
@@ -176,17 +180,35 @@ class Localizer(SuccessChecking, FinalRefinement):
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
         img, cam = self.prepare(image, camera)
-        feats = self.extractor.extract(img)
-        qdesc = np.asarray(feats.descriptors, np.float32)
-        t["extraction"] = time.perf_counter() - t0
-        q = Query(feats, qdesc, cam)
+        prepared = time.perf_counter() - t0
+
+        def extract():
+            s = time.perf_counter()
+            out = self.extractor.extract(img)
+            t["extraction"] = prepared + time.perf_counter() - s
+            return out
+
+        seen = None
         if cfg.rerender_angle_deg > 0 and getattr(self.source, "one_per_landmark", False):
-            q.seen = SeenRays(self.map.positions, cfg.rerender_angle_deg)
+            seen = SeenRays(self.map.positions, cfg.rerender_angle_deg)
+        first_rows = None
+        if prior is not None and seen is not None:
+            # the first iteration's landmarks and descriptors need only the prior: they are looked up and
+            # rendered while the features are extracted (the extractor leaves part of the cores idle)
+            with ThreadPoolExecutor(1, thread_name_prefix="favormap-extract") as pool:
+                job = pool.submit(extract)
+                first_rows = self._visible(Query(None, None, cam), prior, t)
+                describe(self.source, first_rows, prior, t, seen)
+                feats = job.result()
+        else:
+            feats = extract()
+        qdesc = np.asarray(feats.descriptors, np.float32)
+        q = Query(feats, qdesc, cam, seen=seen)
         if cfg.align:
             q.image = img
 
         if prior is not None:
-            res = self._refine(q, prior, [], t)
+            res = self._refine(q, prior, [], t, first_rows=first_rows)
             self._confirm(q, res, prior, t)
             if res.success or not cfg.global_fallback:
                 return res
@@ -283,7 +305,13 @@ class Localizer(SuccessChecking, FinalRefinement):
         return rows
 
     def _refine(
-        self, q: Query, start: np.ndarray, iters: list[IterationResult], t: dict, anchor: np.ndarray | None = None
+        self,
+        q: Query,
+        start: np.ndarray,
+        iters: list[IterationResult],
+        t: dict,
+        anchor: np.ndarray | None = None,
+        first_rows: np.ndarray | None = None,
     ) -> LocalizationResult:
         """The rendering iterations from ``start``, then the guided step and the weighted refinement.
 
@@ -294,12 +322,14 @@ class Localizer(SuccessChecking, FinalRefinement):
         same matches (:meth:`_local_pnp`), instead. On the fox's wallpaper (query 0072 of the
         extrapolation split) RANSAC preferred a false consensus 6.8 units away (46 inliers at 4 px,
         on one repeated flower) to the correct pose (38 inliers at 4 px, 0.015 units from the truth):
-        a larger inlier set is no evidence against a pose that the prior-free estimate confirms."""
+        a larger inlier set is no evidence against a pose that the prior-free estimate confirms.
+
+        ``first_rows``: the landmarks visible from ``start``, where already looked up."""
         cfg = self.config
         pose = start
         last = None
-        for _ in range(cfg.iterations):
-            rows = self._visible(q, pose, t)
+        rows = self._visible(q, pose, t) if first_rows is None else first_rows
+        for k in range(cfg.iterations):
             rend, drows = describe(self.source, rows, pose, t, q.seen)
             s = time.perf_counter()
             m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
@@ -319,9 +349,13 @@ class Localizer(SuccessChecking, FinalRefinement):
             last = dict(
                 matches=np.c_[drows[m[:, 0]], m[:, 1]], inliers=np.asarray(ans["inlier_mask"], bool), similarity=sims
             )
-            dt, dr = pose_error(new_pose, pose)
-            pose = new_pose
-            if dt < cfg.stop_translation * self.scale and dr < cfg.stop_rotation_deg:
+            if k == cfg.iterations - 1:
+                pose = new_pose
+                break
+            new_rows = self._visible(q, new_pose, t)
+            changed = self._changed_share(rows, pose, new_rows, new_pose)
+            pose, rows = new_pose, new_rows
+            if changed < cfg.stop_change:
                 break
         cov = None
         weighted = last is not None and iters[-1].success and cfg.landmark_sigma_px != 0
@@ -336,6 +370,22 @@ class Localizer(SuccessChecking, FinalRefinement):
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None
         return res
+
+    def _changed_share(self, rows: np.ndarray, pose: np.ndarray, new_rows: np.ndarray, new_pose: np.ndarray) -> float:
+        """The share of the landmarks visible from ``new_pose`` (``new_rows``) that an iteration from there
+        would see differently from one at ``pose`` (visible ``rows``, both sorted): those visible from only
+        one of them, and those whose ray from the camera centre turns by more than
+        ``LocalizeConfig.rerender_angle_deg`` (all of them when that angle is 0: rendered every time)."""
+        angle = self.config.rerender_angle_deg
+        if len(new_rows) == 0 or angle <= 0:
+            return 1.0
+        both = np.intersect1d(rows, new_rows, assume_unique=True)
+        changed = len(rows) + len(new_rows) - 2 * len(both)
+        X = np.asarray(self.map.positions[both], np.float64)
+        a, b = X - camera_centers(pose), X - camera_centers(new_pose)
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+        changed += int(np.count_nonzero(cos < np.cos(np.radians(angle))))
+        return changed / len(new_rows)
 
     def _local_pnp(self, q: Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, t: dict, rounds: int = 3):
         """``pose`` refined on its own inliers (within ``ransac_max_error_px``) among the matches

@@ -17,15 +17,18 @@ def match_descriptors(
     threshold: float,
     mutual: bool = False,
     ratio: float = 1.0,
-    chunk: int = 8192,
+    chunk: int = 1024,
 ) -> np.ndarray:
     """(K, 2) index pairs [rendered row, query row]: for every rendered descriptor the most similar
     query descriptor, kept when the cosine similarity reaches ``threshold``, when (``mutual``) the
     rendered descriptor is also that query descriptor's most similar one, and when the best
     distance is below ``ratio`` times the second best (Lowe's test on unit vectors).
 
-    NumPy, ``chunk`` rendered rows at a time: memory stays bounded when matching a query against a
-    whole map (the prior-free step); ties go to the lower index."""
+    NumPy, ``chunk`` rendered rows at a time, every block of similarities written into one buffer
+    (``chunk`` x Q float32, a few MB): memory stays bounded when matching a query against a whole map
+    (the prior-free step), and the products land in memory already mapped, where a fresh array per
+    product (40 MB for 6,600 landmarks against 1,500 keypoints) is a fresh mapping of memory, page
+    faults included, on every call (the products took ~1.8x as long); ties go to the lower index."""
     rendered = np.asarray(rendered, np.float32)
     query = np.asarray(query, np.float32)
     L, Q = len(rendered), len(query)
@@ -37,8 +40,9 @@ def match_descriptors(
     best_sim = np.empty(L, np.float32)
     second = np.full(L, -np.inf, np.float32)
     col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's best similarity
+    buf = np.empty((min(chunk, L), G), np.float32)
     for s in range(0, L, chunk):
-        sim = _gemm_t(np.ascontiguousarray(rendered[s : s + chunk]), query)
+        sim = _gemm_t(np.ascontiguousarray(rendered[s : s + chunk]), query, buf)
         r = np.arange(len(sim))
         if mutual:  # max along axis 0 is ~20x faster than argmax along it
             np.maximum(col_best, sim.max(0), out=col_best)
@@ -59,14 +63,19 @@ def match_descriptors(
     return np.stack([idx, best[idx]], 1).astype(np.int64)
 
 
-def _gemm_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _gemm_t(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """a @ b.T for float32 matrices through OpenCV's gemm (b is read transposed, not copied), on
-    OpenCV's thread pool. As fast as NumPy's OpenBLAS here, but OpenBLAS's threads keep spinning for
+    OpenCV's thread pool; written into the first len(a) rows of ``out`` (C-contiguous, len(b) columns)
+    when given. As fast as NumPy's OpenBLAS here, but OpenBLAS's threads keep spinning for
     a while after a product and took a core from the next query's SIFT extraction
     (tools/bench_localize.py, 1,500-landmark room: extraction 133 -> ~100 ms per query)."""
     if a.size == 0 or b.size == 0:
         return np.zeros((a.shape[0], b.shape[0]), np.float32)
-    return cv2.gemm(a, b, 1.0, None, 0.0, flags=cv2.GEMM_2_T)
+    if out is None:
+        return cv2.gemm(a, b, 1.0, None, 0.0, flags=cv2.GEMM_2_T)
+    dst = out[: len(a)]
+    got = cv2.gemm(a, b, 1.0, None, 0.0, dst, flags=cv2.GEMM_2_T)
+    return dst if got is dst or np.shares_memory(got, dst) else got
 
 
 def pair_in(pairs: np.ndarray, known: np.ndarray) -> np.ndarray:

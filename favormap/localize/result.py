@@ -28,6 +28,9 @@ class LocalizationResult:
     num_matches: int
     num_inliers: int
     iterations: list[IterationResult]
+    # seconds per stage: extraction (image reading included), visibility, loading, rendering, matching, pnp (with
+    # the final refinement). From a prior, the first iteration's visibility, loading and rendering run while the
+    # features are extracted, so the stages then add up to more than the query took
     timings: dict[str, float]
     message: str = ""
     checks: dict = field(default_factory=dict)  # measured values of the success checks

@@ -39,10 +39,7 @@ VARIANTS = {
     "rendered 5-iterations": ("rendered", {"iterations": 5}),
     "rendered align 5-iterations": ("rendered", {"align": True, "iterations": 5}),
     "mean align 5-iterations": ("mean", {"align": True, "iterations": 5}),
-    "rendered align 5-iterations stop-0.2deg": (
-        "rendered",
-        {"align": True, "iterations": 5, "stop_translation": 2e-3, "stop_rotation_deg": 0.2},
-    ),
+    "rendered align 5-iterations stop-1%": ("rendered", {"align": True, "iterations": 5, "stop_change": 0.01}),
     "rendered 8px no-mutual (old default)": (
         "rendered",
         {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0, "landmark_sigma_px": 0, "guided_radius_px": 0},
@@ -77,11 +74,11 @@ VARIANTS = {
     "rendered 2048-keypoints": ("rendered", {"max_keypoints": 2048}),
     "rendered 8192-keypoints": ("rendered", {"max_keypoints": 8192}),
     "rendered 2-iterations": ("rendered", {"iterations": 2}),
-    # stop iterating once an estimate lies this close to the pose its descriptors were rendered from
-    # (default: 5e-3 x the median landmark distance and 0.5 deg)
-    "rendered stop-0.01deg (before)": ("rendered", {"stop_translation": 1e-4, "stop_rotation_deg": 0.01}),
-    "rendered stop-0.2deg": ("rendered", {"stop_translation": 2e-3, "stop_rotation_deg": 0.2}),
-    "rendered stop-1deg": ("rendered", {"stop_translation": 1e-2, "stop_rotation_deg": 1.0}),
+    # stop iterating once rendering again would change fewer than this share of the landmarks to match
+    # (default 5 %; 0: every iteration runs)
+    "rendered stop-0": ("rendered", {"stop_change": 0.0}),
+    "rendered stop-1%": ("rendered", {"stop_change": 0.01}),
+    "rendered stop-20%": ("rendered", {"stop_change": 0.2}),
     "rendered 2048-keypoints 2-iterations": ("rendered", {"max_keypoints": 2048, "iterations": 2}),
     # the Lowe ratio of the prior-free step (matching against all landmarks): run in every prior mode
     "rendered global-ratio-0.8": ("rendered", {"global_ratio": 0.8}),
@@ -93,7 +90,7 @@ VARIANTS = {
     "rendered no-uncertainty": ("rendered", {"landmark_sigma_px": 0}),
     "rendered no-guided no-uncertainty": (
         "rendered",
-        {"landmark_sigma_px": 0, "guided_radius_px": 0, "stop_translation": 1e-4, "stop_rotation_deg": 0.01},
+        {"landmark_sigma_px": 0, "guided_radius_px": 0, "stop_change": 0.0},
     ),
     "mean no-guided": ("mean", {"guided_radius_px": 0}),
     "nearest-view no-guided": ("nearest", {"guided_radius_px": 0}),
