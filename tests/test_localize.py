@@ -374,7 +374,7 @@ def test_radius_pairs_equal_a_brute_force_search():
     from favormap.localize.matching import radius_pairs
 
     rng = np.random.default_rng(3)
-    for r in (0.7, 3.0, 8.0, 50.0):
+    for r in (0.01, 0.7, 3.0, 8.0, 50.0):  # 0.01: cells wider than the radius (at most ~1,000 a side)
         kp = rng.uniform(0, 320, (700, 2))
         uv = rng.uniform(-40, 360, (300, 2))
         uv[::11] = np.nan

@@ -99,7 +99,8 @@ def distinct_pairs(m: np.ndarray, desc_rows: np.ndarray, n_landmarks: int) -> np
 def radius_pairs(points: np.ndarray, keypoints: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (i, j) with ``|points[i] - keypoints[j]| <= radius`` (pixels; rows of ``points``
     that are not finite pair with nothing). NumPy: the keypoints are binned into square cells of
-    side ``radius``, and each point looks at the 3 x 3 cells around its own."""
+    side ``radius`` (larger where that would make more than ~1,000 cells a side), a table gives each
+    cell's run of keypoints, and each point looks at the 3 x 3 cells around its own."""
     points = np.asarray(points, np.float64).reshape(-1, 2)
     keypoints = np.asarray(keypoints, np.float64).reshape(-1, 2)
     ok = np.flatnonzero(np.all(np.isfinite(points), axis=1))
@@ -107,25 +108,30 @@ def radius_pairs(points: np.ndarray, keypoints: np.ndarray, radius: float) -> tu
     if len(ok) == 0 or len(keypoints) == 0 or not radius > 0:
         return empty, empty
     lo = keypoints.min(0)
-    ck = np.floor((keypoints - lo) / radius).astype(np.int64)
-    cp = np.floor((points[ok] - lo) / radius).astype(np.int64)
-    inside = np.all((cp >= -1) & (cp <= ck.max(0) + 1), axis=1)  # points near the keypoints' extent
+    cell = max(float(radius), float(np.ptp(keypoints, axis=0).max()) / 1024)
+    ck = np.floor((keypoints - lo) / cell).astype(np.int64)
+    cp = np.floor((points[ok] - lo) / cell).astype(np.int64)
+    hi = ck.max(0)
+    inside = np.all((cp >= -1) & (cp <= hi + 1), axis=1)  # points near the keypoints' extent
     ok, cp = ok[inside], cp[inside]
-    width = int(ck[:, 1].max()) + 3
-    key = (ck[:, 0] + 1) * width + (ck[:, 1] + 1)
+    width = int(hi[1]) + 5  # two empty cells each side: a point's 3 x 3 cells lie within the table
+    ncell = (int(hi[0]) + 5) * width
+    key = (ck[:, 0] + 2) * width + (ck[:, 1] + 2)
     order = np.argsort(key, kind="stable")
-    skey = key[order]
+    count = np.bincount(key, minlength=ncell)
+    start = np.cumsum(count) - count  # each cell's first keypoint in ``order``
+    base = (cp[:, 0] + 2) * width + (cp[:, 1] + 2)
     ii, jj = [], []
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
-            q = (cp[:, 0] + 1 + dx) * width + (cp[:, 1] + 1 + dy)
-            a, b = np.searchsorted(skey, q, "left"), np.searchsorted(skey, q, "right")
-            n = b - a
-            if not n.any():
+            q = base + (dx * width + dy)
+            n = count[q]
+            total = int(n.sum())
+            if not total:
                 continue
             rows = np.repeat(np.arange(len(q)), n)
             ii.append(ok[rows])
-            jj.append(order[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())])
+            jj.append(order[np.repeat(start[q] - np.cumsum(n) + n, n) + np.arange(total)])
     if not ii:
         return empty, empty
     i, j = np.concatenate(ii), np.concatenate(jj)
