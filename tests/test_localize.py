@@ -359,11 +359,9 @@ def test_iterations_stop_once_rendering_again_would_change_little(small_map, que
     assert early.success and full.success
     assert [it.kind for it in full.iterations] == ["render"] * 3
     assert [it.kind for it in early.iterations] == ["render"] * 2
-    from favormap.localize.result import Query
-
     _, cam = loc.prepare(img)
     poses = [prior] + [it.cam_from_world for it in early.iterations]
-    rows = [loc._visible(Query(None, None, cam), P, {"visibility": 0.0}) for P in poses]
+    rows = [loc._visible(cam, P, {"visibility": 0.0}) for P in poses]
     assert loc._changed_share(rows[0], poses[0], rows[1], poses[1]) > 0.5  # the first estimate moved far
     assert loc._changed_share(rows[1], poses[1], rows[2], poses[2]) < LocalizeConfig.stop_change
     assert pose_error(early.cam_from_world, full.cam_from_world)[0] < 1e-3

@@ -62,7 +62,6 @@ def main() -> int:
     from favormap.localize.descriptors import describe, unit_rows
     from favormap.localize.evaluate import EvalConfig, make_priors
     from favormap.localize.matching import radius_pairs
-    from favormap.localize.result import Query
     from favormap.mapfile import Map
 
     m = Map.open(args.map)
@@ -81,7 +80,7 @@ def main() -> int:
         feats = loc.extractor.extract(img)
         qdesc = unit_rows(np.asarray(feats.descriptors, np.float32))
         T = res.cam_from_world
-        vis = loc._visible(Query(feats, qdesc, wcam), T, {"visibility": 0.0})
+        vis = loc._visible(wcam, T, {"visibility": 0.0})
         li, kj = radius_pairs(project(wcam.K, T, m.positions[vis]), feats.keypoints, args.radius)
         if len(li) == 0:
             continue

@@ -197,7 +197,7 @@ class Localizer(SuccessChecking, FinalRefinement):
             # rendered while the features are extracted (the extractor leaves part of the cores idle)
             with ThreadPoolExecutor(1, thread_name_prefix="favormap-extract") as pool:
                 job = pool.submit(extract)
-                first_rows = self._visible(Query(None, None, cam), prior, t)
+                first_rows = self._visible(cam, prior, t)
                 describe(self.source, first_rows, prior, t, seen)
                 feats = job.result()
         else:
@@ -289,12 +289,13 @@ class Localizer(SuccessChecking, FinalRefinement):
         pose = from_rigid3d(ans["cam_from_world"]) if ans is not None else np.eye(4)
         return (pose if ok else None), IterationResult(pose, len(rows), len(m), n_in, ok, kind="global")
 
-    def _visible(self, q: Query, pose: np.ndarray, t: dict) -> np.ndarray:
-        """Rows of the landmarks visible from ``pose`` (timed into ``t["visibility"]``)."""
+    def _visible(self, cam: Camera, pose: np.ndarray, t: dict) -> np.ndarray:
+        """Rows of the landmarks visible from ``pose`` with the query's camera ``cam`` (timed into
+        ``t["visibility"]``)."""
         s = time.perf_counter()
         rows = visible_rows(
             self.index,
-            q.cam,
+            cam,
             pose,
             self.map.view_dir,
             self.map.view_angle,
@@ -328,7 +329,7 @@ class Localizer(SuccessChecking, FinalRefinement):
         cfg = self.config
         pose = start
         last = None
-        rows = self._visible(q, pose, t) if first_rows is None else first_rows
+        rows = self._visible(q.cam, pose, t) if first_rows is None else first_rows
         for k in range(cfg.iterations):
             rend, drows = describe(self.source, rows, pose, t, q.seen)
             s = time.perf_counter()
@@ -352,7 +353,7 @@ class Localizer(SuccessChecking, FinalRefinement):
             if k == cfg.iterations - 1:
                 pose = new_pose
                 break
-            new_rows = self._visible(q, new_pose, t)
+            new_rows = self._visible(q.cam, new_pose, t)
             changed = self._changed_share(rows, pose, new_rows, new_pose)
             pose, rows = new_pose, new_rows
             if changed < cfg.stop_change:

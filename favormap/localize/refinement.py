@@ -171,7 +171,7 @@ class FinalRefinement:
         threshold) and, with ``gate_scale``, within ``guided_gate_sigma`` standard deviations of the
         noise model (times that variance factor); then PnP runs again with a tight threshold."""
         cfg = self.config
-        rows = self._visible(q, pose, t)
+        rows = self._visible(q.cam, pose, t)
         rend, drows = describe(self.source, rows, pose, t, q.seen)
         s = time.perf_counter()
         gate = None
