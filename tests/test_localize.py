@@ -344,6 +344,28 @@ def test_search_by_projection_matches_like_full_matching_within_the_radius():
     assert len(np.unique(near[:, 0])) == len(near) and len(np.unique(near[:, 1])) == len(near)
 
 
+def test_threads_sharing_one_localizer_get_the_results_of_one_after_the_other(small_map, queries):
+    """From a prior each query extracts its features on a worker thread while the first iteration
+    renders; several threads localizing through one Localizer (its voxel cache shared) still get,
+    query by query, the poses, matches and inliers that localizing one after the other gives."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    _, path = small_map
+    rng = np.random.default_rng(5)
+    jobs = [(img, perturb_pose(T, 0.2, 8.0, rng)) for img, T in queries] * 2
+    alone = [Localizer(path).localize(img, prior) for img, prior in jobs]
+    shared = Localizer(path)
+    with ThreadPoolExecutor(3) as pool:
+        together = list(pool.map(lambda job: shared.localize(*job), jobs))
+    assert sum(r.success for r in alone) >= len(jobs) - 2
+    for a, b in zip(alone, together):
+        assert a.success == b.success and a.num_inliers == b.num_inliers
+        np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
+        if a.matches is not None:
+            np.testing.assert_array_equal(a.matches, b.matches)
+        assert b.timings["extraction"] > 0 and b.timings["rendering"] > 0
+
+
 def test_iterations_stop_once_rendering_again_would_change_little(small_map, queries):
     """The rendering iterations stop when rendering from the new estimate would change fewer than
     stop_change of the landmarks to match (visible set, rays turned beyond rerender_angle_deg): from a
