@@ -96,7 +96,12 @@ def test_query_localizes_against_the_map_of_unposed_images(sfm, small_sequence, 
         errs.append(pose_error(move_poses(res.cam_from_world, S), T))  # the result in the true frame
     errs = np.array(errs)
     # the room is ~4 units across, the cameras ~1.5 units from its walls
-    assert np.median(errs[:, 0]) <= 0.01 and np.median(errs[:, 1]) <= 0.3, errs
+    assert np.median(errs[:, 0]) <= 0.01, errs
+    # the similarity from the camera centres leaves a fraction of a degree of the map's orientation free (the
+    # orbit is nearly flat), and pycolmap's threads make it vary from run to run (0.28-0.31 deg): the queries
+    # must be turned no more than the map's own frames are under the same similarity
+    frames_turn = np.median([pose_error(move_poses(e, S), truth[f.name])[1] for e, f in zip(est, sfm.sequence.frames)])
+    assert np.median(errs[:, 1]) <= frames_turn + 0.05, (errs, frames_turn)
 
 
 def write_video(path, frames, repeat: int) -> None:
