@@ -235,7 +235,17 @@ class Localizer(SuccessChecking, FinalRefinement):
             res.cam_from_world = prior
         return res
 
-    def _pnp(self, q: Query, points: np.ndarray, kp_idx: np.ndarray, t: dict, max_error_px: float | None = None):
+    def _pnp(
+        self,
+        q: Query,
+        points: np.ndarray,
+        kp_idx: np.ndarray,
+        t: dict,
+        max_error_px: float | None = None,
+        refine: bool = True,
+    ):
+        """PnP-RANSAC (pycolmap's LO-RANSAC) on ``points`` <-> ``q.feats.keypoints[kp_idx]``; with ``refine``, the
+        pose is then refined on the inliers by pycolmap (the inlier set stays RANSAC's)."""
         import pycolmap
 
         s = time.perf_counter()
@@ -250,13 +260,11 @@ class Localizer(SuccessChecking, FinalRefinement):
         est.ransac.dyn_num_trials_multiplier = 1.0
         ans = None
         if len(kp_idx) >= 4:
-            ans = pycolmap.estimate_and_refine_absolute_pose(
-                q.feats.keypoints[kp_idx].astype(np.float64),
-                points.astype(np.float64),
-                q.cam.to_pycolmap(),
-                est,
-                pycolmap.AbsolutePoseRefinementOptions(),
-            )
+            args = (q.feats.keypoints[kp_idx].astype(np.float64), points.astype(np.float64), q.cam.to_pycolmap(), est)
+            if refine:
+                ans = pycolmap.estimate_and_refine_absolute_pose(*args, pycolmap.AbsolutePoseRefinementOptions())
+            else:
+                ans = pycolmap.estimate_absolute_pose(*args)
         t["pnp"] += time.perf_counter() - s
         return ans
 

@@ -201,78 +201,166 @@ def refine_pose(
     points are usable), and with ``return_covariance`` also the pose's :class:`PoseCovariance`
     (None when it cannot be computed); ``covariance_mask`` (N,) bool restricts the covariance to
     those correspondences (the evidence independent of the pose; all refine the pose)."""
-    T = np.array(cam_from_world, np.float64)
-    X = np.asarray(points, np.float64).reshape(-1, 3)
-    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
-    keypoint_noise(keypoint_sigma_px, len(X))  # checked once, before the iterations
-    system, front = None, None
-    for _ in range(iterations):
-        P = X @ T[:3, :3].T + T[:3, 3]
-        front = P[:, 2] > 1e-9
-        if front.sum() < 6:
-            break
-        eye2 = keypoint_noise(keypoint_sigma_px, len(X), front)
-        cov_front = None if point_cov is None else point_cov[front]
-        system = _NormalEquations.at(T, P[front], kp[front], K, cov_front, eye2, loss_scale)
-        try:
-            d = -np.linalg.solve(system.H + 1e-9 * np.trace(system.H) * np.eye(6), system.g)
-        except np.linalg.LinAlgError:
-            break
-        if not np.all(np.isfinite(d)):
-            system = None
-            break
-        T = _left_update(T, d)
-        # converged: the step turns the camera by < 1e-6 rad (0.00006 deg) and moves it by < 1e-6 of
-        # the scene depth. The Cauchy reweighting converges linearly (each step ~1/4 of the last),
-        # so what is left is ~3e-7: two orders below the best poses' errors, at half the iterations
-        if np.linalg.norm(d[:3]) < 1e-6 and np.linalg.norm(d[3:]) < 1e-6 * float(np.median(system.depth)):
-            break
+    keypoint_noise(keypoint_sigma_px, len(np.asarray(points).reshape(-1, 3)))  # checked once, before the iterations
+    problem = _Correspondences(points, keypoints, K, point_cov)
+    T, system = problem.refine(cam_from_world, 1.0, keypoint_sigma_px, loss_scale, iterations)
     if not return_covariance:
         return T
     if system is None:
         return T, None
-    return T, system.pose_covariance(T, covariance_mask, front)
+    return T, system.pose_covariance(T, covariance_mask)
+
+
+class _Correspondences:
+    """The correspondences of a refinement: world ``points`` (N, 3) observed at ``keypoints`` (N, 2)
+    through pinhole ``K``, with the points' position covariances ``point_cov`` (N, 3, 3) or None.
+
+    Everything per correspondence runs on (n,) component arrays (the symmetric 2 x 2 blocks as their
+    three entries): small batched matrix products cost NumPy more in overhead than in arithmetic. The
+    linearization at the last pose asked for is kept, so that a noise model fitted at a pose and the
+    Gauss-Newton step from that pose share it."""
+
+    def __init__(self, points, keypoints, K, point_cov):
+        self.X = np.asarray(points, np.float64).reshape(-1, 3)
+        self.kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+        self.K = np.asarray(K, np.float64)
+        self.cov = None if point_cov is None else np.asarray(point_cov, np.float64)
+        self._at: tuple[np.ndarray, _Linearization | None] | None = None
+
+    def at(self, T: np.ndarray) -> _Linearization | None:
+        """The linearization at pose ``T`` over the correspondences in front of it (None: fewer than 6)."""
+        if self._at is not None and np.array_equal(self._at[0], T):
+            return self._at[1]
+        P = self.X @ T[:3, :3].T + T[:3, 3]
+        front = P[:, 2] > 1e-9
+        lin = None
+        if front.sum() >= 6:
+            cov = None if self.cov is None else self.cov[front]
+            lin = _Linearization.of(T, P[front], self.kp[front], self.K, cov, front)
+        self._at = (T.copy(), lin)
+        return lin
+
+    def refine(self, T, landmark_scale: float, keypoint_sigma_px, loss_scale: float, iterations: int):
+        """Gauss-Newton from ``T`` under the noise model ``landmark_scale * V + keypoint_sigma_px^2 I``:
+        (the refined pose, the normal equations of its last step or None)."""
+        T = np.array(T, np.float64)
+        system = None
+        for _ in range(iterations):
+            lin = self.at(T)
+            if lin is None:
+                break
+            system = lin.normal_equations(landmark_scale, _keypoint_variance(keypoint_sigma_px, lin.front), loss_scale)
+            try:
+                d = -np.linalg.solve(system.H + 1e-9 * np.trace(system.H) * np.eye(6), system.g)
+            except np.linalg.LinAlgError:
+                break
+            if not np.all(np.isfinite(d)):
+                system = None
+                break
+            T = _left_update(T, d)
+            # converged: the step turns the camera by < 1e-6 rad (0.00006 deg) and moves it by < 1e-6 of
+            # the scene depth. The Cauchy reweighting converges linearly (each step ~1/4 of the last),
+            # so what is left is ~3e-7: two orders below the best poses' errors, at half the iterations
+            if np.linalg.norm(d[:3]) < 1e-6 and np.linalg.norm(d[3:]) < 1e-6 * float(np.median(lin.depth)):
+                break
+        return T, system
+
+
+def _keypoint_variance(keypoint_sigma_px, front: np.ndarray):
+    """The keypoint noise variance (px^2): one number, or one per correspondence in front (``front`` (N,))."""
+    sig = np.asarray(keypoint_sigma_px, np.float64)
+    return float(sig) ** 2 if sig.ndim == 0 else sig[front] ** 2
+
+
+@dataclass
+class _Linearization:
+    """The projections of the correspondences in front of a pose (``front`` (N,) bool; n of them): residuals
+    ``r`` (n, 2) (projection - keypoint), the rows ``J0``, ``J1`` (n, 6) of d(pixel) / d(rotation w,
+    translation v) of the left update, the landmark covariances projected into the image ``V`` (n, 3:
+    the entries 00, 01, 11; None without covariances), and the points' depths."""
+
+    front: np.ndarray
+    r: np.ndarray
+    J0: np.ndarray
+    J1: np.ndarray
+    V: np.ndarray | None
+    depth: np.ndarray
+
+    @classmethod
+    def of(cls, T, P, x_kp, K, point_cov, front) -> _Linearization:
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        x, y, z = P.T
+        r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
+        # d(pixel) / d(camera-frame point): rows (a0, 0, a2) and (0, b1, b2)
+        a0, a2 = fx / z, -fx * x / z**2
+        b1, b2 = fy / z, -fy * y / z**2
+        # the camera-frame point moves by w x P + v under the left update, so a row u of d(pixel) / d(point)
+        # gives (P x u, u)
+        zero = np.zeros_like(z)
+        J0 = np.stack([y * a2, z * a0 - x * a2, -y * a0, a0, zero, a2], axis=1)
+        J1 = np.stack([y * b2 - z * b1, -x * b2, x * b1, zero, b1, b2], axis=1)
+        V = None
+        if point_cov is not None:
+            R = T[:3, :3]
+            A0 = a0[:, None] * R[0] + a2[:, None] * R[2]  # d(pixel) / d(world point), row by row
+            A1 = b1[:, None] * R[1] + b2[:, None] * R[2]
+            CA0 = np.einsum("nij,nj->ni", point_cov, A0)
+            CA1 = np.einsum("nij,nj->ni", point_cov, A1)
+            V = np.stack(
+                [np.einsum("ni,ni->n", A0, CA0), np.einsum("ni,ni->n", A1, CA0), np.einsum("ni,ni->n", A1, CA1)], 1
+            )
+        return cls(front, r, J0, J1, V, z)
+
+    def covariance(self, landmark_scale: float, keypoint_var) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Entries (00, 01, 11) of each residual's covariance ``landmark_scale * V + keypoint_var I``."""
+        if self.V is None:
+            s = np.broadcast_to(np.asarray(keypoint_var, np.float64), self.depth.shape)
+            return s, np.zeros_like(self.depth), s
+        return (
+            landmark_scale * self.V[:, 0] + keypoint_var,
+            landmark_scale * self.V[:, 1],
+            landmark_scale * self.V[:, 2] + keypoint_var,
+        )
+
+    def normal_equations(self, landmark_scale: float, keypoint_var, loss_scale: float) -> _NormalEquations:
+        s00, s01, s11 = self.covariance(landmark_scale, keypoint_var)
+        det = s00 * s11 - s01 * s01
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det  # inverse covariance (information)
+        SiJ0 = i00[:, None] * self.J0 + i01[:, None] * self.J1
+        SiJ1 = i01[:, None] * self.J0 + i11[:, None] * self.J1
+        r0, r1 = self.r[:, 0], self.r[:, 1]
+        chi2 = i00 * r0**2 + 2 * i01 * r0 * r1 + i11 * r1**2  # squared whitened residual r^T S^-1 r
+        w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
+        wSiJ0, wSiJ1 = w[:, None] * SiJ0, w[:, None] * SiJ1
+        H = wSiJ0.T @ self.J0 + wSiJ1.T @ self.J1
+        g = wSiJ0.T @ r0 + wSiJ1.T @ r1
+        return _NormalEquations(self, SiJ0, SiJ1, chi2, H, g)
 
 
 @dataclass
 class _NormalEquations:
     """One Gauss-Newton step of :func:`refine_pose` at a pose, over the correspondences in front of it."""
 
-    J: np.ndarray  # (n, 2, 6) d(pixel) / d(rotation w, translation v) of the left update
-    SiJ: np.ndarray  # (n, 2, 6) J whitened by each residual's inverse covariance
+    lin: _Linearization
+    SiJ0: np.ndarray  # (n, 6) the Jacobian's rows whitened by each residual's inverse covariance
+    SiJ1: np.ndarray
     chi2: np.ndarray  # (n,) squared whitened residuals
     H: np.ndarray  # (6, 6) Cauchy-weighted J^T S^-1 J
     g: np.ndarray  # (6,) Cauchy-weighted J^T S^-1 r
-    depth: np.ndarray  # (n,) the points' depths
 
-    @classmethod
-    def at(cls, T, P, x_kp, K, point_cov, eye2, loss_scale: float) -> _NormalEquations:
-        """At pose ``T``, the camera-frame points ``P`` (n, 3) observed at ``x_kp`` (n, 2)."""
-        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        x, y, z = P.T
-        r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
-        Jp = _projection_jacobians(P, K)  # d(pixel) / d(camera-frame point)
-        # d(pixel) / d(rotation w, translation v) of the left update P -> exp(w) P + v: the camera-frame
-        # point moves by w x P + v, so a pixel row j of Jp gives (P x Jp_j, Jp_j)
-        J = np.concatenate([np.cross(P[:, None, :], Jp), Jp], axis=2)  # (n, 2, 6)
-        Si = _inverse2(_image_covariances(Jp, T[:3, :3], point_cov, eye2))
-        SiJ = Si @ J  # (n, 2, 6)
-        chi2 = mahalanobis2(Si, r)  # squared whitened residual r^T S^-1 r
-        w = 1.0 / (1.0 + chi2 / loss_scale**2)  # Cauchy IRLS weights
-        wSiJ = (w[:, None, None] * SiJ).reshape(-1, 6)  # sums over points and pixel rows as one product
-        return cls(J, SiJ, chi2, wSiJ.T @ J.reshape(-1, 6), wSiJ.T @ r.reshape(-1), z)
-
-    def pose_covariance(self, T, covariance_mask, front) -> PoseCovariance | None:
+    def pose_covariance(self, T, covariance_mask) -> PoseCovariance | None:
         """(J^T J)^-1 of the whitened residuals (the RANSAC inliers taken as Gaussian: the Cauchy
         weights would count a 1-sigma residual half and overstate the spread), scaled by the
         residuals' robust scale as the data show it (the median of a chi-square(2) is 2 ln 2),
-        never below 1: the noise model is a floor. ``covariance_mask`` (N,) and ``front`` (N,): the
-        correspondences it counts and those in front of the camera at the last pose."""
-        J, SiJ = self.J, self.SiJ
-        keep = np.ones(len(J), bool) if covariance_mask is None else np.asarray(covariance_mask, bool)[front]
+        never below 1: the noise model is a floor. ``covariance_mask`` (N,): the correspondences it
+        counts (None: all in front of the camera)."""
+        lin = self.lin
+        keep = (
+            np.ones(len(lin.depth), bool) if covariance_mask is None else np.asarray(covariance_mask, bool)[lin.front]
+        )
         if keep.sum() < 6:
             return None
-        H0 = J[keep].reshape(-1, 6).T @ SiJ[keep].reshape(-1, 6)
+        H0 = lin.J0[keep].T @ self.SiJ0[keep] + lin.J1[keep].T @ self.SiJ1[keep]
         scale = max(float(np.median(self.chi2[keep])) / (2 * np.log(2)), 1.0)
         try:
             return PoseCovariance.from_left_perturbation(T, scale * np.linalg.inv(H0))
@@ -313,29 +401,29 @@ def estimate_noise(
     through residuals that a micrometre does not change, and converging the pose in every round took
     three times the steps (TUM desk queries: the poses 0.8 um apart in the median, 20 ms less a query)."""
     T = np.array(cam_from_world, np.float64)
-    X = np.asarray(points, np.float64).reshape(-1, 3)
-    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
-    cov = np.asarray(point_cov, np.float64)
+    problem = _Correspondences(points, keypoints, K, point_cov)
     lam, sig2 = 1.0, float(keypoint_sigma_px) ** 2
     for _ in range(rounds):
-        T = refine_pose(T, X, kp, K, lam * cov, float(np.sqrt(sig2)), iterations=round_steps)
-        P = X @ T[:3, :3].T + T[:3, 3]
-        front = P[:, 2] > 1e-9
-        if front.sum() < 6:
+        T, _ = problem.refine(T, lam, float(np.sqrt(sig2)), 1.0, round_steps)
+        lin = problem.at(T)  # the next round's first step starts from the same linearization
+        if lin is None:
             break
-        r = project(K, T, X[front]) - kp[front]
-        V = _image_covariances(_projection_jacobians(P[front], K), T[:3, :3], cov[front], np.zeros((2, 2)))
-        Ci = _inverse2(lam * V + sig2 * np.eye(2))
-        Cir = np.einsum("nij,nj->ni", Ci, r)
-        lam_new = lam * np.einsum("ni,nij,nj->", Cir, V, Cir) / max(np.einsum("nij,nji->", Ci, V), 1e-300)
-        num, den = np.einsum("ni,ni->", Cir, Cir), np.einsum("nii->", Ci)
+        s00, s01, s11 = lin.covariance(lam, sig2)
+        det = s00 * s11 - s01 * s01
+        c00, c01, c11 = s11 / det, -s01 / det, s00 / det  # C^-1
+        r0, r1 = lin.r[:, 0], lin.r[:, 1]
+        u0, u1 = c00 * r0 + c01 * r1, c01 * r0 + c11 * r1  # C^-1 r
+        v00, v01, v11 = lin.V.T
+        lam_new = lam * float(np.sum(u0 * u0 * v00 + 2 * u0 * u1 * v01 + u1 * u1 * v11))
+        lam_new /= max(float(np.sum(c00 * v00 + 2 * c01 * v01 + c11 * v11)), 1e-300)  # tr(C^-1 V)
+        num, den = float(np.sum(u0 * u0 + u1 * u1)), float(np.sum(c00 + c11))
         sig2_new = sig2 * num / den if den > 0 else sig2
         lam_new, sig2_new = float(np.clip(lam_new, 1e-3, 1e4)), float(np.clip(sig2_new, 1e-4, 100.0))
         done = abs(np.log(lam_new / lam)) < 0.01 and abs(np.log(sig2_new / sig2)) < 0.01
         lam, sig2 = lam_new, sig2_new
         if done:
             break
-    T = refine_pose(T, X, kp, K, lam * cov, float(np.sqrt(sig2)))
+    T, _ = problem.refine(T, lam, float(np.sqrt(sig2)), 1.0, 10)
     return T, lam, float(np.sqrt(sig2))
 
 

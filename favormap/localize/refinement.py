@@ -194,7 +194,10 @@ class FinalRefinement:
         idx, kidx = m[:, 0], m[:, 1]
         sims = pair_similarity(rend, q.desc, m)
         t["matching"] += time.perf_counter() - s
-        ans = self._pnp(q, self.positions[drows[idx]], kidx, t, cfg.guided_ransac_px or cfg.guided_radius_px)
+        # the weighted refinement refines a guided pose on its inliers (the rendering iterations' poses are
+        # refined by pycolmap: the next iteration renders from them)
+        thr = cfg.guided_ransac_px or cfg.guided_radius_px
+        ans = self._pnp(q, self.positions[drows[idx]], kidx, t, thr, refine=cfg.landmark_sigma_px == 0)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
         ok = ans is not None and n_in >= cfg.checks.min_inliers
         iters.append(
