@@ -159,7 +159,8 @@ _start = _Sample()  # at import: the CLI imports this module first, so the windo
 _lock = threading.Lock()
 _torch_sized = False  # torch's pools were sized (torch is imported only by the commands that need it)
 _serial = 0  # open serial_pools() blocks: OpenCV's, torch's and BLAS's pools stay at one thread meanwhile
-_blas_limits = None  # threadpoolctl's limit while a serial_pools() block is open
+_blas_limits = None  # threadpoolctl's limit while a serial_pools() or serial_blas() block is open
+_blas_holds = 0  # open serial_pools() and serial_blas() blocks
 _saved: tuple = (1, None)  # OpenCV's and torch's pool sizes when the outermost serial_pools() block began
 _auto = False  # the applied count came from rule 3 (rebalance() may change it)
 _last: _Sample = _start
@@ -296,17 +297,13 @@ def serial_pools():
     slower for the rest of the process (fox: the build's training 2.0 -> 3.0 s, system time doubled,
     after one float16 conversion per patch task on two threads). A resize by the rule meanwhile
     (configure_threads, rebalance) takes effect on leaving; nested blocks restore when the last one ends."""
-    global _serial, _blas_limits, _saved
+    global _serial, _saved
     import cv2
 
     with _lock:
         _serial += 1
+        _hold_blas()
         if _serial == 1:  # first: it records the limits it changes to restore them
-            try:
-                from threadpoolctl import threadpool_limits
-            except ImportError:  # a dependency, but a copied tree (tools/gpu_check.sh) may run without it
-                threadpool_limits = None
-            _blas_limits = threadpool_limits(1, user_api="blas") if threadpool_limits else None
             torch = sys.modules.get("torch")
             # the sizes to restore when nobody configured the pools (favormap.threads leaves them alone then)
             _saved = (cv2.getNumThreads(), torch.get_num_threads() if torch is not None else None)
@@ -319,10 +316,8 @@ def serial_pools():
     finally:
         with _lock:
             _serial -= 1
+            _release_blas()  # first: threadpoolctl restores OpenMP's count of this thread too
             if not _serial:
-                if _blas_limits is not None:  # first: threadpoolctl restores OpenMP's count of this thread too
-                    _blas_limits.restore_original_limits()
-                    _blas_limits = None
                 n_cv, n_torch = (_applied, _applied) if _applied is not None else _saved
                 cv2.setNumThreads(n_cv)
                 torch = sys.modules.get("torch")
@@ -331,6 +326,43 @@ def serial_pools():
                     # restored behind torch's back, while torch's MKL stayed at one thread (the training
                     # after a pool would run its products on one core)
                     torch.set_num_threads(n_torch)
+
+
+@contextmanager
+def serial_blas():
+    """NumPy's and OpenCV's BLAS run each call in its calling thread while the block runs (threadpoolctl's
+    limit), for code that runs its stages on threads of its own (the localizer: rendering on one core while
+    the products run on another). OpenBLAS's idle threads keep spinning for ~0.1 s after each product,
+    taking those cores from the other stages (a third of a localizing process's CPU time on 2 cores,
+    tools/bench_localize.py). Blocks may nest and overlap (threads sharing a localizer); the limit is
+    given back when the last one ends."""
+    with _lock:
+        _hold_blas()
+    try:
+        yield
+    finally:
+        with _lock:
+            _release_blas()
+
+
+def _hold_blas() -> None:
+    """Hold the BLAS libraries at one thread (under ``_lock``; counted: :func:`_release_blas` gives it back)."""
+    global _blas_holds, _blas_limits
+    _blas_holds += 1
+    if _blas_holds == 1:
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:  # a dependency, but a copied tree (tools/gpu_check.sh) may run without it
+            threadpool_limits = None
+        _blas_limits = threadpool_limits(1, user_api="blas") if threadpool_limits else None
+
+
+def _release_blas() -> None:
+    global _blas_holds, _blas_limits
+    _blas_holds -= 1
+    if not _blas_holds and _blas_limits is not None:
+        _blas_limits.restore_original_limits()
+        _blas_limits = None
 
 
 def _positive_int(s: str) -> int:

@@ -366,6 +366,59 @@ def test_threads_sharing_one_localizer_get_the_results_of_one_after_the_other(sm
         assert b.timings["extraction"] > 0 and b.timings["rendering"] > 0
 
 
+def test_localizer_threads_share_rendering_and_matching_with_the_same_results(small_map, queries):
+    """With the pools in its hands (threads=2) the localizer renders and matches block by block on two threads,
+    BLAS on one thread each; from a prior and without one, every query gets the poses, matches and inliers
+    of the localizer that leaves the pools alone, and BLAS has its threads back afterwards."""
+    from threadpoolctl import threadpool_info
+
+    _, path = small_map
+    rng = np.random.default_rng(8)
+    jobs = [(img, perturb_pose(T, 0.2, 8.0, rng)) for img, T in queries] + [(img, None) for img, _ in queries[:2]]
+    before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    plain = [Localizer(path).localize(img, prior) for img, prior in jobs]
+    loc = Localizer(path, LocalizeConfig(threads=2))
+    try:
+        threaded = [loc.localize(img, prior) for img, prior in jobs]
+        assert loc._helpers is not None  # the second thread did take part
+    finally:
+        loc.close()
+    assert sum(r.success for r in plain) >= len(jobs) - 2
+    for a, b in zip(plain, threaded):
+        assert a.success == b.success and a.num_inliers == b.num_inliers
+        assert [(i.num_matches, i.num_inliers) for i in a.iterations] == [
+            (i.num_matches, i.num_inliers) for i in b.iterations
+        ]
+        np.testing.assert_allclose(a.cam_from_world, b.cam_from_world, atol=1e-9)
+        if a.matches is not None:
+            np.testing.assert_array_equal(a.matches, b.matches)
+    assert [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"] == before
+
+
+def test_matching_in_blocks_in_any_order_equals_matching_at_once():
+    """NearestDescriptors gives match_descriptors' pairs whatever the blocks' order and sizes, also split
+    between accumulators (threads) that each add some of the rows: mutual, with and without Lowe's ratio."""
+    from favormap.localize.matching import NearestDescriptors
+
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(300, 32)).astype(np.float32)
+    r = np.vstack([q[:150] + 0.3 * rng.normal(size=(150, 32)), rng.normal(size=(250, 32))]).astype(np.float32)
+    r[7] = r[8]  # a tie: the lower row wins
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    for mutual, ratio in [(True, 1.0), (True, 0.9), (False, 0.8)]:
+        want = match_descriptors(r, q, 0.5, mutual, ratio)
+        assert len(want) > 50
+        acc = NearestDescriptors(q, len(r), chunk=64, second=ratio < 1)
+        parts = acc.parts(3)
+        order = rng.permutation(len(r))
+        for i, a in enumerate(range(0, len(r), 37)):
+            rows = order[a : a + 37]
+            parts[i % 3].add(rows, r[rows])
+        acc.join(parts)
+        np.testing.assert_array_equal(acc.matches(0.5, mutual, ratio), want)
+
+
 def test_iterations_stop_once_rendering_again_would_change_little(small_map, queries):
     """The rendering iterations stop when rendering from the new estimate would change fewer than
     stop_change of the landmarks to match (visible set, rays turned beyond rerender_angle_deg): from a

@@ -168,6 +168,31 @@ def test_serial_pools_hold_opencv_and_torch_at_one_thread_and_give_the_count_bac
     assert cv2.getNumThreads() == 3 and torch.get_num_threads() == 3
 
 
+def test_serial_blas_holds_blas_at_one_thread_while_any_block_is_open(restore_pools):
+    """serial_blas (a localizer with the pools in its hands): BLAS runs each product in its calling thread
+    while a block is open, OpenCV's pool keeps its size (the extraction uses it), blocks overlap (threads
+    sharing one localizer, a serial_pools block inside) and BLAS gets its threads back when the last ends."""
+    import cv2
+    import numpy as np  # noqa: F401  (NumPy's BLAS is loaded)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    thr.configure_threads(2)
+    with threadpool_limits(2, user_api="blas"):
+        assert blas() and set(blas()) == {2}
+        with thr.serial_blas():
+            assert set(blas()) == {1} and cv2.getNumThreads() == 2
+            with thr.serial_pools():
+                assert set(blas()) == {1} and cv2.getNumThreads() == 1
+            assert set(blas()) == {1} and cv2.getNumThreads() == 2  # still held: the outer block is open
+            with thr.serial_blas():
+                assert set(blas()) == {1}
+            assert set(blas()) == {1}
+        assert set(blas()) == {2}
+
+
 def test_a_fresh_process_follows_the_rule():
     show = "print(n, torch.get_num_threads(), cv2.getNumThreads(), torch.get_num_interop_threads())"
     env = {k: v for k, v in ENV.items() if k != "OMP_NUM_THREADS"}

@@ -106,7 +106,9 @@ def measure(args) -> dict:
     views = random_views_near([f.cam_from_world for f in seq.frames], args.queries, seed=1, scene=scene)
     images = [render(scene, cam, T)[0] for T in views]
     t = time.perf_counter()
-    loc = Localizer(args.measure, LocalizeConfig(device=args.device, descriptors=args.descriptors))
+    loc = Localizer(
+        args.measure, LocalizeConfig(device=args.device, descriptors=args.descriptors, threads=localize_threads(args))
+    )
     open_s = time.perf_counter() - t
     rng = np.random.default_rng(0)
     loc.localize(images[0], perturb_pose(views[0], 0.3, 15, rng))  # warm-up (model, caches, KD-trees)
@@ -167,7 +169,7 @@ def real_split_timing(args) -> int:
     cfg = BuildConfig(refine_poses=args.refine_poses)
     path, build_s = build_or_load(sp, workdir, cfg, True, "-refine-poses" if args.refine_poses else "")
     m = Map.open(path)
-    loc = Localizer(m, LocalizeConfig(device=args.device))
+    loc = Localizer(m, LocalizeConfig(device=args.device, threads=localize_threads(args)))
     frames = sp.queries.frames
     cams = [sp.queries.cameras[f.camera_id] for f in frames]
     priors = make_priors(sp.queries, m.rig_from_world, EvalConfig(prior_mode="nearest"))
@@ -204,7 +206,8 @@ def real_split_timing(args) -> int:
         f"{sp.name}: map {path.name} ({len(m):,} landmarks, {built}"
         f", voxel cache {m.cache_bytes / 2**20:.0f} MB; a warm localizer's process {warm_memory(args, path)})"
         f", {len(frames)} queries; baseline {len(base.points3d):,} "
-        f"points (built in {base_build:.0f} s); device {args.device}, load average {os.getloadavg()[0]:.1f}"
+        f"points (built in {base_build:.0f} s); device {args.device}, localizer threads {args.threads}"
+        f", load average {os.getloadavg()[0]:.1f}"
     )
     print("median ms per query\n")
     print("| mode | " + " | ".join(stages) + " | total | x baseline | localized |")
@@ -221,11 +224,18 @@ def real_split_timing(args) -> int:
     return 0
 
 
+def localize_threads(args):
+    """``--threads`` as LocalizeConfig.threads."""
+    t = args.threads.lower()
+    return None if t == "none" else ("auto" if t == "auto" else int(t))
+
+
 def warm_memory(args, path) -> str:
     """Memory of a warm localizer of map ``path``, measured in a fresh process that imports only what
     localizing needs: the split's queries localized twice from the nearest mapping frame."""
     out = subprocess.run(
-        [sys.executable, __file__, "--split", args.split, "--memory-of", str(path), "--device", args.device],
+        [sys.executable, __file__, "--split", args.split, "--memory-of", str(path), "--device", args.device]
+        + ["--threads", args.threads],
         capture_output=True,
         text=True,
     )
@@ -245,7 +255,7 @@ def memory_child(args) -> dict:
 
     sp = real_splits([args.split])[0]
     m = Map.open(args.memory_of)
-    loc = Localizer(m, LocalizeConfig(device=args.device))
+    loc = Localizer(m, LocalizeConfig(device=args.device, threads=localize_threads(args)))
     priors = make_priors(sp.queries, m.rig_from_world, EvalConfig(prior_mode="nearest"))
     for _ in range(2):
         for f, p in zip(sp.queries.frames, priors):
@@ -267,6 +277,12 @@ def main():
         help="localize the queries this many times (same priors); ms/query is the median pass's mean",
     )
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--threads",
+        default="auto",
+        help="LocalizeConfig.threads: auto (as the CLI), a count, or none (the pools left alone, as a Python "
+        "program that does not ask)",
+    )
     ap.add_argument("--descriptors", default="rendered")
     ap.add_argument("--large", type=int, default=1_000_000, help="landmarks of the large map (0: no large map)")
     ap.add_argument("--large-map", help="file for the large map (kept; reused when it exists)")
@@ -324,6 +340,8 @@ def main():
             args.device,
             "--descriptors",
             args.descriptors,
+            "--threads",
+            args.threads,
         ]
         out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "RERUN_ANALYTICS": "false"})
         if out.returncode:

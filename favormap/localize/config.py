@@ -110,7 +110,9 @@ class LocalizeConfig:
     device: str = "cpu"  # where voxels render: "cpu" (NumPy; torch is not imported) or a torch device
     seed: int = 0  # RANSAC's
     # CPU threads for torch/OpenCV: None leaves the process's pools alone; "auto" sizes them by favormap.threads'
-    # rule (and follows the machine's load), a number fixes them
+    # rule (and follows the machine's load), a number fixes them. Either way the BLAS libraries then run each
+    # product on its calling thread while a query is localized (favormap.threads.serial_blas): the localizer
+    # runs its stages on threads of its own (extraction beside the first rendering, rendering beside matching)
     threads: int | str | None = None
 
     def ransac_threshold(self, epipolar_limit_px: float | None) -> float:

@@ -191,24 +191,33 @@ class SeenRays:
         self.dirs = np.zeros((0, 3), np.float32)
 
     def describe(self, source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict):
+        kept, kept_desc, fresh, dirs = self.split(rows, cam_from_world)
+        d = source(rows[fresh], cam_from_world, timings)
+        if len(d) != len(fresh):
+            raise ValueError(f"descriptor source {getattr(source, 'name', source)!r} gives several per landmark")
+        out = np.empty((len(rows), d.shape[1] if len(fresh) else kept_desc.shape[1]), np.float32)
+        out[fresh] = d
+        if len(kept):
+            out[kept] = kept_desc
+        self.store(rows[fresh], d, dirs[fresh])
+        return out
+
+    def split(self, rows: np.ndarray, cam_from_world: np.ndarray):
+        """(positions in ``rows`` of the landmarks that keep their descriptor, those descriptors, positions of
+        those to describe again, every row's unit ray direction): a caller that describes the latter itself
+        hands them to :meth:`store`."""
         dirs = np.asarray(self.positions[rows], np.float32) - np.asarray(camera_centers(cam_from_world), np.float32)
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
         at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
         known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
         keep = known.copy()
         keep[known] = np.einsum("ij,ij->i", dirs[known], self.dirs[at[known]]) >= self.min_cos
-        fresh = np.flatnonzero(~keep)
-        d = source(rows[fresh], cam_from_world, timings)
-        if len(d) != len(fresh):
-            raise ValueError(f"descriptor source {getattr(source, 'name', source)!r} gives several per landmark")
-        out = np.empty((len(rows), d.shape[1] if len(fresh) else self.desc.shape[1]), np.float32)
-        out[fresh] = d
-        if keep.any():
-            out[keep] = self.desc[at[keep]]
-        self._store(rows[fresh], d, dirs[fresh])
-        return out
+        kept = np.flatnonzero(keep)
+        kept_desc = self.desc[at[kept]] if len(kept) else np.zeros((0, 0), np.float32)
+        return kept, kept_desc, np.flatnonzero(~keep), dirs
 
-    def _store(self, rows: np.ndarray, desc: np.ndarray, dirs: np.ndarray) -> None:
+    def store(self, rows: np.ndarray, desc: np.ndarray, dirs: np.ndarray) -> None:
+        """Keep the descriptors ``desc`` of landmarks ``rows`` (unique), computed along the unit rays ``dirs``."""
         if len(rows) == 0:
             return
         if self.desc is None:

@@ -24,8 +24,10 @@ settings in :mod:`.config`, results in :mod:`.result`.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -36,12 +38,12 @@ from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
 from ..mapfile.model import map_aligns_by_default, map_epipolar_px
-from ..threads import rebalance, thread_count
+from ..threads import rebalance, serial_blas, thread_count
 from ..visibility import SpatialIndex, visible_rows
 from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
-from .matching import distinct_pairs, match_descriptors, pair_similarity
+from .matching import NearestDescriptors, distinct_pairs, match_descriptors, pair_similarity
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
 
@@ -96,6 +98,8 @@ class Localizer(SuccessChecking, FinalRefinement):
         self._map_focal = None  # the map's working focal length (px), computed on first use
         self._global = None  # (rows, unit mean descriptors) for prior-free matching, loaded on first use
         self._aligner = None  # favormap.localize.align.PlaneAligner (LocalizeConfig.align)
+        self._helpers: ThreadPoolExecutor | None = None  # helper threads (_pool), started on first use
+        self._pool_lock = threading.Lock()
         if self.config.align is None:
             self.config = dataclasses.replace(self.config, align=map_aligns_by_default(self.map.provenance))
         if self.config.align:
@@ -106,6 +110,9 @@ class Localizer(SuccessChecking, FinalRefinement):
             )
 
     def close(self):
+        if self._helpers is not None:
+            self._helpers.shutdown()
+            self._helpers = None
         self.map.close()
 
     # -- inputs --------------------------------------------------------------------------------------
@@ -154,7 +161,10 @@ class Localizer(SuccessChecking, FinalRefinement):
         rebalance()  # pools sized by the rule follow the machine's load (favormap.threads; else a no-op)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         rig = self.map.stored_cam_from_rig is not None
-        res = self._localize(image, self.camera_pose(prior) if rig and prior is not None else prior, camera)
+        # with the pools in its hands (config.threads), BLAS runs on the thread that calls it: the localizer's
+        # stages run on threads of their own (favormap.threads.serial_blas)
+        with serial_blas() if self.config.threads is not None else nullcontext():
+            res = self._localize(image, self.camera_pose(prior) if rig and prior is not None else prior, camera)
         res.image_cam_from_world = res.cam_from_world
         if rig:  # the map's cameras are turned against the poses it was built from: report in their frame
             res.cam_from_world = self.rig_pose(res.cam_from_world)
@@ -285,9 +295,13 @@ class Localizer(SuccessChecking, FinalRefinement):
             self._global = (rows, unit_rows(self.map.mean_descriptors(rows)))
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
-        s = time.perf_counter()
-        m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
-        t["matching"] += time.perf_counter() - s
+        if self._workers() > 1:
+            units = [(np.arange(a, min(a + 1024, len(d))), d[a : a + 1024]) for a in range(0, len(d), 1024)]
+            _, m = self._match_blocks(q, units, len(d), True, cfg.global_ratio, None, t)
+        else:
+            s = time.perf_counter()
+            m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
+            t["matching"] += time.perf_counter() - s
         q.global_matches = (self.positions[rows[m[:, 0]]], m[:, 1])
         ans = self._pnp(q, *q.global_matches, t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0
@@ -339,9 +353,8 @@ class Localizer(SuccessChecking, FinalRefinement):
         last = None
         rows = self._visible(q.cam, pose, t) if first_rows is None else first_rows
         for k in range(cfg.iterations):
-            rend, drows = describe(self.source, rows, pose, t, q.seen)
+            rend, drows, m = self._describe_and_match(q, rows, pose, t)
             s = time.perf_counter()
-            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
             m = distinct_pairs(m, drows, len(rows))
             sims = pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
@@ -379,6 +392,95 @@ class Localizer(SuccessChecking, FinalRefinement):
         res = self._result(q, last, iters, t, start)
         res.covariance = cov if res.success else None
         return res
+
+    def _pool(self, n: int) -> ThreadPoolExecutor:
+        """The localizer's pool of at least ``n`` helper threads (kept between queries: a thread's memory arena
+        stays mapped), shared by the threads that localize with it."""
+        with self._pool_lock:
+            if self._helpers is None or self._helpers._max_workers < n:
+                if self._helpers is not None:
+                    self._helpers.shutdown(wait=False)
+                self._helpers = ThreadPoolExecutor(max(n, 1), thread_name_prefix="favormap-localize")
+            return self._helpers
+
+    def _workers(self) -> int:
+        """Threads the localizer's own stages may use: with the pools in its hands (``config.threads``; BLAS then
+        runs on its calling thread), their size; else 1 (BLAS's own threads parallelize the products)."""
+        return thread_count(None) if self.config.threads is not None else 1
+
+    def _describe_and_match(self, q: Query, rows: np.ndarray, pose: np.ndarray, t: dict):
+        """(descriptors, their landmark rows, matches): the descriptors of landmarks ``rows`` seen from ``pose``
+        (:func:`.descriptors.describe`) matched to the query's (:func:`.matching.match_descriptors`).
+
+        Where the query keeps its descriptors by ray (``q.seen``) and the localizer has several threads
+        (:meth:`_workers`), they share the work block by block (:meth:`_match_blocks`), rendering a block
+        (``source.chunk`` landmarks) or taking one already described, and matching it. The same matches as
+        describing, then matching."""
+        cfg = self.config
+        workers = self._workers()
+        if q.seen is None or workers < 2 or len(rows) == 0:
+            rend, drows = describe(self.source, rows, pose, t, q.seen)
+            s = time.perf_counter()
+            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+            t["matching"] += time.perf_counter() - s
+            return rend, drows, m
+        kept, kept_desc, fresh, dirs = q.seen.split(rows, pose)
+        step = int(getattr(self.source, "chunk", 0) or 0) or max(len(fresh), 1)
+        units = [(kept[a : a + 1024], kept_desc[a : a + 1024]) for a in range(0, len(kept), 1024)]
+        units += [(fresh[a : a + step], None) for a in range(0, len(fresh), step)]
+        described, m = self._match_blocks(
+            q, units, len(rows), cfg.mutual, cfg.ratio, lambda at, tm: self.source(rows[at], pose, tm), t
+        )
+        new = [d for d in described if d is not None]
+        rend = np.empty((len(rows), new[0].shape[1] if new else kept_desc.shape[1]), np.float32)
+        if len(kept):
+            rend[kept] = kept_desc
+        if new:
+            new = np.concatenate(new)
+            rend[fresh] = new
+            q.seen.store(rows[fresh], new, dirs[fresh])
+        return rend, rows, m
+
+    def _match_blocks(self, q: Query, units: list, n: int, mutual: bool, ratio: float, describe_fn, t: dict):
+        """Match ``n`` descriptors, given as ``units`` (positions, descriptors or None: to be described by
+        ``describe_fn(positions, timings)``), to the query's on :meth:`_workers` threads, each taking the next
+        unit, describing it where needed and comparing it with the query's descriptors
+        (:class:`.matching.NearestDescriptors`): rendering is mostly memory-bound, the products compute-bound,
+        and the cores stay busy without BLAS's own threads. Returns (each unit's new descriptors or None,
+        the matches of :func:`.matching.match_descriptors`)."""
+        cfg = self.config
+        described: list = [None] * len(units)
+        nearest = NearestDescriptors(q.desc, n, second=ratio < 1.0)
+        parts = nearest.parts(max(1, min(self._workers(), len(units))))
+        times = [dict(loading=0.0, rendering=0.0, matching=0.0) for _ in parts]
+        lock, taken = threading.Lock(), iter(range(len(units)))
+
+        def work(k: int):
+            while True:
+                with lock:
+                    i = next(taken, None)
+                if i is None:
+                    return
+                at, d = units[i]
+                if d is None:
+                    d = describe_fn(at, times[k])
+                    if len(d) != len(at):
+                        raise ValueError(f"descriptor source {self.source.name!r} gives several per landmark")
+                    described[i] = d
+                s = time.perf_counter()
+                parts[k].add(at, d)
+                times[k]["matching"] += time.perf_counter() - s
+
+        jobs = [self._pool(len(parts) - 1).submit(work, k) for k in range(1, len(parts))]
+        try:
+            work(0)
+        finally:
+            for job in jobs:
+                job.result()
+        nearest.join(parts)
+        for k in times[0]:  # the threads' times overlap: each stage counts its longest thread's
+            t[k] = t.get(k, 0.0) + max(tm[k] for tm in times)
+        return described, nearest.matches(cfg.match_threshold, mutual, ratio)
 
     def _changed_share(self, rows: np.ndarray, pose: np.ndarray, new_rows: np.ndarray, new_pose: np.ndarray) -> float:
         """The share of the landmarks visible from ``new_pose`` (``new_rows``) that an iteration from there

@@ -30,37 +30,80 @@ def match_descriptors(
     product (40 MB for 6,600 landmarks against 1,500 keypoints) is a fresh mapping of memory, page
     faults included, on every call (the products took ~1.8x as long); ties go to the lower index."""
     rendered = np.asarray(rendered, np.float32)
-    query = np.asarray(query, np.float32)
-    L, Q = len(rendered), len(query)
-    if L == 0 or Q == 0:
-        return np.zeros((0, 2), np.int64)
-    query = np.ascontiguousarray(query)
-    G = Q
-    best = np.empty(L, np.int64)  # best column
-    best_sim = np.empty(L, np.float32)
-    second = np.full(L, -np.inf, np.float32)
-    col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's best similarity
-    buf = np.empty((min(chunk, L), G), np.float32)
-    for s in range(0, L, chunk):
-        sim = _gemm_t(np.ascontiguousarray(rendered[s : s + chunk]), query, buf)
-        r = np.arange(len(sim))
-        if mutual:  # max along axis 0 is ~20x faster than argmax along it
-            np.maximum(col_best, sim.max(0), out=col_best)
-        b = sim.argmax(1)
-        best[s : s + len(sim)], best_sim[s : s + len(sim)] = b, sim[r, b]
-        if ratio < 1.0 and G >= 2:
-            sim[r, b] = -np.inf
-            second[s : s + len(sim)] = sim.max(1)
-    ok = best_sim >= threshold
-    if ratio < 1.0 and G >= 2:
-        ok &= np.maximum(2 - 2 * best_sim, 0) < ratio**2 * np.maximum(2 - 2 * second, 0)
-    if mutual:  # the rendered row is its query descriptor's best; on a tie the lowest row wins
-        ok &= best_sim >= col_best[best]
-    idx = np.flatnonzero(ok)
-    if mutual:
-        _, first = np.unique(best[idx], return_index=True)
-        idx = idx[np.sort(first)]
-    return np.stack([idx, best[idx]], 1).astype(np.int64)
+    nearest = NearestDescriptors(query, len(rendered), chunk, second=ratio < 1.0)
+    for s in range(0, len(rendered), chunk):
+        nearest.add(np.arange(s, min(s + chunk, len(rendered))), rendered[s : s + chunk])
+    return nearest.matches(threshold, mutual, ratio)
+
+
+class NearestDescriptors:
+    """The pairs of :func:`match_descriptors`, accumulated from blocks of the ``n`` rendered descriptors in
+    any order (e.g. while the next blocks are rendered): :meth:`add` compares a block with every query
+    descriptor, :meth:`matches` gives the pairs once every row was added. The result does not depend on
+    the blocks' order or sizes. ``second``: keep each row's second best (Lowe's ratio). Threads that
+    share the rows each add theirs to one of :meth:`parts`."""
+
+    def __init__(self, query: np.ndarray, n: int, chunk: int = 1024, second: bool = False):
+        self.query = np.ascontiguousarray(np.asarray(query, np.float32))
+        self.n, self.chunk = n, chunk
+        G = len(self.query)
+        self.best = np.zeros(n, np.int64)  # best column
+        self.best_sim = np.full(n, -np.inf, np.float32)
+        self.second = np.full(n, -np.inf, np.float32) if second else None
+        self.col_best = np.full(G, -np.inf, np.float32)  # each query descriptor's best similarity
+        self._buf = np.empty((min(chunk, n), G), np.float32) if n and G else None
+
+    def parts(self, k: int) -> list[NearestDescriptors]:
+        """``k`` accumulators for threads that add disjoint rows at the same time: each compares into a buffer
+        of its own and writes its rows' bests into this one's arrays; :meth:`join` takes their query-side bests
+        once they are done."""
+        out = []
+        for _ in range(k):
+            p = object.__new__(NearestDescriptors)
+            p.query, p.n, p.chunk = self.query, self.n, self.chunk
+            p.best, p.best_sim, p.second = self.best, self.best_sim, self.second
+            p.col_best = np.full(len(self.query), -np.inf, np.float32)
+            p._buf = None if self._buf is None else np.empty_like(self._buf)
+            out.append(p)
+        return out
+
+    def join(self, parts: list[NearestDescriptors]) -> None:
+        for p in parts:
+            np.maximum(self.col_best, p.col_best, out=self.col_best)
+
+    def add(self, rows: np.ndarray, block: np.ndarray) -> None:
+        """Rendered descriptors ``block`` (len(rows), C) of rows ``rows`` (indices into the n)."""
+        if self._buf is None or len(rows) == 0:
+            return
+        block = np.asarray(block, np.float32)
+        for s in range(0, len(rows), self.chunk):
+            r, sim = (
+                rows[s : s + self.chunk],
+                _gemm_t(np.ascontiguousarray(block[s : s + self.chunk]), self.query, self._buf),
+            )
+            i = np.arange(len(sim))
+            np.maximum(self.col_best, sim.max(0), out=self.col_best)  # max along axis 0: ~20x faster than argmax
+            b = sim.argmax(1)
+            self.best[r], self.best_sim[r] = b, sim[i, b]
+            if self.second is not None and sim.shape[1] >= 2:
+                sim[i, b] = -np.inf
+                self.second[r] = sim.max(1)
+
+    def matches(self, threshold: float, mutual: bool = False, ratio: float = 1.0) -> np.ndarray:
+        if self._buf is None:
+            return np.zeros((0, 2), np.int64)
+        ok = self.best_sim >= threshold
+        if ratio < 1.0 and len(self.query) >= 2:
+            if self.second is None:
+                raise ValueError("a ratio test needs the second best (NearestDescriptors(second=True))")
+            ok &= np.maximum(2 - 2 * self.best_sim, 0) < ratio**2 * np.maximum(2 - 2 * self.second, 0)
+        if mutual:  # the rendered row is its query descriptor's best; on a tie the lowest row wins
+            ok &= self.best_sim >= self.col_best[self.best]
+        idx = np.flatnonzero(ok)
+        if mutual:
+            _, first = np.unique(self.best[idx], return_index=True)
+            idx = idx[np.sort(first)]
+        return np.stack([idx, self.best[idx]], 1).astype(np.int64)
 
 
 def _gemm_t(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
