@@ -148,9 +148,11 @@ class Localizer(SuccessChecking, FinalRefinement):
         from .stream import Stream
 
         with Stream(self, first_prior, motion, refine_landmarks) as stream:
+            refine = None
             for image in images:
-                res = self.localize(image, stream.prior(), camera)
-                stream.update(res)
+                # the landmarks the last frame refines are triangulated while this frame's features are extracted
+                res = self._localize_rig(image, stream.prior(), camera, refine)
+                refine = stream.update_later(res)
                 yield res
 
     def localize(
@@ -158,13 +160,20 @@ class Localizer(SuccessChecking, FinalRefinement):
     ) -> LocalizationResult:
         """Localize one query image. Without a prior, a coarse pose is found first by matching
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
+        return self._localize_rig(image, prior_cam_from_world, camera)
+
+    def _localize_rig(self, image, prior_cam_from_world, camera, meanwhile=None) -> LocalizationResult:
+        """:meth:`localize`; ``meanwhile()`` runs before the landmark positions are first used, while the
+        features are extracted where they are extracted on a worker thread."""
         rebalance()  # pools sized by the rule follow the machine's load (favormap.threads; else a no-op)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         rig = self.map.stored_cam_from_rig is not None
         # with the pools in its hands (config.threads), BLAS runs on the thread that calls it: the localizer's
         # stages run on threads of their own (favormap.threads.serial_blas)
         with serial_blas() if self.config.threads is not None else nullcontext():
-            res = self._localize(image, self.camera_pose(prior) if rig and prior is not None else prior, camera)
+            res = self._localize(
+                image, self.camera_pose(prior) if rig and prior is not None else prior, camera, meanwhile
+            )
         res.image_cam_from_world = res.cam_from_world
         if rig:  # the map's cameras are turned against the poses it was built from: report in their frame
             res.cam_from_world = self.rig_pose(res.cam_from_world)
@@ -185,7 +194,7 @@ class Localizer(SuccessChecking, FinalRefinement):
         """The inverse of :meth:`camera_pose`."""
         return inverse(self.map.cam_from_rig) @ np.asarray(cam_from_world, np.float64)
 
-    def _localize(self, image, prior: np.ndarray | None, camera: Camera | None) -> LocalizationResult:
+    def _localize(self, image, prior: np.ndarray | None, camera: Camera | None, meanwhile=None) -> LocalizationResult:
         cfg = self.config
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
         t0 = time.perf_counter()
@@ -209,8 +218,12 @@ class Localizer(SuccessChecking, FinalRefinement):
                 job = pool.submit(extract)
                 first_rows = self._visible(cam, prior, t)
                 describe(self.source, first_rows, prior, t, seen)
+                if meanwhile is not None:
+                    meanwhile()
                 feats = job.result()
         else:
+            if meanwhile is not None:
+                meanwhile()
             feats = extract()
         qdesc = np.asarray(feats.descriptors, np.float32)
         q = Query(feats, qdesc, cam, seen=seen)

@@ -54,6 +54,15 @@ class Stream:
         self.motion.update(result)
         return np.zeros(0, np.int64) if self.refinement is None else self.refinement.update(result)
 
+    def update_later(self, result):
+        """:meth:`update` in two parts: the motion prior now, the landmark refinement returned (a callable, or
+        None) for the caller to run before the next frame uses the landmarks' positions (the localizer runs it
+        while that frame's features are extracted)."""
+        self.motion.update(result)
+        if self.refinement is None:
+            return None
+        return lambda: self.refinement.update(result)
+
     def close(self) -> None:
         if self.refinement is not None:
             self.refinement.close()
