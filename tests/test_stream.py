@@ -138,3 +138,36 @@ def test_stream_prior_mode_evaluates_a_sequence(small_map, small_sequence):
     assert loc.positions is loc.map.positions  # the refinement ended with the evaluation
     errs = [pose_error(o.result.cam_from_world, o.gt)[0] for o in rep.outcomes]
     assert max(errs) < 0.02
+
+
+def test_a_sequence_refines_each_frames_landmarks_before_the_next_frame_uses_them(small_map, small_sequence):
+    """localize_sequence triangulates the landmarks a frame refines while the next frame's features are
+    extracted: frame by frame, the poses and matches of localizing one frame after the other with each
+    frame's refinement applied before the next (Stream.update), with the positions refined by the time a
+    frame is localized."""
+    from favormap.localize import Localizer
+    from favormap.localize.stream import Stream
+
+    _, path = small_map
+    frames = small_sequence.frames[3:9]
+    first = perturb_pose(frames[0].cam_from_world, 0.05, 3.0, np.random.default_rng(2))
+    loc = Localizer(str(path))
+    try:
+        want, moved = [], []
+        with Stream(loc, first) as stream:
+            for fr in frames:
+                want.append(loc.localize(fr.image_path, stream.prior()))
+                moved.append(stream.update(want[-1]))
+        assert sum(len(m) for m in moved[:-1]) > 0  # the frames before the last did refine landmarks
+        got, refined = [], []
+        for res in loc.localize_sequence([fr.image_path for fr in frames], first):
+            got.append(res)
+            refined.append(not np.array_equal(loc.positions, loc.map.positions))
+    finally:
+        loc.close()
+    assert refined[0] is False and all(refined[2:])  # frame k sees what frames before k refined
+    for a, b in zip(want, got):
+        assert a.success and b.success
+        np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
+        np.testing.assert_array_equal(a.matches, b.matches)
+    assert loc.positions is loc.map.positions

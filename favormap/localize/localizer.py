@@ -16,7 +16,8 @@ landmarks that are actually visible (in front, inside the image, within their tr
 from the final pose, and, for a pose refined from a prior with few inliers, agreement with the
 estimate found without the prior. Otherwise ``success`` is false and ``message`` names the check that failed.
 
-The stages by module: this one (prior, rendering iterations, PnP, the prior-free estimate),
+The stages by module: this one (prior, rendering iterations, the prior-free estimate), :mod:`.blocks`
+(rendering and matching on the localizer's threads), :mod:`.pnp` (PnP-RANSAC, local refinement),
 :mod:`.refinement` (guided step, weighted refinement), :mod:`.checks` (success checks, result);
 settings in :mod:`.config`, results in :mod:`.result`.
 """
@@ -33,24 +34,24 @@ import numpy as np
 
 from .. import features as feats_mod
 from ..errors import InputError
-from ..geometry import camera_centers, from_rigid3d, inverse, project, to_rigid3d
+from ..geometry import camera_centers, from_rigid3d, inverse
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
 from ..mapfile.model import map_aligns_by_default, map_epipolar_px
 from ..threads import rebalance, serial_blas, thread_count
 from ..visibility import SpatialIndex, visible_rows
+from .blocks import BlockMatching
 from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
-from .matching import NearestDescriptors, distinct_pairs, match_descriptors, pair_similarity
+from .matching import distinct_pairs, match_descriptors, pair_similarity
+from .pnp import PoseSolving
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
 
-RANSAC_CONFIDENCE = 0.999  # PnP-RANSAC's confidence that a sampled hypothesis is all inliers (see _pnp)
 
-
-class Localizer(SuccessChecking, FinalRefinement):
+class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
     """Localizes query images against one map; keep it alive to localize many queries.
 
     ``descriptor_source`` overrides ``config.descriptors`` (e.g. nearest-view descriptors, which
@@ -258,39 +259,6 @@ class Localizer(SuccessChecking, FinalRefinement):
             res.cam_from_world = prior
         return res
 
-    def _pnp(
-        self,
-        q: Query,
-        points: np.ndarray,
-        kp_idx: np.ndarray,
-        t: dict,
-        max_error_px: float | None = None,
-        refine: bool = True,
-    ):
-        """PnP-RANSAC (pycolmap's LO-RANSAC) on ``points`` <-> ``q.feats.keypoints[kp_idx]``; with ``refine``, the
-        pose is then refined on the inliers by pycolmap (the inlier set stays RANSAC's)."""
-        import pycolmap
-
-        s = time.perf_counter()
-        est = pycolmap.AbsolutePoseEstimationOptions()
-        est.ransac.max_error = max_error_px or self.config.ransac_max_error_px
-        est.ransac.random_seed = self.config.seed
-        # COLMAP's defaults (confidence 0.99999, 3x the trials that confidence asks) run up to 10,000
-        # hypotheses at the 10-30 % inlier ratios of real queries; the rendering iterations, the guided
-        # step and the weighted refinement take the pose further, and with these the real-data suite
-        # localizes the same queries as accurately (docs/accuracy.md) in half the PnP time
-        est.ransac.confidence = RANSAC_CONFIDENCE
-        est.ransac.dyn_num_trials_multiplier = 1.0
-        ans = None
-        if len(kp_idx) >= 4:
-            args = (q.feats.keypoints[kp_idx].astype(np.float64), points.astype(np.float64), q.cam.to_pycolmap(), est)
-            if refine:
-                ans = pycolmap.estimate_and_refine_absolute_pose(*args, pycolmap.AbsolutePoseRefinementOptions())
-            else:
-                ans = pycolmap.estimate_absolute_pose(*args)
-        t["pnp"] += time.perf_counter() - s
-        return ans
-
     def _global_pose(self, q: Query, t: dict):
         """Coarse pose without a prior: mutual matches against every landmark's mean descriptor
         (computed once per query)."""
@@ -406,95 +374,6 @@ class Localizer(SuccessChecking, FinalRefinement):
         res.covariance = cov if res.success else None
         return res
 
-    def _pool(self, n: int) -> ThreadPoolExecutor:
-        """The localizer's pool of at least ``n`` helper threads (kept between queries: a thread's memory arena
-        stays mapped), shared by the threads that localize with it."""
-        with self._pool_lock:
-            if self._helpers is None or self._helpers._max_workers < n:
-                if self._helpers is not None:
-                    self._helpers.shutdown(wait=False)
-                self._helpers = ThreadPoolExecutor(max(n, 1), thread_name_prefix="favormap-localize")
-            return self._helpers
-
-    def _workers(self) -> int:
-        """Threads the localizer's own stages may use: with the pools in its hands (``config.threads``; BLAS then
-        runs on its calling thread), their size; else 1 (BLAS's own threads parallelize the products)."""
-        return thread_count(None) if self.config.threads is not None else 1
-
-    def _describe_and_match(self, q: Query, rows: np.ndarray, pose: np.ndarray, t: dict):
-        """(descriptors, their landmark rows, matches): the descriptors of landmarks ``rows`` seen from ``pose``
-        (:func:`.descriptors.describe`) matched to the query's (:func:`.matching.match_descriptors`).
-
-        Where the query keeps its descriptors by ray (``q.seen``) and the localizer has several threads
-        (:meth:`_workers`), they share the work block by block (:meth:`_match_blocks`), rendering a block
-        (``source.chunk`` landmarks) or taking one already described, and matching it. The same matches as
-        describing, then matching."""
-        cfg = self.config
-        workers = self._workers()
-        if q.seen is None or workers < 2 or len(rows) == 0:
-            rend, drows = describe(self.source, rows, pose, t, q.seen)
-            s = time.perf_counter()
-            m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
-            t["matching"] += time.perf_counter() - s
-            return rend, drows, m
-        kept, kept_desc, fresh, dirs = q.seen.split(rows, pose)
-        step = int(getattr(self.source, "chunk", 0) or 0) or max(len(fresh), 1)
-        units = [(kept[a : a + 1024], kept_desc[a : a + 1024]) for a in range(0, len(kept), 1024)]
-        units += [(fresh[a : a + step], None) for a in range(0, len(fresh), step)]
-        described, m = self._match_blocks(
-            q, units, len(rows), cfg.mutual, cfg.ratio, lambda at, tm: self.source(rows[at], pose, tm), t
-        )
-        new = [d for d in described if d is not None]
-        rend = np.empty((len(rows), new[0].shape[1] if new else kept_desc.shape[1]), np.float32)
-        if len(kept):
-            rend[kept] = kept_desc
-        if new:
-            new = np.concatenate(new)
-            rend[fresh] = new
-            q.seen.store(rows[fresh], new, dirs[fresh])
-        return rend, rows, m
-
-    def _match_blocks(self, q: Query, units: list, n: int, mutual: bool, ratio: float, describe_fn, t: dict):
-        """Match ``n`` descriptors, given as ``units`` (positions, descriptors or None: to be described by
-        ``describe_fn(positions, timings)``), to the query's on :meth:`_workers` threads, each taking the next
-        unit, describing it where needed and comparing it with the query's descriptors
-        (:class:`.matching.NearestDescriptors`): rendering is mostly memory-bound, the products compute-bound,
-        and the cores stay busy without BLAS's own threads. Returns (each unit's new descriptors or None,
-        the matches of :func:`.matching.match_descriptors`)."""
-        cfg = self.config
-        described: list = [None] * len(units)
-        nearest = NearestDescriptors(q.desc, n, second=ratio < 1.0)
-        parts = nearest.parts(max(1, min(self._workers(), len(units))))
-        times = [dict(loading=0.0, rendering=0.0, matching=0.0) for _ in parts]
-        lock, taken = threading.Lock(), iter(range(len(units)))
-
-        def work(k: int):
-            while True:
-                with lock:
-                    i = next(taken, None)
-                if i is None:
-                    return
-                at, d = units[i]
-                if d is None:
-                    d = describe_fn(at, times[k])
-                    if len(d) != len(at):
-                        raise ValueError(f"descriptor source {self.source.name!r} gives several per landmark")
-                    described[i] = d
-                s = time.perf_counter()
-                parts[k].add(at, d)
-                times[k]["matching"] += time.perf_counter() - s
-
-        jobs = [self._pool(len(parts) - 1).submit(work, k) for k in range(1, len(parts))]
-        try:
-            work(0)
-        finally:
-            for job in jobs:
-                job.result()
-        nearest.join(parts)
-        for k in times[0]:  # the threads' times overlap: each stage counts its longest thread's
-            t[k] = t.get(k, 0.0) + max(tm[k] for tm in times)
-        return described, nearest.matches(cfg.match_threshold, mutual, ratio)
-
     def _changed_share(self, rows: np.ndarray, pose: np.ndarray, new_rows: np.ndarray, new_pose: np.ndarray) -> float:
         """The share of the landmarks visible from ``new_pose`` (``new_rows``) that an iteration from there
         would see differently from one at ``pose`` (visible ``rows``, both sorted): those visible from only
@@ -510,38 +389,6 @@ class Localizer(SuccessChecking, FinalRefinement):
         cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
         changed += int(np.count_nonzero(cos < np.cos(np.radians(angle))))
         return changed / len(new_rows)
-
-    def _local_pnp(self, q: Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, t: dict, rounds: int = 3):
-        """``pose`` refined on its own inliers (within ``ransac_max_error_px``) among the matches
-        ``points`` <-> ``q.feats.keypoints[kp_idx]``, repeated until the inlier set stops changing: the
-        local optimisation of RANSAC with ``pose`` as the only hypothesis. Returns a dict shaped as
-        pycolmap's estimate (cam_from_world, num_inliers, inlier_mask), or None."""
-        import pycolmap
-
-        s = time.perf_counter()
-        thr = self.config.ransac_max_error_px
-        uv = q.feats.keypoints[kp_idx].astype(np.float64)
-        X = np.asarray(points, np.float64)
-
-        def inliers(T):
-            p, z = project(q.cam.K, T, X, with_depth=True)
-            return (z > 0) & (np.linalg.norm(p - uv, axis=1) < thr)
-
-        out, mask = None, inliers(pose)
-        for _ in range(rounds):
-            if mask.sum() < 4:
-                break
-            r = pycolmap.refine_absolute_pose(to_rigid3d(pose), uv, X, mask, q.cam.to_pycolmap())
-            if r is None:
-                break
-            pose = from_rigid3d(r["cam_from_world"])
-            new = inliers(pose)
-            out = dict(cam_from_world=r["cam_from_world"], num_inliers=int(new.sum()), inlier_mask=new)
-            if np.array_equal(new, mask):
-                break
-            mask = new
-        t["pnp"] += time.perf_counter() - s
-        return out
 
 
 def localize(

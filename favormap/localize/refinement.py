@@ -14,10 +14,10 @@ import numpy as np
 
 from ..geometry import from_rigid3d, project
 from ..mapfile.model import map_epipolar_px
+from .covariance import PoseCovariance
 from .descriptors import describe
 from .matching import distinct_pairs, match_near, pair_in, pair_similarity
 from .refine import (
-    PoseCovariance,
     estimate_noise,
     landmark_covariances,
     mahalanobis2,

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..io import Camera
-from .refine import PoseCovariance
+from .covariance import PoseCovariance
 
 
 @dataclass
