@@ -53,6 +53,28 @@ def test_a_landmark_seen_along_nearly_the_same_ray_keeps_its_descriptor():
     far, _ = describe(src, rows, _pose([1.0, 0, -5]), {}, seen)
     np.testing.assert_array_equal(src.asked[0], rows)
     np.testing.assert_allclose(far, src(rows, _pose([1.0, 0, -5]), {}))
+    # 2 mm from there: the even rows keep what they got from there, the odd ones are turned and rendered again
+    src.asked.clear()
+    both, _ = describe(src, np.arange(50), _pose([1.002, 0, -5]), {}, seen)
+    np.testing.assert_array_equal(src.asked[0], np.arange(1, 50, 2))
+    np.testing.assert_array_equal(both[::2], far)
+
+
+def test_seen_rays_keep_every_landmark_as_their_store_grows():
+    """Thousands of landmarks stored in several steps (the store grows), some described again: each landmark
+    keeps its latest descriptor."""
+    from favormap.localize.descriptors import SeenRays, describe
+
+    X = np.random.default_rng(2).uniform(-1, 1, (5000, 3))
+    src = CountingSource(X)
+    seen = SeenRays(X, 1.0)
+    pose = _pose([0, 0, -5])
+    for rows in (np.arange(0, 5000, 3), np.arange(0, 5000, 2), np.arange(5000)):
+        got, _ = describe(src, rows, pose, {}, seen)
+        np.testing.assert_allclose(got, src(rows, pose, {}))
+    src.asked.clear()
+    describe(src, np.arange(5000), pose, {}, seen)
+    assert len(src.asked[0]) == 0  # all kept
 
 
 def test_without_seen_rays_every_call_renders():

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..threads import thread_count
 from .descriptors import describe
-from .matching import NearestDescriptors, match_descriptors
+from .matching import NearestDescriptors, distinct_pairs, match_descriptors, pair_similarity
 from .result import Query
 
 
@@ -38,45 +38,50 @@ class BlockMatching:
         return thread_count(None) if self.config.threads is not None else 1
 
     def _describe_and_match(self, q: Query, rows: np.ndarray, pose: np.ndarray, t: dict):
-        """(descriptors, their landmark rows, matches): the descriptors of landmarks ``rows`` seen from ``pose``
-        (:func:`.descriptors.describe`) matched to the query's (:func:`.matching.match_descriptors`).
+        """(each descriptor's landmark row, matches, their cosines): the descriptors of landmarks ``rows`` seen
+        from ``pose`` (:func:`.descriptors.describe`) matched to the query's (:func:`.matching.match_descriptors`,
+        a landmark-keypoint pair once: :func:`.matching.distinct_pairs`).
 
         Where the query keeps its descriptors by ray (``q.seen``) and the localizer has several threads
         (:meth:`_workers`), they share the work block by block (:meth:`_match_blocks`), rendering a block
         (``source.chunk`` landmarks) or taking one already described, and matching it. The same matches as
         describing, then matching."""
         cfg = self.config
-        workers = self._workers()
-        if q.seen is None or workers < 2 or len(rows) == 0:
+        if q.seen is None or self._workers() < 2 or len(rows) == 0:
             rend, drows = describe(self.source, rows, pose, t, q.seen)
             s = time.perf_counter()
             m = match_descriptors(rend, q.desc, cfg.match_threshold, cfg.mutual, cfg.ratio)
+            m = distinct_pairs(m, drows, len(rows))
+            sims = pair_similarity(rend, q.desc, m)
             t["matching"] += time.perf_counter() - s
-            return rend, drows, m
-        kept, kept_desc, fresh, dirs = q.seen.split(rows, pose)
-        step = int(getattr(self.source, "chunk", 0) or 0) or max(len(fresh), 1)
-        units = [(kept[a : a + 1024], kept_desc[a : a + 1024]) for a in range(0, len(kept), 1024)]
-        units += [(fresh[a : a + step], None) for a in range(0, len(fresh), step)]
-        described, m = self._match_blocks(
-            q, units, len(rows), cfg.mutual, cfg.ratio, lambda at, tm: self.source(rows[at], pose, tm), t
-        )
-        new = [d for d in described if d is not None]
-        rend = np.empty((len(rows), new[0].shape[1] if new else kept_desc.shape[1]), np.float32)
-        if len(kept):
-            rend[kept] = kept_desc
+            return drows, m, sims
+        seen, source = q.seen, self.source
+        kept, slots, fresh, dirs = seen.split(rows, pose)
+        step = int(getattr(source, "chunk", 0) or 0) or max(len(fresh), 1)
+        units = [(kept[a : a + 1024], slots[a : a + 1024]) for a in range(0, len(kept), 1024)]
+        units = [(at, lambda tm, s=s: seen.desc[s]) for at, s in units]
+        n_kept = len(units)
+        for a in range(0, len(fresh), step):
+            at = fresh[a : a + step]
+            units.append((at, lambda tm, at=at: self._described(source, rows[at], pose, tm)))
+        described, m, sims = self._match_blocks(q, units, len(rows), cfg.mutual, cfg.ratio, t)
+        new = described[n_kept:]
         if new:
-            new = np.concatenate(new)
-            rend[fresh] = new
-            q.seen.store(rows[fresh], new, dirs[fresh])
-        return rend, rows, m
+            seen.store(rows[fresh], np.concatenate(new), dirs[fresh])
+        return rows, m, sims
 
-    def _match_blocks(self, q: Query, units: list, n: int, mutual: bool, ratio: float, describe_fn, t: dict):
-        """Match ``n`` descriptors, given as ``units`` (positions, descriptors or None: to be described by
-        ``describe_fn(positions, timings)``), to the query's on :meth:`_workers` threads, each taking the next
-        unit, describing it where needed and comparing it with the query's descriptors
-        (:class:`.matching.NearestDescriptors`): rendering is mostly memory-bound, the products compute-bound,
-        and the cores stay busy without BLAS's own threads. Returns (each unit's new descriptors or None,
-        the matches of :func:`.matching.match_descriptors`)."""
+    def _described(self, source, rows: np.ndarray, pose: np.ndarray, timings: dict) -> np.ndarray:
+        d = source(rows, pose, timings)
+        if len(d) != len(rows):
+            raise ValueError(f"descriptor source {getattr(source, 'name', source)!r} gives several per landmark")
+        return d
+
+    def _match_blocks(self, q: Query, units: list, n: int, mutual: bool, ratio: float, t: dict):
+        """Match ``n`` descriptors, given as ``units`` (positions, ``get(timings)`` -> their descriptors), to the
+        query's on :meth:`_workers` threads, each taking the next unit, getting its descriptors (rendering them,
+        where it renders) and comparing them with the query's (:class:`.matching.NearestDescriptors`): rendering
+        is mostly memory-bound, the products compute-bound, and the cores stay busy without BLAS's own threads.
+        Returns (each unit's descriptors, the matches of :func:`.matching.match_descriptors`, their cosines)."""
         cfg = self.config
         described: list = [None] * len(units)
         nearest = NearestDescriptors(q.desc, n, second=ratio < 1.0)
@@ -90,12 +95,8 @@ class BlockMatching:
                     i = next(taken, None)
                 if i is None:
                     return
-                at, d = units[i]
-                if d is None:
-                    d = describe_fn(at, times[k])
-                    if len(d) != len(at):
-                        raise ValueError(f"descriptor source {self.source.name!r} gives several per landmark")
-                    described[i] = d
+                at, get = units[i]
+                described[i] = d = get(times[k])
                 s = time.perf_counter()
                 parts[k].add(at, d)
                 times[k]["matching"] += time.perf_counter() - s
@@ -109,4 +110,5 @@ class BlockMatching:
         nearest.join(parts)
         for k in times[0]:  # the threads' times overlap: each stage counts its longest thread's
             t[k] = t.get(k, 0.0) + max(tm[k] for tm in times)
-        return described, nearest.matches(cfg.match_threshold, mutual, ratio)
+        m = nearest.matches(cfg.match_threshold, mutual, ratio)
+        return described, m, nearest.best_sim[m[:, 0]]

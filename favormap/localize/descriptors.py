@@ -186,49 +186,62 @@ class SeenRays:
     def __init__(self, positions: np.ndarray, max_angle_deg: float):
         self.positions = positions
         self.min_cos = float(np.cos(np.radians(max_angle_deg)))
-        self.rows = np.zeros(0, np.int64)  # sorted
-        self.desc: np.ndarray | None = None
+        # the landmarks described so far (sorted) and each one's slot in ``desc`` / ``dirs``: a landmark described
+        # again overwrites its slot, a new one takes the next, so storing never moves the descriptors kept
+        self.rows = np.zeros(0, np.int64)
+        self.slots = np.zeros(0, np.int64)
+        self.desc: np.ndarray | None = None  # (capacity, C)
         self.dirs = np.zeros((0, 3), np.float32)
+        self.size = 0  # slots in use
 
     def describe(self, source: DescriptorSource, rows: np.ndarray, cam_from_world: np.ndarray, timings: dict):
-        kept, kept_desc, fresh, dirs = self.split(rows, cam_from_world)
+        kept, kept_slots, fresh, dirs = self.split(rows, cam_from_world)
         d = source(rows[fresh], cam_from_world, timings)
         if len(d) != len(fresh):
             raise ValueError(f"descriptor source {getattr(source, 'name', source)!r} gives several per landmark")
-        out = np.empty((len(rows), d.shape[1] if len(fresh) else kept_desc.shape[1]), np.float32)
+        out = np.empty((len(rows), d.shape[1] if len(fresh) else self.desc.shape[1]), np.float32)
         out[fresh] = d
         if len(kept):
-            out[kept] = kept_desc
+            out[kept] = self.desc[kept_slots]
         self.store(rows[fresh], d, dirs[fresh])
         return out
 
     def split(self, rows: np.ndarray, cam_from_world: np.ndarray):
-        """(positions in ``rows`` of the landmarks that keep their descriptor, those descriptors, positions of
-        those to describe again, every row's unit ray direction): a caller that describes the latter itself
-        hands them to :meth:`store`."""
+        """(positions in ``rows`` (sorted) of the landmarks that keep their descriptor, their slots in ``desc``,
+        positions of those to describe again, every row's unit ray direction): a caller that describes the
+        latter itself hands them to :meth:`store`."""
         dirs = np.asarray(self.positions[rows], np.float32) - np.asarray(camera_centers(cam_from_world), np.float32)
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
         at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
         known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
+        slots = self.slots[at[known]]
         keep = known.copy()
-        keep[known] = np.einsum("ij,ij->i", dirs[known], self.dirs[at[known]]) >= self.min_cos
-        kept = np.flatnonzero(keep)
-        kept_desc = self.desc[at[kept]] if len(kept) else np.zeros((0, 0), np.float32)
-        return kept, kept_desc, np.flatnonzero(~keep), dirs
+        keep[known] = np.einsum("ij,ij->i", dirs[known], self.dirs[slots]) >= self.min_cos
+        return np.flatnonzero(keep), slots[keep[known]], np.flatnonzero(~keep), dirs
 
     def store(self, rows: np.ndarray, desc: np.ndarray, dirs: np.ndarray) -> None:
-        """Keep the descriptors ``desc`` of landmarks ``rows`` (unique), computed along the unit rays ``dirs``."""
+        """Keep the descriptors ``desc`` of landmarks ``rows`` (sorted, unique), computed along the unit rays
+        ``dirs``."""
         if len(rows) == 0:
             return
-        if self.desc is None:
-            old = np.zeros(0, bool)
-        else:
-            old = ~np.isin(self.rows, rows)
-        all_rows = np.concatenate([self.rows[old], rows])
-        order = np.argsort(all_rows, kind="stable")
-        self.rows = all_rows[order]
-        self.desc = np.concatenate([self.desc[old], desc])[order] if self.desc is not None else desc[order]
-        self.dirs = np.concatenate([self.dirs[old], dirs])[order]
+        at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
+        known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
+        slots = np.empty(len(rows), np.int64)
+        slots[known] = self.slots[at[known]]
+        new = np.flatnonzero(~known)
+        slots[new] = self.size + np.arange(len(new))
+        self.size += len(new)
+        if self.desc is None or self.size > len(self.desc):
+            cap = max(2 * self.size, 1024)
+            grown = np.empty((cap, desc.shape[1]), np.float32)
+            grown_dirs = np.empty((cap, 3), np.float32)
+            if self.desc is not None:
+                grown[: len(self.desc)], grown_dirs[: len(self.desc)] = self.desc, self.dirs
+            self.desc, self.dirs = grown, grown_dirs
+        self.desc[slots], self.dirs[slots] = desc, dirs
+        ins = np.searchsorted(self.rows, rows[new])
+        self.rows = np.insert(self.rows, ins, rows[new])
+        self.slots = np.insert(self.slots, ins, slots[new])
 
 
 def make_source(

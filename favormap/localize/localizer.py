@@ -45,7 +45,7 @@ from .blocks import BlockMatching
 from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
-from .matching import distinct_pairs, match_descriptors, pair_similarity
+from .matching import match_descriptors
 from .pnp import PoseSolving
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
@@ -277,8 +277,10 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
         if self._workers() > 1:
-            units = [(np.arange(a, min(a + 1024, len(d))), d[a : a + 1024]) for a in range(0, len(d), 1024)]
-            _, m = self._match_blocks(q, units, len(d), True, cfg.global_ratio, None, t)
+            units = [
+                (np.arange(a, min(a + 1024, len(d))), lambda tm, a=a: d[a : a + 1024]) for a in range(0, len(d), 1024)
+            ]
+            _, m, _ = self._match_blocks(q, units, len(d), True, cfg.global_ratio, t)
         else:
             s = time.perf_counter()
             m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
@@ -334,11 +336,7 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         last = None
         rows = self._visible(q.cam, pose, t) if first_rows is None else first_rows
         for k in range(cfg.iterations):
-            rend, drows, m = self._describe_and_match(q, rows, pose, t)
-            s = time.perf_counter()
-            m = distinct_pairs(m, drows, len(rows))
-            sims = pair_similarity(rend, q.desc, m)
-            t["matching"] += time.perf_counter() - s
+            drows, m, sims = self._describe_and_match(q, rows, pose, t)
             points = self.positions[drows[m[:, 0]]]
             ans = self._pnp(q, points, m[:, 1], t)
             if anchor is not None and ans is not None and self._leaves(ans, anchor):
