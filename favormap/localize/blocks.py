@@ -23,12 +23,11 @@ from .result import Query
 
 class BlockMatching:
     def _pool(self, n: int) -> ThreadPoolExecutor:
-        """The localizer's pool of at least ``n`` helper threads (kept between queries: a thread's memory arena
-        stays mapped), shared by the threads that localize with it."""
+        """The localizer's pool of helper threads (``n`` when first asked for; kept between queries), shared by the
+        threads that localize with it. A caller works through its own units too, so a job that waits for a busy
+        or smaller pool only finds fewer left."""
         with self._pool_lock:
-            if self._helpers is None or self._helpers._max_workers < n:
-                if self._helpers is not None:
-                    self._helpers.shutdown(wait=False)
+            if self._helpers is None:
                 self._helpers = ThreadPoolExecutor(max(n, 1), thread_name_prefix="favormap-localize")
             return self._helpers
 
