@@ -439,6 +439,7 @@ def test_iterations_stop_once_rendering_again_would_change_little(small_map, que
     rows = [loc._visible(cam, P, {"visibility": 0.0}) for P in poses]
     assert loc._changed_share(rows[0], poses[0], rows[1], poses[1]) > 0.5  # the first estimate moved far
     assert loc._changed_share(rows[1], poses[1], rows[2], poses[2]) < LocalizeConfig.stop_change
+    assert pose_error(poses[2], poses[1])[1] < 0.5  # the second estimate hardly turned
     assert pose_error(early.cam_from_world, full.cam_from_world)[0] < 1e-3
     assert pose_error(early.cam_from_world, T)[0] < 0.01
 

@@ -99,9 +99,10 @@ def test_query_localizes_against_the_map_of_unposed_images(sfm, small_sequence, 
     assert np.median(errs[:, 0]) <= 0.01, errs
     # the similarity from the camera centres leaves a fraction of a degree of the map's orientation free (the
     # orbit is nearly flat), and pycolmap's threads make it vary from run to run (0.28-0.31 deg): the queries
-    # must be turned no more than the map's own frames are under the same similarity
+    # must be turned no more than the map's own frames are under the same similarity (queries and frames agreed to
+    # 0.01 deg over three reconstructions), and that free orientation stays a fraction of a degree
     frames_turn = np.median([pose_error(move_poses(e, S), truth[f.name])[1] for e, f in zip(est, sfm.sequence.frames)])
-    assert np.median(errs[:, 1]) <= frames_turn + 0.05, (errs, frames_turn)
+    assert np.median(errs[:, 1]) <= frames_turn + 0.02 and frames_turn <= 0.35, (errs, frames_turn)
 
 
 def write_video(path, frames, repeat: int) -> None:
