@@ -69,6 +69,19 @@ class BlockMatching:
             seen.store(rows[fresh], np.concatenate(new), dirs[fresh])
         return rows, m, sims
 
+    def _match_all(self, q: Query, d: np.ndarray, mutual: bool, ratio: float, t: dict) -> np.ndarray:
+        """:func:`.matching.match_descriptors` of descriptors ``d`` to the query's, on the localizer's threads
+        where it has several (:meth:`_match_blocks`)."""
+        if self._workers() > 1:
+            units = [
+                (np.arange(a, min(a + 1024, len(d))), lambda tm, a=a: d[a : a + 1024]) for a in range(0, len(d), 1024)
+            ]
+            return self._match_blocks(q, units, len(d), mutual, ratio, t)[1]
+        s = time.perf_counter()
+        m = match_descriptors(d, q.desc, self.config.match_threshold, mutual, ratio)
+        t["matching"] += time.perf_counter() - s
+        return m
+
     def _described(self, source, rows: np.ndarray, pose: np.ndarray, timings: dict) -> np.ndarray:
         d = source(rows, pose, timings)
         if len(d) != len(rows):

@@ -212,22 +212,25 @@ class SeenRays:
         latter itself hands them to :meth:`store`."""
         dirs = np.asarray(self.positions[rows], np.float32) - np.asarray(camera_centers(cam_from_world), np.float32)
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-        at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
-        known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
-        slots = self.slots[at[known]]
+        known, slots = self._find(rows)
         keep = known.copy()
         keep[known] = np.einsum("ij,ij->i", dirs[known], self.dirs[slots]) >= self.min_cos
         return np.flatnonzero(keep), slots[keep[known]], np.flatnonzero(~keep), dirs
+
+    def _find(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(which of ``rows`` were described before, the slots of those)."""
+        at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
+        known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
+        return known, self.slots[at[known]]
 
     def store(self, rows: np.ndarray, desc: np.ndarray, dirs: np.ndarray) -> None:
         """Keep the descriptors ``desc`` of landmarks ``rows`` (sorted, unique), computed along the unit rays
         ``dirs``."""
         if len(rows) == 0:
             return
-        at = np.minimum(np.searchsorted(self.rows, rows), max(len(self.rows) - 1, 0))
-        known = (self.rows[at] == rows) if len(self.rows) else np.zeros(len(rows), bool)
+        known, known_slots = self._find(rows)
         slots = np.empty(len(rows), np.int64)
-        slots[known] = self.slots[at[known]]
+        slots[known] = known_slots
         new = np.flatnonzero(~known)
         slots[new] = self.size + np.arange(len(new))
         self.size += len(new)

@@ -45,7 +45,6 @@ from .blocks import BlockMatching
 from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
-from .matching import match_descriptors
 from .pnp import PoseSolving
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
@@ -276,15 +275,7 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
             self._global = (rows, unit_rows(self.map.mean_descriptors(rows)))
         rows, d = self._global
         t["loading"] += time.perf_counter() - s
-        if self._workers() > 1:
-            units = [
-                (np.arange(a, min(a + 1024, len(d))), lambda tm, a=a: d[a : a + 1024]) for a in range(0, len(d), 1024)
-            ]
-            _, m, _ = self._match_blocks(q, units, len(d), True, cfg.global_ratio, t)
-        else:
-            s = time.perf_counter()
-            m = match_descriptors(d, q.desc, cfg.match_threshold, mutual=True, ratio=cfg.global_ratio)
-            t["matching"] += time.perf_counter() - s
+        m = self._match_all(q, d, True, cfg.global_ratio, t)
         q.global_matches = (self.positions[rows[m[:, 0]]], m[:, 1])
         ans = self._pnp(q, *q.global_matches, t)
         n_in = int(ans["num_inliers"]) if ans is not None else 0

@@ -106,17 +106,14 @@ class NearestDescriptors:
         return np.stack([idx, self.best[idx]], 1).astype(np.int64)
 
 
-def _gemm_t(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """a @ b.T for float32 matrices through OpenCV's gemm (b is read transposed, not copied), on
-    OpenCV's thread pool; written into the first len(a) rows of ``out`` (C-contiguous, len(b) columns)
-    when given. As fast as NumPy's OpenBLAS here, but OpenBLAS's threads keep spinning for
-    a while after a product and took a core from the next query's SIFT extraction
-    (tools/bench_localize.py, 1,500-landmark room: extraction 133 -> ~100 ms per query)."""
-    if a.size == 0 or b.size == 0:
-        return np.zeros((a.shape[0], b.shape[0]), np.float32)
-    if out is None:
-        return cv2.gemm(a, b, 1.0, None, 0.0, flags=cv2.GEMM_2_T)
+def _gemm_t(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """a @ b.T for float32 matrices through OpenCV's gemm (b is read transposed, not copied), written into the
+    first len(a) rows of ``out`` (C-contiguous, len(b) columns). OpenCV's gemm runs on the OpenBLAS its wheel
+    bundles, whose idle threads spin after each product as NumPy's do (favormap.threads.serial_blas)."""
     dst = out[: len(a)]
+    if a.size == 0 or b.size == 0:
+        dst[:] = 0
+        return dst
     got = cv2.gemm(a, b, 1.0, None, 0.0, dst, flags=cv2.GEMM_2_T)
     return dst if got is dst or np.shares_memory(got, dst) else got
 
