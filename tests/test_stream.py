@@ -171,3 +171,40 @@ def test_a_sequence_refines_each_frames_landmarks_before_the_next_frame_uses_the
         np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
         np.testing.assert_array_equal(a.matches, b.matches)
     assert loc.positions is loc.map.positions
+
+
+def test_a_sequence_reads_and_extracts_the_next_image_while_it_localizes_one(small_map, small_sequence, tmp_path):
+    """localize_sequence asks for image k+1 (and extracts its features) before it gives frame k's result; an
+    image that cannot be read fails with its own error when its turn comes, after every frame before it."""
+    import time
+
+    from favormap.errors import InputError
+    from favormap.localize import Localizer
+
+    _, path = small_map
+    frames = small_sequence.frames[3:6]
+    asked = []
+
+    def images():
+        for fr in frames:
+            asked.append(fr.image_path)
+            yield fr.image_path
+        asked.append("missing")
+        yield tmp_path / "missing.png"
+
+    loc = Localizer(str(path))
+    try:
+        seq = loc.localize_sequence(images(), frames[0].cam_from_world)
+        got = []
+        for k in range(len(frames)):
+            got.append(next(seq))
+            deadline = time.monotonic() + 10
+            while len(asked) < k + 2 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert len(asked) == k + 2  # the next image was taken while frame k was localized
+        assert all(r.success for r in got)
+        with pytest.raises(InputError, match="image not found"):
+            next(seq)
+    finally:
+        loc.close()
+    assert loc.positions is loc.map.positions  # the stream gave the map's landmarks back

@@ -46,6 +46,7 @@ from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
 from .pnp import PoseSolving
+from .prefetch import QueryFeatures
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
 
@@ -57,7 +58,8 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
     need data the map does not hold).
 
     From a prior, the features are extracted on a worker thread while the first iteration's landmarks are
-    looked up and rendered (one thread per query, ended with it).
+    looked up and rendered (one thread per query, ended with it); in a sequence, the next image's while this
+    one is localized.
 
     Thread safety: one Localizer may be shared by several threads; :meth:`localize` calls run
     concurrently and give the same results as one after the other (the map's voxel cache takes a
@@ -144,16 +146,40 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         (:class:`favormap.localize.motion.MotionPrior`), so only the first needs one, or none. With
         ``refine_landmarks`` the landmarks each localized frame saw are triangulated again with its
         observations, for the frames after it (:class:`favormap.localize.stream.LandmarkRefinement`;
-        the map itself is not changed)."""
+        the map itself is not changed).
+
+        Each image is taken from ``images``, read and its features extracted on a worker thread while the image
+        before it is localized (one image ahead; :mod:`.prefetch`): an image that cannot be read fails when its
+        turn comes, after the results of those before it."""
         from .stream import Stream
 
-        with Stream(self, first_prior, motion, refine_landmarks) as stream:
+        images = iter(images)
+
+        def next_image():  # on the extraction thread: the stream's next image, or None at its end
+            return next(images, None)
+
+        with (
+            Stream(self, first_prior, motion, refine_landmarks) as stream,
+            ThreadPoolExecutor(1, thread_name_prefix="favormap-extract") as pool,
+        ):
+            upcoming = self._prefetch(pool, next_image, camera)
             refine = None
-            for image in images:
+            while True:
+                frame = upcoming
+                if frame.prepared() is None:
+                    return
+                # the next frame is prepared and extracted once this one's features are out: while this one is
+                # localized
+                upcoming = self._prefetch(pool, next_image, camera)
                 # the landmarks the last frame refines are triangulated while this frame's features are extracted
-                res = self._localize_rig(image, stream.prior(), camera, refine)
+                res = self._localize_rig(None, stream.prior(), camera, refine, frame)
                 refine = stream.update_later(res)
                 yield res
+
+    def _prefetch(self, pool: ThreadPoolExecutor, image, camera) -> QueryFeatures:
+        frame = QueryFeatures()
+        pool.submit(frame.run, self, image, camera)
+        return frame
 
     def localize(
         self, image, prior_cam_from_world: np.ndarray | None = None, camera: Camera | None = None
@@ -162,9 +188,10 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         against all landmarks (see ``LocalizeConfig.global_fallback``)."""
         return self._localize_rig(image, prior_cam_from_world, camera)
 
-    def _localize_rig(self, image, prior_cam_from_world, camera, meanwhile=None) -> LocalizationResult:
+    def _localize_rig(self, image, prior_cam_from_world, camera, meanwhile=None, frame=None) -> LocalizationResult:
         """:meth:`localize`; ``meanwhile()`` runs before the landmark positions are first used, while the
-        features are extracted where they are extracted on a worker thread."""
+        features are extracted where they are extracted on a worker thread. ``frame``: the image's
+        :class:`~.prefetch.QueryFeatures`, where already under way (``image`` is then not used)."""
         rebalance()  # pools sized by the rule follow the machine's load (favormap.threads; else a no-op)
         prior = None if prior_cam_from_world is None else self._check_prior(prior_cam_from_world)
         rig = self.map.stored_cam_from_rig is not None
@@ -172,7 +199,7 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         # stages run on threads of their own (favormap.threads.serial_blas)
         with serial_blas() if self.config.threads is not None else nullcontext():
             res = self._localize(
-                image, self.camera_pose(prior) if rig and prior is not None else prior, camera, meanwhile
+                image, self.camera_pose(prior) if rig and prior is not None else prior, camera, meanwhile, frame
             )
         res.image_cam_from_world = res.cam_from_world
         if rig:  # the map's cameras are turned against the poses it was built from: report in their frame
@@ -194,37 +221,37 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         """The inverse of :meth:`camera_pose`."""
         return inverse(self.map.cam_from_rig) @ np.asarray(cam_from_world, np.float64)
 
-    def _localize(self, image, prior: np.ndarray | None, camera: Camera | None, meanwhile=None) -> LocalizationResult:
+    def _localize(
+        self, image, prior: np.ndarray | None, camera: Camera | None, meanwhile=None, frame: QueryFeatures | None = None
+    ) -> LocalizationResult:
         cfg = self.config
         t = {k: 0.0 for k in ("extraction", "visibility", "loading", "rendering", "matching", "pnp")}
-        t0 = time.perf_counter()
-        img, cam = self.prepare(image, camera)
-        prepared = time.perf_counter() - t0
-
-        def extract():
-            s = time.perf_counter()
-            out = self.extractor.extract(img)
-            t["extraction"] = prepared + time.perf_counter() - s
-            return out
-
         seen = None
         if cfg.rerender_angle_deg > 0 and getattr(self.source, "one_per_landmark", False):
             seen = SeenRays(self.map.positions, cfg.rerender_angle_deg)
         first_rows = None
-        if prior is not None and seen is not None:
-            # the first iteration's landmarks and descriptors need only the prior: they are looked up and
-            # rendered while the features are extracted (the extractor leaves part of the cores idle)
-            with ThreadPoolExecutor(1, thread_name_prefix="favormap-extract") as pool:
-                job = pool.submit(extract)
+        pool = None
+        if frame is None:
+            frame = QueryFeatures()
+            if prior is not None and seen is not None:  # extracted beside the first rendering, below
+                pool = ThreadPoolExecutor(1, thread_name_prefix="favormap-extract")
+                pool.submit(frame.run, self, image, camera)
+            else:
+                frame.run(self, image, camera)
+        try:
+            img, cam = frame.prepared()
+            if prior is not None and seen is not None:
+                # the first iteration's landmarks and descriptors need only the prior: they are looked up and
+                # rendered while the features are extracted (the extractor leaves part of the cores idle)
                 first_rows = self._visible(cam, prior, t)
                 describe(self.source, first_rows, prior, t, seen)
-                if meanwhile is not None:
-                    meanwhile()
-                feats = job.result()
-        else:
             if meanwhile is not None:
                 meanwhile()
-            feats = extract()
+            feats = frame.features()
+        finally:
+            if pool is not None:
+                pool.shutdown()
+        t["extraction"] = frame.seconds
         qdesc = np.asarray(feats.descriptors, np.float32)
         q = Query(feats, qdesc, cam, seen=seen)
         if cfg.align:
