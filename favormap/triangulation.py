@@ -113,16 +113,16 @@ def _triangulate_block(
 @dataclass
 class _AnchoredTracks:
     """Each track's landmark in inverse depth theta = (alpha, beta, rho) in the camera of the track's first
-    frame (its anchor): in an observation's camera the landmark is h = A m + rho b, m = (alpha, beta, 1)."""
+    frame (its anchor): in an observation's camera the landmark is h = A m + rho b, m = (alpha, beta, 1).
+    Per-observation arrays are kept component by component (last axis: the observations), so that every
+    step of the refinement runs on contiguous rows."""
 
     tid: np.ndarray  # (O,) track of each observation
-    xy: np.ndarray  # (O, 2) its pixel
-    A: np.ndarray  # (O, 3, 3)
-    b: np.ndarray  # (O, 3)
-    fx: np.ndarray  # (O,) its camera's intrinsics
-    fy: np.ndarray
-    cx: np.ndarray
-    cy: np.ndarray
+    xy: np.ndarray  # (2, O) its pixel
+    dh: np.ndarray  # (3, 3, O) dh/dtheta, [component of h, of theta]: the columns A[:, :, 0], A[:, :, 1], b
+    a2: np.ndarray  # (3, O) A[:, :, 2]
+    f: np.ndarray  # (2, O) its camera's focal lengths
+    c: np.ndarray  # (2, O) and principal point
     R_wa: np.ndarray  # (T, 3, 3) world from anchor rotation
     c_a: np.ndarray  # (T, 3) anchor camera centre
     c2: float  # squared scale of the robust (Geman-McClure) cost, px^2
@@ -137,7 +137,18 @@ class _AnchoredTracks:
         R_wa, c_a = wfc_a[:, :3, :3], wfc_a[:, :3, 3]
         A = Rcw @ R_wa[tid]  # (O,3,3)
         b = np.einsum("oij,oj->oi", Rcw, c_a[tid]) + tcw  # (O,3)
-        return cls(tid, tracks.xy, A, b, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], R_wa, c_a, robust_c_px**2)
+        dh = np.ascontiguousarray(np.concatenate([A[:, :, :2], b[:, :, None]], 2).transpose(1, 2, 0))
+        return cls(
+            tid,
+            np.ascontiguousarray(np.asarray(tracks.xy, np.float64).T),
+            dh,
+            np.ascontiguousarray(A[:, :, 2].T),
+            np.stack([K[:, 0, 0], K[:, 1, 1]]),
+            np.stack([K[:, 0, 2], K[:, 1, 2]]),
+            R_wa,
+            c_a,
+            robust_c_px**2,
+        )
 
     @property
     def n(self) -> int:
@@ -157,28 +168,28 @@ class _AnchoredTracks:
         return np.einsum("tij,tj->ti", self.R_wa, Xa) + self.c_a
 
     def residuals(self, th: np.ndarray):
-        """(O, 2) pixel residuals, and h (O, 3) with its guarded depth hz (O,)."""
-        tid = self.tid
-        m = np.concatenate([th[tid, :2], np.ones((len(tid), 1))], 1)
-        h = np.einsum("oij,oj->oi", self.A, m) + th[tid, 2:3] * self.b
-        hz = np.where(np.abs(h[:, 2]) < 1e-9, 1e-9, h[:, 2])
-        u = self.fx * h[:, 0] / hz + self.cx
-        v = self.fy * h[:, 1] / hz + self.cy
-        return np.stack([u, v], 1) - self.xy, h, hz
+        """(2, O) pixel residuals, and h (3, O) with its guarded depth hz (O,)."""
+        t = th.T[:, self.tid]  # (3, O)
+        dh = self.dh
+        h = dh[:, 0] * t[0] + dh[:, 1] * t[1] + self.a2 + t[2] * dh[:, 2]
+        hz = np.where(np.abs(h[2]) < 1e-9, 1e-9, h[2])
+        return self.f * h[:2] / hz + self.c - self.xy, h, hz
 
     def cost(self, e: np.ndarray) -> np.ndarray:
         """(T,) robust cost of each track."""
         c2 = self.c2
-        u2 = np.sum(e * e, 1)
+        u2 = e[0] * e[0] + e[1] * e[1]
         return np.bincount(self.tid, 0.5 * c2 * u2 / (c2 + u2), self.n)
 
     def jacobian(self, h: np.ndarray, hz: np.ndarray) -> np.ndarray:
-        """(O, 2, 3) Jacobian of the pixels (u, v) with respect to theta."""
-        dh = np.concatenate([self.A[:, :, :2], self.b[:, :, None]], 2)  # (O,3,3) dh/dtheta
-        J = np.empty((len(self.tid), 2, 3))
-        J[:, 0] = self.fx[:, None] * (dh[:, 0] / hz[:, None] - h[:, 0:1] * dh[:, 2] / hz[:, None] ** 2)
-        J[:, 1] = self.fy[:, None] * (dh[:, 1] / hz[:, None] - h[:, 1:2] * dh[:, 2] / hz[:, None] ** 2)
-        return J
+        """(2, 3, O) Jacobian of the pixels (u, v) with respect to theta."""
+        dh = self.dh
+        dz = dh[2] / hz**2
+        return self.f[:, None] * (dh[:2] / hz - h[:2, None] * dz)
+
+
+# the six entries (i <= j) of a symmetric 3 x 3 normal matrix
+_UPPER = np.triu_indices(3)
 
 
 def _refine_inverse_depths(problem: _AnchoredTracks, theta: np.ndarray, iterations: int):
@@ -188,12 +199,17 @@ def _refine_inverse_depths(problem: _AnchoredTracks, theta: np.ndarray, iteratio
     lam = np.full(n, 1e-3)
     e, h, hz = problem.residuals(theta)
     cur = problem.cost(e)
+    i, j = _UPPER
+
+    def sums(rows: np.ndarray) -> np.ndarray:  # (k, O) -> (n, k) per-track sums
+        return np.stack([np.bincount(tid, r, n) for r in rows], 1)
+
     for _ in range(iterations):
-        u2 = np.sum(e * e, 1)
-        w = (c2 / (c2 + u2)) ** 2  # Geman-McClure IRLS weight
+        w = (c2 / (c2 + (e[0] * e[0] + e[1] * e[1]))) ** 2  # Geman-McClure IRLS weight
         J = problem.jacobian(h, hz)
-        H = sum_by_group(w[:, None, None] * np.einsum("oki,okj->oij", J, J), tid, n)
-        g = sum_by_group(w[:, None] * np.einsum("oki,ok->oi", J, e), tid, n)
+        H = np.empty((n, 3, 3))
+        H[:, i, j] = H[:, j, i] = sums(w * (J[0, i] * J[0, j] + J[1, i] * J[1, j]))
+        g = sums(w * (J[0] * e[0] + J[1] * e[1]))
         Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
         try:
             step = -np.linalg.solve(Hd, g[..., None])[..., 0]
@@ -206,8 +222,9 @@ def _refine_inverse_depths(problem: _AnchoredTracks, theta: np.ndarray, iteratio
         theta = np.where(better[:, None], cand, theta)
         lam = np.where(better, lam * 0.3, lam * 10.0).clip(1e-9, 1e9)
         cur = np.where(better, new, cur)
-        e, h, hz = problem.residuals(theta)
-    return theta, e
+        took = better[tid]  # the residuals at the kept parameters: the candidate's where it was taken
+        e, h, hz = np.where(took, e_c, e), np.where(took, h_c, h), np.where(took, hz_c, hz)
+    return theta, e.T
 
 
 def _checked_landmarks(
