@@ -46,7 +46,7 @@ from .checks import SuccessChecking
 from .config import LocalizeConfig
 from .descriptors import DescriptorSource, SeenRays, describe, make_source, unit_rows
 from .pnp import PoseSolving
-from .prefetch import QueryFeatures
+from .prefetch import END, QueryFeatures
 from .refinement import FinalRefinement
 from .result import IterationResult, LocalizationResult, Query
 
@@ -155,26 +155,28 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
 
         images = iter(images)
 
-        def next_image():  # on the extraction thread: the stream's next image, or None at its end
-            return next(images, None)
+        def next_image():  # on the extraction thread: the stream's next image, or END past its end
+            return next(images, END)
 
-        with (
-            Stream(self, first_prior, motion, refine_landmarks) as stream,
-            ThreadPoolExecutor(1, thread_name_prefix="favormap-extract") as pool,
-        ):
-            upcoming = self._prefetch(pool, next_image, camera)
-            refine = None
-            while True:
-                frame = upcoming
-                if frame.prepared() is None:
-                    return
-                # the next frame is prepared and extracted once this one's features are out: while this one is
-                # localized
+        pool = ThreadPoolExecutor(1, thread_name_prefix="favormap-extract")
+        try:
+            with Stream(self, first_prior, motion, refine_landmarks) as stream:
                 upcoming = self._prefetch(pool, next_image, camera)
-                # the landmarks the last frame refines are triangulated while this frame's features are extracted
-                res = self._localize_rig(None, stream.prior(), camera, refine, frame)
-                refine = stream.update_later(res)
-                yield res
+                refine = None
+                while True:
+                    frame = upcoming
+                    if frame.prepared() is None:
+                        return
+                    # the next image is read and extracted once this one's features are out: while this one is
+                    # localized
+                    upcoming = self._prefetch(pool, next_image, camera)
+                    # the landmarks the last frame refines are triangulated before this frame's poses use them,
+                    # beside its extraction where that is still running
+                    res = self._localize_rig(None, stream.prior(), camera, refine, frame)
+                    refine = stream.update_later(res)
+                    yield res
+        finally:  # a stream left early reads no further image
+            pool.shutdown(wait=True, cancel_futures=True)
 
     def _prefetch(self, pool: ThreadPoolExecutor, image, camera) -> QueryFeatures:
         frame = QueryFeatures()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import time
 from concurrent.futures import Future
 
+END = object()  # what a stream's image source gives past its last image
+
 
 class QueryFeatures:
     """One query image's (working image, camera) and features, computed by :meth:`run` (on any thread)."""
@@ -24,12 +26,12 @@ class QueryFeatures:
 
     def run(self, localizer, image, camera) -> None:
         """Prepare ``image`` for ``localizer`` and extract its features. ``image`` may be a callable that gives
-        the image, or None at the end of a stream (then :meth:`prepared` gives None)."""
+        the image, or :data:`END` past a stream's last image (then :meth:`prepared` gives None)."""
         s = time.perf_counter()
         try:
             if callable(image):
                 image = image()
-            if image is None:
+            if image is END:
                 self._prepared.set_result(None)
                 return
             img, cam = localizer.prepare(image, camera)
