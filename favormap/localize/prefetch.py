@@ -35,8 +35,9 @@ class QueryFeatures:
                 self._prepared.set_result(None)
                 return
             img, cam = localizer.prepare(image, camera)
-        except BaseException as e:  # the caller sees it where it takes the image
+        except BaseException as e:  # the caller sees it where it takes the image (or its features)
             self._prepared.set_exception(e)
+            self._features.set_exception(e)
             return
         self._prepared.set_result((img, cam))
         try:
