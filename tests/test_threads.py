@@ -214,7 +214,8 @@ def test_a_fresh_process_follows_the_rule():
 
 def test_the_library_leaves_the_process_pools_and_heap_alone_unless_asked(small_map, small_sequence, tmp_path):
     """A program that embeds favormap keeps its own torch/OpenCV pool sizes and malloc policy: a build and a
-    Localizer change neither unless given ``threads`` ("auto" or a count), in a fresh process."""
+    Localizer change neither unless given ``threads`` ("auto" or a count), in a fresh process; a Localizer given
+    them sets both."""
     _, path = small_map
     frame = small_sequence.frames[3]
     code = f"""
@@ -232,13 +233,13 @@ res = loc.localize({str(frame.image_path)!r}, np.asarray({frame.cam_from_world.t
 assert res.success, res.message
 print(torch.get_num_threads(), cv2.getNumThreads(), heap._reusing)
 Localizer({str(path)!r}, LocalizeConfig(threads=1))
-print(torch.get_num_threads(), cv2.getNumThreads())
+print(torch.get_num_threads(), cv2.getNumThreads(), heap._reusing)
 """
     out = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.split("\n")
     assert lines[0].split() == ["3", "3", "False"], out.stdout
-    assert lines[1].split() == ["1", "1"], out.stdout
+    assert lines[1].split() == ["1", "1", "True"], out.stdout
 
 
 def test_cli_threads_option(small_map, restore_pools, capsys):

@@ -112,7 +112,8 @@ class LocalizeConfig:
     # CPU threads for torch/OpenCV: None leaves the process's pools alone; "auto" sizes them by favormap.threads'
     # rule (and follows the machine's load), a number fixes them. Either way the BLAS libraries then run each
     # product on its calling thread while a query is localized (favormap.threads.serial_blas): the localizer
-    # runs its stages on threads of its own (extraction beside the first rendering, rendering beside matching)
+    # runs its stages on threads of its own (extraction beside the first rendering, rendering beside matching);
+    # and large temporaries come from reused heap blocks (favormap.heap.reuse_freed_blocks, process-wide)
     threads: int | str | None = None
 
     def ransac_threshold(self, epipolar_limit_px: float | None) -> float:

@@ -35,6 +35,7 @@ import numpy as np
 from .. import features as feats_mod
 from ..errors import InputError
 from ..geometry import camera_centers, from_rigid3d, inverse
+from ..heap import reuse_freed_blocks
 from ..io import Camera
 from ..io.images import prepare_query
 from ..mapfile import Map
@@ -88,7 +89,11 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
         )
         self.scale = float(np.median(self.map.depth_range[:, 0])) if len(self.map) else 1.0
         self.source = descriptor_source or make_source(self.config.descriptors, self.map, self.config.device)
-        thread_count(self.config.threads)  # when asked; after the extractor: sizes torch's pools too if it loaded torch
+        if self.config.threads is not None:  # asked: the pools and the heap policy are the localizer's to set
+            thread_count(self.config.threads)  # after the extractor: sizes torch's pools too if it loaded torch
+            # a query's temporaries (rendering stencils, similarity blocks, ~1-10 MB each) from reused heap blocks,
+            # not fresh mappings faulted in page by page (favormap.heap): ~8,000 page faults a TUM query
+            reuse_freed_blocks()
         if self.config.global_ratio is None:
             self.config = dataclasses.replace(self.config, global_ratio=self.extractor.policy.match_ratio)
         if self.config.match_threshold is None:
