@@ -200,16 +200,13 @@ def _refine_inverse_depths(problem: _AnchoredTracks, theta: np.ndarray, iteratio
     e, h, hz = problem.residuals(theta)
     cur = problem.cost(e)
     i, j = _UPPER
-
-    def sums(rows: np.ndarray) -> np.ndarray:  # (k, O) -> (n, k) per-track sums
-        return np.stack([np.bincount(tid, r, n) for r in rows], 1)
-
     for _ in range(iterations):
         w = (c2 / (c2 + (e[0] * e[0] + e[1] * e[1]))) ** 2  # Geman-McClure IRLS weight
         J = problem.jacobian(h, hz)
         H = np.empty((n, 3, 3))
-        H[:, i, j] = H[:, j, i] = sums(w * (J[0, i] * J[0, j] + J[1, i] * J[1, j]))
-        g = sums(w * (J[0] * e[0] + J[1] * e[1]))
+        # per-track sums of the (k, O) rows: sum_by_group reads each row of the transposed view contiguously
+        H[:, i, j] = H[:, j, i] = sum_by_group((w * (J[0, i] * J[0, j] + J[1, i] * J[1, j])).T, tid, n)
+        g = sum_by_group((w * (J[0] * e[0] + J[1] * e[1])).T, tid, n)
         Hd = H + lam[:, None, None] * (np.eye(3) * np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-9)[:, None, :])
         try:
             step = -np.linalg.solve(Hd, g[..., None])[..., 0]

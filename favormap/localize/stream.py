@@ -51,8 +51,8 @@ class Stream:
 
     def update(self, result) -> np.ndarray:
         """Take a frame's result; returns the landmark rows it refined."""
-        self.motion.update(result)
-        return np.zeros(0, np.int64) if self.refinement is None else self.refinement.update(result)
+        refine = self.update_later(result)
+        return np.zeros(0, np.int64) if refine is None else refine()
 
     def update_later(self, result):
         """:meth:`update` in two parts: the motion prior now, the landmark refinement returned (a callable, or
