@@ -693,6 +693,48 @@ def test_local_pnp_refines_a_pose_on_its_own_inliers(small_map, small_sequence):
     assert ans["num_inliers"] == (~wrong).sum() and t["pnp"] > 0
 
 
+def test_pnp_finds_the_pose_among_mostly_wrong_matches_alike_on_one_thread_and_on_two(small_map, small_sequence):
+    """Localizer._pnp: its RANSAC runs (favormap.localize.pnp.RANSAC_RUNS, each with a share of the confidence)
+    find the true pose where 85 % of the matches are wrong, and give the same pose and inliers whether the runs
+    go one after the other or side by side on the localizer's threads."""
+    from types import SimpleNamespace
+
+    from favormap.geometry import from_rigid3d, project
+    from favormap.localize import pnp
+    from favormap.localize.result import Query as _Query
+
+    m, path = small_map
+    cam = small_sequence.cameras[0]
+    T = small_sequence.frames[3].cam_from_world
+    uv, z = project(cam.K, T, m.positions, with_depth=True)
+    seen = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height))
+    rng = np.random.default_rng(0)
+    kp = uv[seen] + rng.normal(0, 0.3, (len(seen), 2))
+    wrong = rng.random(len(seen)) < 0.85
+    kp[wrong] = rng.uniform(0, 1, (wrong.sum(), 2)) * [cam.width, cam.height]
+    q = _Query(SimpleNamespace(keypoints=kp), np.zeros((len(kp), 1), np.float32), cam)
+
+    class TwoThreads(Localizer):
+        def _workers(self):
+            return 2
+
+    assert pnp.RANSAC_RUNS > 1
+    answers = []
+    for cls in (Localizer, TwoThreads):
+        loc = cls(path, LocalizeConfig())
+        try:
+            answers.append(loc._pnp(q, m.positions[seen], np.arange(len(seen)), {"pnp": 0.0}))
+        finally:
+            loc.close()
+    one, two = answers
+    dt, dr = pose_error(from_rigid3d(one["cam_from_world"]), T)
+    assert dt < 0.01 and dr < 0.2, (dt, dr)
+    far = np.linalg.norm(kp - uv[seen], axis=1) > 2.0  # a wrong match that lands near its projection is an inlier
+    assert not np.any(np.asarray(one["inlier_mask"]) & far) and one["num_inliers"] >= 0.95 * (~wrong).sum()
+    np.testing.assert_array_equal(from_rigid3d(one["cam_from_world"]), from_rigid3d(two["cam_from_world"]))
+    np.testing.assert_array_equal(one["inlier_mask"], two["inlier_mask"])
+
+
 def test_a_refinement_from_the_prior_free_estimate_does_not_jump_to_a_false_consensus(small_map, queries):
     """From the prior-free estimate a weak RANSAC solution that leaves it (what the fox's wallpaper
     gave: a repeated pattern's false consensus 6.8 units away with more inliers than the true pose) is
