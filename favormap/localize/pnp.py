@@ -1,8 +1,8 @@
 """The localizer's pose solvers: PnP-RANSAC (pycolmap's LO-RANSAC) on 2D-3D matches, and the local
 refinement of a pose on its own inliers among them.
 
-:class:`PoseSolving` is a part of :class:`favormap.localize.Localizer`: it uses the localizer's ``config``, ``_pool`` and
-``_workers``."""
+:class:`PoseSolving` is a part of :class:`favormap.localize.Localizer`: it uses the localizer's ``config``,
+``_pool`` and ``_workers``."""
 
 from __future__ import annotations
 
