@@ -735,6 +735,24 @@ def test_pnp_finds_the_pose_among_mostly_wrong_matches_alike_on_one_thread_and_o
     np.testing.assert_array_equal(one["inlier_mask"], two["inlier_mask"])
 
 
+def test_the_localizer_pool_holds_every_helper_thread_whichever_stage_asks_first(small_map):
+    """The localizer's helper pool is made once, by the first stage that asks (RANSAC asks for one helper, the
+    block matching for one fewer than the localizer's threads): it holds one thread fewer than the localizer may
+    use, so a stage that asks later for more still gets them."""
+    _, path = small_map
+
+    class FourThreads(Localizer):
+        def _workers(self):
+            return 4
+
+    loc = FourThreads(path, LocalizeConfig())
+    try:
+        pool = loc._pool(1)
+        assert pool._max_workers == 3 and loc._pool(3) is pool
+    finally:
+        loc.close()
+
+
 def test_a_refinement_from_the_prior_free_estimate_does_not_jump_to_a_false_consensus(small_map, queries):
     """From the prior-free estimate a weak RANSAC solution that leaves it (what the fox's wallpaper
     gave: a repeated pattern's false consensus 6.8 units away with more inliers than the true pose) is

@@ -23,12 +23,13 @@ from .result import Query
 
 class BlockMatching:
     def _pool(self, n: int) -> ThreadPoolExecutor:
-        """The localizer's pool of helper threads (``n`` when first asked for; kept between queries), shared by the
-        threads that localize with it. A caller works through its own units too, so a job that waits for a busy
-        or smaller pool only finds fewer left."""
+        """The localizer's pool of helper threads (``n``, or one fewer than :meth:`_workers` if more, when first
+        asked for; kept between queries), shared by the threads that localize with it. A caller works through its
+        own units too, so a job that waits for a busy or smaller pool only finds fewer left."""
         with self._pool_lock:
             if self._helpers is None:
-                self._helpers = ThreadPoolExecutor(max(n, 1), thread_name_prefix="favormap-localize")
+                size = max(n, self._workers() - 1, 1)
+                self._helpers = ThreadPoolExecutor(size, thread_name_prefix="favormap-localize")
             return self._helpers
 
     def _workers(self) -> int:
