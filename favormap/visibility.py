@@ -30,6 +30,9 @@ from .view_limits import ViewLimits
 # sphere for every query.
 _TIER_QUANTILES = (0.25, 0.5, 0.75, 0.99)
 _MIN_TIER = 2000  # below this many landmarks: one tier, no directly tested ones
+# up to this many landmarks every query tests all of them directly: one vectorised test (~1 ms for 12,000) costs
+# less than gathering candidates from the tiers where a query may see most of the map (a room: 2.6 ms)
+_DIRECT_MAX = 20_000
 
 
 class SpatialIndex:
@@ -132,11 +135,14 @@ class _Tiers:
         self.scale, self.shape = scale, depth_range.shape
         reach = np.asarray(depth_range[:, 1], np.float64) * scale
         L = len(reach)
-        self.tiers = []  # dicts: depth, rows (global), P, reach, tree or None, [vd, va, dr]
+        # dicts: depth, rows (global), P, reach, tree or None, all (the whole map, tested directly), [vd, va, dr]
+        self.tiers = []
         self.num_direct = 0
         if L == 0:
             return
-        if L < _MIN_TIER:
+        if L <= _DIRECT_MAX:
+            bounds = []
+        elif L < _MIN_TIER:
             bounds = [float(reach.max())]
         else:
             bounds = [float(np.quantile(reach, q)) for q in _TIER_QUANTILES]
@@ -147,8 +153,10 @@ class _Tiers:
             lo = b
             if not len(rows):
                 continue
-            rows = rows[morton_order(index.positions[rows])]
-            t = dict(depth=b, rows=rows, P=np.ascontiguousarray(index.positions[rows]), reach=reach[rows])
+            if bounds:
+                rows = rows[morton_order(index.positions[rows])]
+            P = np.ascontiguousarray(index.positions[rows])
+            t = dict(depth=b, rows=rows, P=P, reach=reach[rows], all=not bounds)
             t["tree"] = KD_BACKENDS[index.backend](t["P"]) if np.isfinite(b) else None
             if view_dir is not None and view_angle is not None:
                 t.update(
@@ -199,6 +207,9 @@ class _Tiers:
         unit = reach_sphere(camera, cam_from_world, 1.0)
         out = [np.zeros(0, np.int64)]
         for t in self.tiers:
+            if t["all"]:  # the whole map in one group: the exact test on every landmark, nothing gathered
+                out.append(t["rows"][visible_mask(t["P"], camera, cam_from_world, t["vd"], t["va"], t["dr"], limits)])
+                continue
             idx, p = self._near(t, camera, cam_from_world, c, unit)
             ok = visible_mask(p, camera, cam_from_world, t["vd"][idx], t["va"][idx], t["dr"][idx], limits)
             out.append(t["rows"][idx[ok]])
@@ -312,8 +323,8 @@ def visible_rows(
 ) -> np.ndarray:
     """Landmarks visible from a pose: in the frustum, within the distance range and the viewing
     angle range they were trained for (paper sec. 3.3). Returns sorted rows; equal to
-    ``flatnonzero(visible_mask(all positions, ...))``, but only landmarks near the frustum are
-    tested (KD-tree queries per reach tier)."""
+    ``flatnonzero(visible_mask(all positions, ...))``, but in a map of more than ``_DIRECT_MAX``
+    landmarks only those near the frustum are tested (KD-tree queries per reach tier)."""
     if len(index) == 0:
         return np.zeros(0, np.int64)
     limits = ViewLimits() if limits is None else limits

@@ -22,6 +22,22 @@ from favormap.visibility import (
 BACKENDS = pytest.mark.parametrize("backend", sorted(KD_BACKENDS))  # auto, numpy, open3d, scipy
 
 
+@pytest.fixture(params=["direct", "tiers"])
+def visibility_path(request, monkeypatch):
+    """Visibility queries through both paths: every landmark tested directly (maps up to
+    favormap.visibility._DIRECT_MAX landmarks) and the reach tiers with their KD-trees (larger maps)."""
+    import favormap.visibility as vis
+
+    if request.param == "tiers":
+        monkeypatch.setattr(vis, "_DIRECT_MAX", 0)
+    return request.param
+
+
+def assert_path(idx: SpatialIndex, path: str) -> None:
+    """The index's visibility tiers took ``path`` (every landmark in the one directly tested group, or not)."""
+    assert (idx._tiers.num_direct == len(idx)) == (path == "direct")
+
+
 def brute_project(P, cam, T, min_depth=0.0, max_depth=np.inf, margin=0.0):
     """Independent brute-force projection test (COLMAP pixel convention: image = [0, W] x [0, H])."""
     Xc = P @ T[:3, :3].T + T[:3, 3]
@@ -156,7 +172,7 @@ def test_reach_sphere_encloses_the_view_pyramid_within_reach(cam):
 
 
 @BACKENDS
-def test_visible_rows_equal_brute_force_on_the_small_map(small_map, backend):
+def test_visible_rows_equal_brute_force_on_the_small_map(small_map, backend, visibility_path):
     m, _ = small_map
     idx = SpatialIndex(m.positions, backend=backend)
     cam = m.cameras[0]
@@ -171,6 +187,7 @@ def test_visible_rows_equal_brute_force_on_the_small_map(small_map, backend):
             np.testing.assert_array_equal(got, want)
             checked += len(want)
     assert checked > 1000
+    assert_path(idx, visibility_path)
     # a training view sees most of what was triangulated from it
     T = m.cam_from_world[0]
     seen = np.unique(m.track_landmark[m.track_frame == 0])
@@ -179,7 +196,7 @@ def test_visible_rows_equal_brute_force_on_the_small_map(small_map, backend):
 
 
 @BACKENDS
-def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend):
+def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend, visibility_path):
     """Most landmarks seen from ~2-5 units, 0.5 % from up to 200: the far ones bypass the KD-tree
     sphere (it would otherwise cover everything), and the result is still exact."""
     rng = np.random.default_rng(4)
@@ -195,6 +212,7 @@ def test_visible_rows_exact_with_landmarks_of_very_different_reach(backend):
         np.testing.assert_array_equal(got, np.flatnonzero(visible_mask(P, cam, T, vd, va, dr)))
         total += len(want)
     assert total > 0
+    assert_path(idx, visibility_path)
     # the cached tiers follow new arrays (another depth range, other view directions)
     T = random_pose(rng, 50)
     for dr2, vd2 in ((dr * 0.5, vd), (dr, -vd)):
@@ -226,7 +244,7 @@ def test_occlusion_by_a_mesh():
 
 @BACKENDS
 @pytest.mark.parametrize("n", [1, 999, 2500])
-def test_visible_rows_small_and_degenerate_maps(n, backend):
+def test_visible_rows_small_and_degenerate_maps(n, backend, visibility_path):
     rng = np.random.default_rng(n)
     P = rng.uniform(-1, 1, (n, 3)) + [0, 0, 3]
     vd = np.tile([0, 0, -1.0], (n, 1))
@@ -236,6 +254,7 @@ def test_visible_rows_small_and_degenerate_maps(n, backend):
     idx = SpatialIndex(P, backend=backend)
     got = visible_rows(idx, cam, np.eye(4), vd, va, dr)
     np.testing.assert_array_equal(got, brute_visible(P, vd, va, dr, cam, np.eye(4), ViewLimits()))
+    assert_path(idx, visibility_path)
 
 
 def random_landmarks(rng, L, extent, far_reach=(20, 60)):
@@ -252,9 +271,13 @@ def random_landmarks(rng, L, extent, far_reach=(20, 60)):
     return P, vd, va, dr
 
 
-def test_numpy_scan_returns_the_same_rows_as_scipy():
+def test_numpy_scan_returns_the_same_rows_as_scipy(monkeypatch):
     """The brute-force backend against cKDTree: identical radius rows (also for radii at a point's
-    distance, where rounding decides), k-NN rows and distances, frustum and visibility rows."""
+    distance, where rounding decides), k-NN rows and distances, frustum and visibility rows (through
+    the reach tiers, which the 6,000 landmarks would otherwise skip)."""
+    import favormap.visibility as vis
+
+    monkeypatch.setattr(vis, "_DIRECT_MAX", 0)
     rng = np.random.default_rng(7)
     P, vd, va, dr = random_landmarks(rng, 6000, 15.0)
     scan, tree = SpatialIndex(P, backend="numpy"), SpatialIndex(P, backend="scipy")
@@ -303,9 +326,12 @@ def test_numpy_scan_knn_ties_and_chunks(monkeypatch):
 def test_auto_backend_picks_the_scan_for_small_trees(monkeypatch):
     """ "auto" (the default) scans up to BRUTE_FORCE_MAX points and builds a cKDTree above, deciding
     per tree: each visibility tier on its own size. Explicit backends are kept whatever the size."""
+    import favormap.visibility as vis
+
     assert SpatialIndex(np.zeros((3, 3))).backend == "auto"
     assert 20_000 <= kdtree.BRUTE_FORCE_MAX <= 200_000
     monkeypatch.setattr(kdtree, "BRUTE_FORCE_MAX", 1000)
+    monkeypatch.setattr(vis, "_DIRECT_MAX", 0)  # the reach tiers of a map larger than it
     rng = np.random.default_rng(9)
     P, vd, va, dr = random_landmarks(rng, 5000, 10.0)
     assert isinstance(SpatialIndex(P[:1000])._tree, kdtree._NumpyScan)
