@@ -662,23 +662,30 @@ def test_demo_runs_end_to_end(tmp_path, capsys, monkeypatch):
     assert "localize aligns by default" in out and "rendered:" in out and "--exact-poses localizes" not in out
 
 
+def _in_view(m, seq, frame: int = 3):
+    """(camera, the pose of mapping frame ``frame``, the landmarks of map ``m`` in its image, their projections)."""
+    from favormap.geometry import project
+
+    cam = seq.cameras[0]
+    T = seq.frames[frame].cam_from_world
+    uv, z = project(cam.K, T, m.positions, with_depth=True)
+    seen = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height))
+    return cam, T, seen, uv[seen]
+
+
 def test_local_pnp_refines_a_pose_on_its_own_inliers(small_map, small_sequence):
     """Localizer._local_pnp: RANSAC's local optimisation with one given hypothesis. From a pose a few
     centimetres off, on matches of which a third are wrong, it returns the true pose and exactly the
     correct matches as inliers."""
     from types import SimpleNamespace
 
-    from favormap.geometry import project
     from favormap.localize.result import Query as _Query
 
     m, path = small_map
     loc = Localizer(path, LocalizeConfig())
-    cam = small_sequence.cameras[0]
-    T = small_sequence.frames[3].cam_from_world
-    uv, z = project(cam.K, T, m.positions, with_depth=True)
-    seen = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height))
+    cam, T, seen, uv = _in_view(m, small_sequence)
     rng = np.random.default_rng(0)
-    kp = uv[seen] + rng.normal(0, 0.3, (len(seen), 2))
+    kp = uv + rng.normal(0, 0.3, (len(seen), 2))
     wrong = rng.random(len(seen)) < 1 / 3
     kp[wrong] += rng.uniform(30, 80, (wrong.sum(), 2)) * rng.choice([-1, 1], (wrong.sum(), 2))
     q = _Query(SimpleNamespace(keypoints=kp), np.zeros((len(kp), 1), np.float32), cam)
@@ -699,17 +706,14 @@ def test_pnp_finds_the_pose_among_mostly_wrong_matches_alike_on_one_thread_and_o
     go one after the other or side by side on the localizer's threads."""
     from types import SimpleNamespace
 
-    from favormap.geometry import from_rigid3d, project
+    from favormap.geometry import from_rigid3d
     from favormap.localize import pnp
     from favormap.localize.result import Query as _Query
 
     m, path = small_map
-    cam = small_sequence.cameras[0]
-    T = small_sequence.frames[3].cam_from_world
-    uv, z = project(cam.K, T, m.positions, with_depth=True)
-    seen = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height))
+    cam, T, seen, uv = _in_view(m, small_sequence)
     rng = np.random.default_rng(0)
-    kp = uv[seen] + rng.normal(0, 0.3, (len(seen), 2))
+    kp = uv + rng.normal(0, 0.3, (len(seen), 2))
     wrong = rng.random(len(seen)) < 0.85
     kp[wrong] = rng.uniform(0, 1, (wrong.sum(), 2)) * [cam.width, cam.height]
     q = _Query(SimpleNamespace(keypoints=kp), np.zeros((len(kp), 1), np.float32), cam)
@@ -729,7 +733,7 @@ def test_pnp_finds_the_pose_among_mostly_wrong_matches_alike_on_one_thread_and_o
     one, two = answers
     dt, dr = pose_error(from_rigid3d(one["cam_from_world"]), T)
     assert dt < 0.01 and dr < 0.2, (dt, dr)
-    far = np.linalg.norm(kp - uv[seen], axis=1) > 2.0  # a wrong match that lands near its projection is an inlier
+    far = np.linalg.norm(kp - uv, axis=1) > 2.0  # a wrong match that lands near its projection is an inlier
     assert not np.any(np.asarray(one["inlier_mask"]) & far) and one["num_inliers"] >= 0.95 * (~wrong).sum()
     np.testing.assert_array_equal(from_rigid3d(one["cam_from_world"]), from_rigid3d(two["cam_from_world"]))
     np.testing.assert_array_equal(one["inlier_mask"], two["inlier_mask"])
