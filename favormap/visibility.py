@@ -29,7 +29,6 @@ from .view_limits import ViewLimits
 # quantile are tested directly, so that a few landmarks seen from far away do not blow up the
 # sphere for every query.
 _TIER_QUANTILES = (0.25, 0.5, 0.75, 0.99)
-_MIN_TIER = 2000  # below this many landmarks: one tier, no directly tested ones
 # up to this many landmarks every query tests all of them directly: one vectorised test (~1 ms for 12,000) costs
 # less than gathering candidates from the tiers where a query may see most of the map (a room: 2.6 ms)
 _DIRECT_MAX = 20_000
@@ -142,8 +141,6 @@ class _Tiers:
             return
         if L <= _DIRECT_MAX:
             bounds = []
-        elif L < _MIN_TIER:
-            bounds = [float(reach.max())]
         else:
             bounds = [float(np.quantile(reach, q)) for q in _TIER_QUANTILES]
             bounds = sorted(set(bounds + [min(float(reach.max()), 2 * bounds[-1])]))

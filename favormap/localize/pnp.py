@@ -45,9 +45,8 @@ class PoseSolving:
             cam = q.cam.to_pycolmap()
             runs = [self._ransac_options(max_error_px, k) for k in range(RANSAC_RUNS)]
             if self._workers() > 1:
-                jobs = [
-                    self._pool(RANSAC_RUNS - 1).submit(pycolmap.estimate_absolute_pose, uv, X, cam, o) for o in runs[1:]
-                ]
+                pool = self._pool(RANSAC_RUNS - 1)
+                jobs = [pool.submit(pycolmap.estimate_absolute_pose, uv, X, cam, o) for o in runs[1:]]
                 found = [pycolmap.estimate_absolute_pose(uv, X, cam, runs[0])] + [j.result() for j in jobs]
             else:
                 found = [pycolmap.estimate_absolute_pose(uv, X, cam, o) for o in runs]
