@@ -235,7 +235,10 @@ class _Correspondences:
         P = self.X @ T[:3, :3].T + T[:3, 3]
         front = P[:, 2] > 1e-9
         lin = None
-        if front.sum() >= 6:
+        n = int(front.sum())
+        if n == len(front) and n >= 6:  # all in front (the usual case): no copies
+            lin = _Linearization.of(T, P, self.kp, self.K, self.cov, front)
+        elif n >= 6:
             cov = None if self.cov is None else self.cov[front]
             lin = _Linearization.of(T, P[front], self.kp[front], self.K, cov, front)
         self._at = (T.copy(), lin)
@@ -291,15 +294,17 @@ class _Linearization:
     def of(cls, T, P, x_kp, K, point_cov, front) -> _Linearization:
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         x, y, z = P.T
-        r = np.c_[fx * x / z + cx, fy * y / z + cy] - x_kp
+        r = np.empty((len(z), 2))
+        r[:, 0] = fx * x / z + cx - x_kp[:, 0]
+        r[:, 1] = fy * y / z + cy - x_kp[:, 1]
         # d(pixel) / d(camera-frame point): rows (a0, 0, a2) and (0, b1, b2)
         a0, a2 = fx / z, -fx * x / z**2
         b1, b2 = fy / z, -fy * y / z**2
         # the camera-frame point moves by w x P + v under the left update, so a row u of d(pixel) / d(point)
         # gives (P x u, u)
-        zero = np.zeros_like(z)
-        J0 = np.stack([y * a2, z * a0 - x * a2, -y * a0, a0, zero, a2], axis=1)
-        J1 = np.stack([y * b2 - z * b1, -x * b2, x * b1, zero, b1, b2], axis=1)
+        J0, J1 = np.empty((len(z), 6)), np.empty((len(z), 6))
+        J0[:, 0], J0[:, 1], J0[:, 2], J0[:, 3], J0[:, 4], J0[:, 5] = y * a2, z * a0 - x * a2, -y * a0, a0, 0.0, a2
+        J1[:, 0], J1[:, 1], J1[:, 2], J1[:, 3], J1[:, 4], J1[:, 5] = y * b2 - z * b1, -x * b2, x * b1, 0.0, b1, b2
         V = None
         if point_cov is not None:
             R = T[:3, :3]
