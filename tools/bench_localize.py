@@ -23,7 +23,9 @@ built with the defaults, or ``--refine-poses``, and reused from ``--workdir`` as
 reuses it): every query localized by one warm Localizer from the nearest mapping frame (after a first
 pass that warms the voxel cache), the queries as a stream (``localize_sequence``: each prior from the
 poses before it), and the pycolmap-SIFT baseline built from the same mapping frames, in the same run.
-The table gives median milliseconds per query and stage, and each mode's ratio to the baseline.
+favormap and the baseline take turns in blocks of 10 queries, so that a machine whose speed drifts
+within minutes slows both alike. The table gives median milliseconds per query and stage, each mode's
+ratio to the baseline's queries of its own turns, and the median (range) of that ratio over the blocks.
 
     python tools/bench_localize.py --split tum-desk-xyz --workdir /tmp/favormap-bench-accuracy
 """
@@ -148,6 +150,10 @@ def measure(args) -> dict:
     }
 
 
+# queries a block: favormap's blocks and the baseline's alternate, so that both see the machine alike
+BLOCK = 10
+
+
 def real_split_timing(args) -> int:
     """``--split``: warm, stream and baseline time per query on a real split (see the module docstring)."""
     from accuracy.runners import build_or_load
@@ -174,33 +180,45 @@ def real_split_timing(args) -> int:
     cams = [sp.queries.cameras[f.camera_id] for f in frames]
     priors = make_priors(sp.queries, m.rig_from_world, EvalConfig(prior_mode="nearest"))
     stages = ("extraction", "visibility", "loading", "rendering", "matching", "pnp")
-
-    def run(results_of):
-        rows = []
-        for res, wall in results_of:
-            rows.append([1000 * res.timings.get(k, 0.0) for k in stages] + [1000 * wall, res.success])
-        return np.array(rows, np.float64)
-
-    def warm():
-        for f, c, p in zip(frames, cams, priors):
-            t = time.perf_counter()
-            res = loc.localize(f.image_path, p, c)
-            yield res, time.perf_counter() - t
-
-    def stream():
-        t = time.perf_counter()
-        for res in loc.localize_sequence([f.image_path for f in frames], priors[0], cams[0]):
-            now = time.perf_counter()
-            yield res, now - t
-            t = now
-
-    run(warm())  # fills the voxel cache
-    modes = {"warm (nearest frame)": run(warm()), "stream": run(stream())}
     t = time.perf_counter()
     base = StructureBaseline.build(sp.mapping, workdir=workdir / f"{sp.files}_baseline")
     base_build = time.perf_counter() - t
-    base_ms = np.array([1000 * base.localize(f.image_path, c).seconds for f, c in zip(frames, cams)])
-    b = float(np.median(base_ms))
+    blocks = [range(a, min(a + BLOCK, len(frames))) for a in range(0, len(frames), BLOCK)]
+
+    def row(res, wall):
+        return [1000 * res.timings.get(k, 0.0) for k in stages] + [1000 * wall, res.success]
+
+    def baseline_block(block, untimed_first=False):
+        if untimed_first:  # takes the machine beside the stream's next extraction, which runs meanwhile
+            base.localize(frames[block[0]].image_path, cams[block[0]])
+        return [1000 * base.localize(frames[i].image_path, cams[i]).seconds for i in block]
+
+    for f, c, p in zip(frames, cams, priors):  # fills the voxel cache
+        loc.localize(f.image_path, p, c)
+    base.localize(frames[0].image_path, cams[0])
+    warm, warm_base = [], []
+    for block in blocks:
+        rows = []
+        for i in block:
+            s = time.perf_counter()
+            res = loc.localize(frames[i].image_path, priors[i], cams[i])
+            rows.append(row(res, time.perf_counter() - s))
+        warm.append(rows)
+        warm_base.append(baseline_block(block))
+    stream, stream_base = [], []
+    frames_of = loc.localize_sequence([f.image_path for f in frames], priors[0], cams[0])
+    for k, block in enumerate(blocks):
+        rows, s = [], time.perf_counter()
+        for j in range(len(block)):
+            res = next(frames_of)
+            now = time.perf_counter()
+            if not (k and j == 0):  # a later block's first frame was extracted during the baseline's block
+                rows.append(row(res, now - s))
+            s = now
+        stream.append(rows)
+        stream_base.append(baseline_block(block, untimed_first=True))
+    frames_of.close()
+    b = float(np.median(np.concatenate(warm_base + stream_base)))
     built = "reused" if build_s is None else f"built in {build_s:.0f} s"
     print(
         f"{sp.name}: map {path.name} ({len(m):,} landmarks, {built}"
@@ -209,17 +227,25 @@ def real_split_timing(args) -> int:
         f"points (built in {base_build:.0f} s); device {args.device}, localizer threads {args.threads}"
         f", load average {os.getloadavg()[0]:.1f}"
     )
-    print("median ms per query\n")
-    print("| mode | " + " | ".join(stages) + " | total | x baseline | localized |")
-    print("|---" * (len(stages) + 4) + "|")
-    for name, r in modes.items():
+    print(
+        f"median ms per query; favormap and the baseline take turns in blocks of {BLOCK} queries, each mode's "
+        "ratio is to the baseline's queries of its own turns (a stream's first frame after a baseline block is "
+        "left out: it was extracted meanwhile)\n"
+    )
+    print("| mode | " + " | ".join(stages) + " | total | x baseline | blocks: x baseline | localized |")
+    print("|---" * (len(stages) + 5) + "|")
+    for name, runs, base_ms in (("warm (nearest frame)", warm, warm_base), ("stream", stream, stream_base)):
+        r = np.array([x for rows in runs for x in rows], np.float64)
         med = np.median(r[:, : len(stages) + 1], axis=0)
+        per_block = [np.median(np.array(rows)[:, len(stages)]) / np.median(bb) for rows, bb in zip(runs, base_ms)]
         print(
             f"| {name} | "
             + " | ".join(f"{v:.0f}" for v in med[: len(stages)])
-            + f" | {med[-1]:.0f} | {med[-1] / b:.2f} | {int(r[:, -1].sum())}/{len(r)} |"
+            + f" | {med[-1]:.0f} | {med[-1] / np.median(np.concatenate(base_ms)):.2f}"
+            + f" | {np.median(per_block):.2f} ({min(per_block):.2f}-{max(per_block):.2f})"
+            + f" | {int(r[:, -1].sum())}/{len(r)} |"
         )
-    print("| pycolmap-SIFT baseline | " + " | ".join("-" for _ in stages) + f" | {b:.0f} | 1.00 | - |")
+    print("| pycolmap-SIFT baseline | " + " | ".join("-" for _ in stages) + f" | {b:.0f} | 1.00 | - | - |")
     m.close()
     return 0
 
