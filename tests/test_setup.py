@@ -446,6 +446,34 @@ def test_accuracy_benchmark_compares_two_runs_query_by_query_and_seed_by_seed():
     assert table[4].startswith("| orbit | noise | (default) | rendered | 0,1 | 0.71 [") and len(table) == 6
 
 
+def test_accuracy_benchmark_pools_runs_query_by_query():
+    """tools/bench_accuracy.py --pool RUN RUN ...: each query localized where most runs localized it, with the
+    median of those runs' errors; a row missing from one run is left out."""
+    import numpy as np
+
+    bench = _bench_accuracy()
+
+    def row(method, errs, prior="none"):
+        pq = [
+            dict(name=n, t_err=e, r_err_deg=e / 10, success=bool(np.isfinite(e)), nees=None)
+            for n, e in zip("abc", errs)
+        ]
+        return dict(split="fox-holdout", prior=prior, map_variant="", method=method, per_query=pq)
+
+    inf = np.inf
+    runs = [
+        [row("pycolmap-SIFT", [1.0, 2.0, inf]), row("rendered", [1.0, 1.0, 1.0], "noise")],
+        [row("pycolmap-SIFT", [3.0, inf, inf])],
+        [row("pycolmap-SIFT", [2.0, 6.0, 5.0])],
+    ]
+    pooled = bench.pool_rows(runs)
+    assert [r["method"] for r in pooled] == ["pycolmap-SIFT"]  # "rendered" is in one run only
+    q = {x["name"]: x for x in pooled[0]["per_query"]}
+    assert q["a"]["success"] and q["a"]["t_err"] == 2.0 and q["a"]["r_err_deg"] == pytest.approx(0.2)
+    assert q["b"]["success"] and q["b"]["t_err"] == 4.0  # two of three localized it: the median of those two
+    assert not q["c"]["success"]  # one of three
+
+
 def test_accuracy_benchmark_measures_the_error_both_methods_share():
     """The real table's shared error: over the queries both methods localize, the median distance between
     their estimated camera centres and the median cosine between their error vectors."""

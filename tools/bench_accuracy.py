@@ -41,6 +41,7 @@ of a chi-square with 3 degrees of freedom, when that covariance is right; larger
     python tools/bench_accuracy.py --splits orbit --json out.json
     python tools/bench_accuracy.py --map SEQ --queries SEQ
     python tools/bench_accuracy.py --compare before.json after.json   # two runs, query by query
+    python tools/bench_accuracy.py --pool run1.json run2.json run3.json   # several runs, each query their median
 """
 
 # The benchmark's parts are in tools/accuracy/ (imported from this folder, so the script runs from any directory):
@@ -71,6 +72,7 @@ from accuracy.report import (
     paired_ratio,
     paired_rows,
     paired_table,
+    pool_rows,
     read_rows,
     real_rows,
     real_table,
@@ -136,6 +138,7 @@ __all__ = [
     "paired_ratio",
     "paired_rows",
     "paired_table",
+    "pool_rows",
     "read_rows",
     "real_rows",
     "real_table",
@@ -184,6 +187,26 @@ __all__ = [
     "real_splits",
     "with_pseudo_ground_truth",
 ]
+
+
+def pooled_table(ap, paths: list[str]) -> int:
+    """``--pool``: the real-data table of several runs, each query's error the median over the runs."""
+    if len(paths) < 2:
+        ap.error("--pool takes two or more runs")
+    try:
+        runs = [read_rows(f) for f in paths]
+    except (OSError, ValueError) as e:
+        ap.error(f"--pool: {e}")
+    rows = pool_rows(runs)
+    names = sorted({r["split"] for r in rows})
+    splits = real_splits([n for n in names if n in REAL_SPLITS or n in CROSS_SPLITS or n in BLURRED_SPLITS])
+    real = real_rows(rows, splits)
+    if not real:
+        print("--pool: no real split in all the runs (or its data is missing)", file=sys.stderr)
+        return 1
+    print(f"\nReal sets, {len(runs)} runs pooled (each query's error the median over the runs):\n")
+    print(real_table(real))
+    return 0
 
 
 def main():
@@ -288,7 +311,16 @@ def main():
         metavar=("REF.json", "NEW.json"),
         help="run nothing: compare two runs' --json rows (plain or .gz) query by query (e.g. two versions of the code)",
     )
+    ap.add_argument(
+        "--pool",
+        nargs="+",
+        metavar="RUN.json",
+        help="run nothing: the real-data table of several runs' --json rows of the same code, each query's error the "
+        "median over the runs (the baseline's SfM map differs from build to build); needs the sets' data",
+    )
     args = ap.parse_args()
+    if args.pool:
+        return pooled_table(ap, args.pool)
     if args.compare:
         try:
             ref_rows, new_rows = (read_rows(f) for f in args.compare)

@@ -235,6 +235,40 @@ def compare_rows(ref_rows: list[dict], new_rows: list[dict]) -> list[dict]:
     return out
 
 
+def pool_rows(runs: list[list[dict]]) -> list[dict]:
+    """Several runs of the benchmark as one: every (split, prior, map, method, seed) in all of them, each query
+    localized where the majority of the runs localized it, with the median of those runs' errors (and NEES).
+    Each suite run builds the structure baseline's SfM map anew, and COLMAP's threads make each build a little
+    different: the baseline's errors move by up to ~10 % per split between runs while favormap's stay put, so a
+    ratio to one run's baseline carries that run's luck."""
+    keyed = []
+    for rows in runs:
+        by = {}
+        for r in rows:
+            if r.get("per_query"):
+                base, seed, method = _map_and_seed(r)
+                by[(r["split"], r["prior"], base, method, seed)] = r
+        keyed.append(by)
+    out = []
+    for key, first in keyed[0].items():
+        members = [k[key] for k in keyed if key in k]
+        if len(members) < len(keyed):
+            continue
+        row = dict(first, per_query=[])
+        for q in first["per_query"]:
+            got = [next((x for x in m["per_query"] if x["name"] == q["name"]), None) for m in members]
+            ok = [x for x in got if x is not None and x["success"]]
+            pooled = dict(q, success=2 * len(ok) > len(got))
+            if ok:
+                pooled["t_err"] = float(np.median([x["t_err"] for x in ok]))
+                pooled["r_err_deg"] = float(np.median([x["r_err_deg"] for x in ok]))
+                nees = [x["nees"] for x in ok if x.get("nees") is not None]
+                pooled["nees"] = float(np.median(nees)) if nees else None
+            row["per_query"].append(pooled)
+        out.append(row)
+    return out
+
+
 def compare_table(ref_rows: list[dict], new_rows: list[dict]) -> str:
     """Markdown of :func:`compare_rows`."""
     return _ratio_table(
