@@ -45,6 +45,11 @@ VARIANTS = {
         {"ransac_max_error_px": 8.0, "mutual": False, "ratio": 1.0, "landmark_sigma_px": 0, "guided_radius_px": 0},
     ),
     "rendered 2px": ("rendered", {"ransac_max_error_px": 2.0}),
+    # the PnP-RANSAC threshold of maps whose poses fit their images loosely (7-Scenes, TUM: 1.5x the epipolar
+    # limit by default) held at 4 / 6 px, or at 1.0x that limit
+    "rendered 4px": ("rendered", {"ransac_max_error_px": 4.0}),
+    "rendered 6px": ("rendered", {"ransac_max_error_px": 6.0}),
+    "rendered epipolar-1x": ("rendered", {"pose_noise_ransac": 1.0}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
