@@ -134,8 +134,7 @@ class _Tiers:
         self.scale, self.shape = scale, depth_range.shape
         reach = np.asarray(depth_range[:, 1], np.float64) * scale
         L = len(reach)
-        # dicts: depth, rows (global), P, reach, tree or None, all (the whole map, tested directly), [vd, va, dr]
-        self.tiers = []
+        self.tiers = []  # dicts: depth, rows (global), P, reach, tree or None, [vd, va, dr]
         self.num_direct = 0
         if L == 0:
             return
@@ -153,7 +152,7 @@ class _Tiers:
             if bounds:
                 rows = rows[morton_order(index.positions[rows])]
             P = np.ascontiguousarray(index.positions[rows])
-            t = dict(depth=b, rows=rows, P=P, reach=reach[rows], all=not bounds)
+            t = dict(depth=b, rows=rows, P=P, reach=reach[rows])
             t["tree"] = KD_BACKENDS[index.backend](t["P"]) if np.isfinite(b) else None
             if view_dir is not None and view_angle is not None:
                 t.update(
@@ -204,7 +203,7 @@ class _Tiers:
         unit = reach_sphere(camera, cam_from_world, 1.0)
         out = [np.zeros(0, np.int64)]
         for t in self.tiers:
-            if t["all"]:  # the whole map in one group: the exact test on every landmark, nothing gathered
+            if t["tree"] is None:  # a group without a tree (a small map's only one): every landmark tested, exactly
                 out.append(t["rows"][visible_mask(t["P"], camera, cam_from_world, t["vd"], t["va"], t["dr"], limits)])
                 continue
             idx, p = self._near(t, camera, cam_from_world, c, unit)

@@ -255,8 +255,9 @@ def pool_rows(runs: list[list[dict]]) -> list[dict]:
         if len(members) < len(keyed):
             continue
         row = dict(first, per_query=[])
+        by_name = [{x["name"]: x for x in m["per_query"]} for m in members]
         for q in first["per_query"]:
-            got = [next((x for x in m["per_query"] if x["name"] == q["name"]), None) for m in members]
+            got = [b.get(q["name"]) for b in by_name]
             ok = [x for x in got if x is not None and x["success"]]
             pooled = dict(q, success=2 * len(ok) > len(got))
             if ok:
