@@ -700,6 +700,47 @@ def test_local_pnp_refines_a_pose_on_its_own_inliers(small_map, small_sequence):
     assert ans["num_inliers"] == (~wrong).sum() and t["pnp"] > 0
 
 
+def test_an_iteration_fits_its_pose_tightly_and_keeps_the_loose_consensus(small_map, small_sequence):
+    """Localizer._fit_tightly: under a wide RANSAC threshold (12 px) a RANSAC estimate a few centimetres off
+    is refined on the matches within fit_max_error_px (4 px) of it: the pose comes back to the truth, while its
+    inliers stay every match within 12 px of that pose (also those 6-10 px off). Off, or with fewer than
+    checks.min_inliers that close, the estimate is returned as it is."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from favormap.geometry import from_rigid3d, project, to_rigid3d
+    from favormap.localize.result import Query as _Query
+
+    m, path = small_map
+    cam, T, seen, uv = _in_view(m, small_sequence)
+    rng = np.random.default_rng(0)
+    kp = uv + rng.normal(0, 0.3, (len(seen), 2))
+    off = rng.random(len(seen)) < 0.3
+    angle = rng.uniform(0, 2 * np.pi, off.sum())
+    kp[off] += rng.uniform(6, 10, off.sum())[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    q = _Query(SimpleNamespace(keypoints=kp), np.zeros((len(kp), 1), np.float32), cam)
+    start = perturb_pose(T, 0.03, 0.5, np.random.default_rng(1))
+    ans = dict(cam_from_world=to_rigid3d(start), num_inliers=len(seen), inlier_mask=np.ones(len(seen), bool))
+    X = m.positions[seen]
+    loc = Localizer(path, LocalizeConfig(ransac_max_error_px=12.0))
+    try:
+        t = {"pnp": 0.0}
+        out = loc._fit_tightly(q, ans, X, np.arange(len(seen)), t)
+        pose = from_rigid3d(out["cam_from_world"])
+        dt, dr = pose_error(pose, T)
+        assert dt < 0.005 and dr < 0.1, (dt, dr)
+        err = np.linalg.norm(project(cam.K, pose, X) - kp, axis=1)
+        np.testing.assert_array_equal(out["inlier_mask"], err < 12.0)
+        assert out["num_inliers"] == int((err < 12.0).sum()) and out["inlier_mask"][off].mean() > 0.9
+        loc.config = dataclasses.replace(loc.config, fit_max_error_px=None)
+        assert loc._fit_tightly(q, ans, X, np.arange(len(seen)), t) is ans
+        few = dataclasses.replace(loc.config.checks, min_inliers=len(seen))
+        loc.config = dataclasses.replace(loc.config, fit_max_error_px=4.0, checks=few)
+        assert loc._fit_tightly(q, ans, X, np.arange(len(seen)), t) is ans
+    finally:
+        loc.close()
+
+
 def test_pnp_finds_the_pose_among_mostly_wrong_matches_alike_on_one_thread_and_on_two(small_map, small_sequence):
     """Localizer._pnp: its RANSAC runs (favormap.localize.pnp.RANSAC_RUNS, each with a share of the confidence)
     find the true pose where 85 % of the matches are wrong, and give the same pose and inliers whether the runs

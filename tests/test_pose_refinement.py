@@ -139,6 +139,8 @@ def test_the_ransac_threshold_follows_the_map_s_pose_noise(small_map, tmp_path):
     assert Localizer(tmp_path / "noisy.h5").config.ransac_max_error_px == pytest.approx(9.0)
     with pytest.raises(Exception, match="ransac_max_error_px"):
         LocalizeConfig(ransac_max_error_px=0.0)
+    with pytest.raises(Exception, match="fit_max_error_px"):
+        LocalizeConfig(fit_max_error_px=-1.0)
 
 
 def test_the_reported_uncertainty_includes_the_map_s_own_pose_noise(small_map, small_sequence, tmp_path):

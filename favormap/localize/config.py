@@ -58,6 +58,9 @@ class LocalizeConfig:
     ransac_max_error_px: float | None = None
     min_ransac_px: float = 4.0
     pose_noise_ransac: float = 1.5
+    # a rendering iteration's RANSAC estimate is then refined on the matches within this many pixels of it,
+    # where checks.min_inliers lie that close (its inliers stay those within the RANSAC threshold); None: off
+    fit_max_error_px: float | None = 4.0
     checks: SuccessChecks = field(default_factory=SuccessChecks)
     # The guided step, after the rendering iterations (search by projection): every landmark visible from the
     # estimate is matched to the most similar query keypoint within guided_radius_px of its projection and within
@@ -133,6 +136,9 @@ class LocalizeConfig:
         r = self.ransac_max_error_px
         if not (r is None or (isinstance(r, (int, float)) and 0 < r < float("inf"))):
             raise InputError(f"ransac_max_error_px must be a number of pixels > 0 (or None: the map's), not {r!r}")
+        f = self.fit_max_error_px
+        if not (f is None or (isinstance(f, (int, float)) and 0 < f < float("inf"))):
+            raise InputError(f"fit_max_error_px must be a number of pixels > 0 (or None: off), not {f!r}")
         if not (0 < self.min_ransac_px < float("inf") and 0 <= self.pose_noise_ransac < float("inf")):
             raise InputError("min_ransac_px must be > 0 and pose_noise_ransac >= 0")
         if not (0 <= self.guided_radius_px < float("inf") and 0 <= self.guided_gate_sigma < float("inf")):

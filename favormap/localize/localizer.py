@@ -366,6 +366,7 @@ class Localizer(SuccessChecking, FinalRefinement, BlockMatching, PoseSolving):
             ans = self._pnp(q, points, m[:, 1], t)
             if anchor is not None and ans is not None and self._leaves(ans, anchor):
                 ans = self._local_pnp(q, pose, points, m[:, 1], t)
+            ans = self._fit_tightly(q, ans, points, m[:, 1], t)
             n_in = int(ans["num_inliers"]) if ans is not None else 0
             ok = ans is not None and n_in >= cfg.checks.min_inliers
             new_pose = from_rigid3d(ans["cam_from_world"]) if ok else pose

@@ -93,15 +93,46 @@ class PoseSolving:
         p = project(q.cam.K, from_rigid3d(ans["cam_from_world"]), X[mask])
         return float(np.sum((p - uv[mask]) ** 2))
 
-    def _local_pnp(self, q: Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, t: dict, rounds: int = 3):
-        """``pose`` refined on its own inliers (within ``ransac_max_error_px``) among the matches
-        ``points`` <-> ``q.feats.keypoints[kp_idx]``, repeated until the inlier set stops changing: the
+    def _fit_tightly(self, q: Query, ans, points: np.ndarray, kp_idx: np.ndarray, t: dict):
+        """A rendering iteration's RANSAC estimate ``ans`` (among the matches ``points`` <->
+        ``q.feats.keypoints[kp_idx]``) refined on the matches within ``fit_max_error_px`` of it
+        (:meth:`_local_pnp`), when at least ``checks.min_inliers`` lie that close; its inliers stay those
+        within ``ransac_max_error_px`` of the refined pose. On maps whose own poses fit their images loosely
+        the RANSAC threshold is wide (pose_noise_ransac times the map's epipolar limit): it keeps the
+        consensus of blurred queries, whose correct matches lie several pixels off, but many poses explain
+        about as many matches within it, so the estimate drifts among them from one iteration to the next.
+        Within a few pixels only one of them fits."""
+        cfg = self.config
+        fit = cfg.fit_max_error_px
+        if ans is None or not fit or fit >= cfg.ransac_max_error_px:
+            return ans
+        tight = self._local_pnp(q, from_rigid3d(ans["cam_from_world"]), points, kp_idx, t, max_error_px=fit)
+        if tight is None or tight["num_inliers"] < cfg.checks.min_inliers:
+            return ans
+        s = time.perf_counter()
+        p, z = project(q.cam.K, from_rigid3d(tight["cam_from_world"]), np.asarray(points, np.float64), with_depth=True)
+        mask = (z > 0) & (np.linalg.norm(p - q.feats.keypoints[kp_idx], axis=1) < cfg.ransac_max_error_px)
+        t["pnp"] += time.perf_counter() - s
+        return dict(tight, inlier_mask=mask, num_inliers=int(mask.sum()))
+
+    def _local_pnp(
+        self,
+        q: Query,
+        pose: np.ndarray,
+        points: np.ndarray,
+        kp_idx: np.ndarray,
+        t: dict,
+        rounds: int = 3,
+        max_error_px: float | None = None,
+    ):
+        """``pose`` refined on its own inliers (within ``max_error_px``, None: ``ransac_max_error_px``) among
+        the matches ``points`` <-> ``q.feats.keypoints[kp_idx]``, repeated until the inlier set stops changing: the
         local optimisation of RANSAC with ``pose`` as the only hypothesis. Returns a dict shaped as
         pycolmap's estimate (cam_from_world, num_inliers, inlier_mask), or None."""
         import pycolmap
 
         s = time.perf_counter()
-        thr = self.config.ransac_max_error_px
+        thr = max_error_px or self.config.ransac_max_error_px
         uv = q.feats.keypoints[kp_idx].astype(np.float64)
         X = np.asarray(points, np.float64)
 

@@ -50,6 +50,7 @@ VARIANTS = {
     "rendered 4px": ("rendered", {"ransac_max_error_px": 4.0}),
     "rendered 6px": ("rendered", {"ransac_max_error_px": 6.0}),
     "rendered epipolar-1x": ("rendered", {"pose_noise_ransac": 1.0}),
+    "rendered no-fit": ("rendered", {"fit_max_error_px": None}),
     "rendered ratio-0.9": ("rendered", {"ratio": 0.9}),
     "rendered no-ratio": ("rendered", {"ratio": 1.0}),
     "rendered ratio-0.8": ("rendered", {"ratio": 0.8}),
