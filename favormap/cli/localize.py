@@ -59,7 +59,9 @@ def add_localize_options(p):
         help="RANSAC inlier threshold in pixels of the map's working resolution (default: the map's, "
         f"{config_default(LocalizeConfig, 'min_ransac_px'):g} px or "
         f"{config_default(LocalizeConfig, 'pose_noise_ransac'):g} times its epipolar limit where its mapping poses "
-        "fit their images less well)",
+        "fit their images less well; where that is wider, each rendering iteration's estimate is fitted to the "
+        "matches within "
+        f"{config_default(LocalizeConfig, 'fit_max_error_px'):g} px of it)",
     )
     p.add_argument(
         "--min-inliers",
