@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import from_rigid3d, pose_error, project
+from ..geometry import from_rigid3d, pose_error
 from ..visibility import visible_mask
 from .result import IterationResult, LocalizationResult, Query
 
@@ -67,9 +67,7 @@ class SuccessChecking:
         if q.global_matches is None or len(q.global_matches[1]) == 0:
             return 0
         X, kp_idx = q.global_matches
-        uv, z = project(q.cam.K, pose, X, with_depth=True)
-        err = np.linalg.norm(uv - q.feats.keypoints[kp_idx], axis=1)
-        return int(np.sum((z > 0) & (err < self.config.ransac_max_error_px)))
+        return int(np.sum(self._within(q, pose, X, kp_idx, self.config.ransac_max_error_px)))
 
     def _change(self, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
         """How far apart two poses are: (translation / median landmark depth, rotation in deg)."""
