@@ -67,7 +67,8 @@ class SuccessChecking:
         if q.global_matches is None or len(q.global_matches[1]) == 0:
             return 0
         X, kp_idx = q.global_matches
-        return int(np.sum(self._within(q, pose, X, kp_idx, self.config.ransac_max_error_px)))
+        within = self._within(q.cam.K, pose, X, q.feats.keypoints[kp_idx], self.config.ransac_max_error_px)
+        return int(np.sum(within))
 
     def _change(self, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
         """How far apart two poses are: (translation / median landmark depth, rotation in deg)."""

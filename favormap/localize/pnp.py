@@ -110,16 +110,19 @@ class PoseSolving:
         if tight is None or tight["num_inliers"] < cfg.checks.min_inliers:
             return ans
         s = time.perf_counter()
-        mask = self._within(q, from_rigid3d(tight["cam_from_world"]), points, kp_idx, cfg.ransac_max_error_px)
+        uv = q.feats.keypoints[kp_idx]
+        mask = self._within(q.cam.K, from_rigid3d(tight["cam_from_world"]), points, uv, cfg.ransac_max_error_px)
         t["pnp"] += time.perf_counter() - s
         return dict(tight, inlier_mask=mask, num_inliers=int(mask.sum()))
 
     @staticmethod
-    def _within(q: Query, pose: np.ndarray, points: np.ndarray, kp_idx: np.ndarray, max_error_px: float) -> np.ndarray:
-        """(K,) bool: which of the matches ``points`` <-> ``q.feats.keypoints[kp_idx]`` ``pose`` explains: the
-        point in front of the camera and projected within ``max_error_px`` of its keypoint."""
-        p, z = project(q.cam.K, pose, points, with_depth=True)
-        return (z > 0) & (np.linalg.norm(p - q.feats.keypoints[kp_idx], axis=1) < max_error_px)
+    def _within(
+        K: np.ndarray, pose: np.ndarray, points: np.ndarray, keypoints: np.ndarray, max_error_px: float
+    ) -> np.ndarray:
+        """(N,) bool: which of the matches ``points`` (N, 3) <-> ``keypoints`` (N, 2) ``pose`` explains through
+        pinhole ``K``: the point in front of the camera and projected within ``max_error_px`` of its keypoint."""
+        p, z = project(K, pose, points, with_depth=True)
+        return (z > 0) & (np.linalg.norm(p - keypoints, axis=1) < max_error_px)
 
     def _local_pnp(
         self,
@@ -143,7 +146,7 @@ class PoseSolving:
         X = np.asarray(points, np.float64)
 
         def inliers(T):
-            return self._within(q, T, X, kp_idx, thr)
+            return self._within(q.cam.K, T, X, uv, thr)
 
         out, mask = None, inliers(pose)
         for _ in range(rounds):
