@@ -53,7 +53,9 @@ class BuildConfig:
     # frames a track must span to become a landmark: two-view tracks fill the landmark budget that longer
     # tracks leave (select_landmarks keeps the longest first)
     min_track: int = 2
-    match_window: int = 10  # each frame is matched with this many next frames
+    # each frame is matched with this many next frames (as listed, or along a path through the poses where the
+    # listing is none: favormap.frame_order)
+    match_window: int = 10
     # tracking's epipolar limit (px at the working resolution). None: measured from the mutual matches
     # (favormap.tracking.epipolar_limit: 3x the right matches' median distance from their epipolar lines),
     # no less than the extractor's keypoint precision (ExtractorPolicy.keypoint_precision_px)

@@ -1,7 +1,8 @@
 """tracking: keypoints followed through a posed sequence.
 
-Frames are matched with their next ``window`` neighbours by mutual nearest neighbours on the
-descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
+Frames are matched with their next ``window`` neighbours (in the order the frames are listed, or along
+a path through their poses where that order is none: :mod:`favormap.frame_order`) by mutual nearest
+neighbours on the descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
 are joined into tracks by connected components; a track that holds two different keypoints of one
 frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
 """
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .features import Features
+from .frame_order import matching_order
 from .geometry import inverse
 from .io import Camera
 from .threads import serial_pools, thread_count
@@ -280,9 +282,10 @@ def _match_pairs(
     min_similarity: float,
     workers: int,
 ) -> list[_PairMatches]:
-    """Every frame matched with its next ``window`` frames (mutual nearest neighbours), holding at most
-    ``window + 1`` frames' keypoints and descriptors at a time."""
-    n = len(features)
+    """Every frame matched with its next ``window`` frames (mutual nearest neighbours) in the order
+    :func:`favormap.frame_order.matching_order` walks them, holding at most ``window + 1`` frames' keypoints
+    and descriptors at a time."""
+    order = [int(i) for i in matching_order(cam_from_world)]
     held: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (keypoints, descriptors)
 
     def frame(i):
@@ -305,16 +308,17 @@ def _match_pairs(
     pool = ThreadPoolExecutor(workers, thread_name_prefix="favormap-track") if workers > 1 else None
     try:
         with serial_pools() if pool else nullcontext():
-            for a in range(n):
-                held.pop(a - 1, None)
-                bs = [b for b in range(a + 1, min(n, a + 1 + window)) if counts[a] and counts[b]]
+            for p, a in enumerate(order):
+                if p:
+                    held.pop(order[p - 1], None)
+                bs = [b for b in order[p + 1 : p + 1 + window] if counts[a] and counts[b]]
                 for i in [a, *bs]:
                     frame(i)
-                results = pool.map(match, [a] * len(bs), bs) if pool else map(match, [a] * len(bs), bs)
-                for b, (ia, ib, dist) in zip(bs, results):
-                    if len(ia):
-                        ka, kb = held[a][0], held[b][0]
-                        found.append(_PairMatches(a, b, ia, ib, ka[ia], kb[ib], dist))
+                lo, hi = [min(a, b) for b in bs], [max(a, b) for b in bs]
+                results = pool.map(match, lo, hi) if pool else map(match, lo, hi)
+                for x, y, (ix, iy, dist) in zip(lo, hi, results):
+                    if len(ix):
+                        found.append(_PairMatches(x, y, ix, iy, held[x][0][ix], held[y][0][iy], dist))
     finally:
         if pool:
             pool.shutdown()

@@ -293,6 +293,14 @@ def main():
     ap.add_argument("--reuse", action="store_true", help="reuse maps in --workdir built with the same settings")
     ap.add_argument("--seed", type=int, default=0, help="seed of the query priors")
     ap.add_argument(
+        "--shuffle-mapping",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="list each split's mapping frames in a random order drawn with SEED (their maps and baselines kept "
+        "apart from the listed order's): what a build makes of frames listed in no order",
+    )
+    ap.add_argument(
         "--prior-seeds",
         default=None,
         help="seeds of the noise priors (comma-separated): each query's favormap result is the median over "
@@ -319,6 +327,8 @@ def main():
         "median over the runs (the baseline's SfM map differs from build to build); needs the sets' data",
     )
     args = ap.parse_args()
+    if args.shuffle_mapping is not None and args.shuffle_mapping < 0:
+        ap.error(f"--shuffle-mapping {args.shuffle_mapping}: expected a seed >= 0")
     if args.pool:
         return pooled_table(ap, args.pool)
     if args.compare:
@@ -430,6 +440,13 @@ def main():
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480))
         if "orbit-dense" in which:
             splits.append(orbit_split(workdir, args.orbit_frames, 640, 480, dense=True))
+    if args.shuffle_mapping is not None:
+        import numpy as np
+
+        for sp in splits:
+            perm = np.random.default_rng(args.shuffle_mapping).permutation(len(sp.mapping))
+            sp.mapping = sp.mapping.subset([int(i) for i in perm])
+            sp.map_name = f"{sp.files}-shuffled{args.shuffle_mapping}"
     rows = []
     for sp in splits:
         rows += run_split(sp, args, build_cfgs)
