@@ -48,6 +48,7 @@ from .extraction import (
 )
 from .features.base import check_patch
 from .features.cache import FeatureCache
+from .frame_order import matching_order
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
 from .mapfile.model import MapData
@@ -379,7 +380,11 @@ def _landmark_stage(
             all_lms = triangulate_tracks(tracks, ff, config)
         elif len(all_lms) and estimates_camera_rotation(config, tracks.epipolar_median_px):
             rotation = estimate_camera_rotation(
-                all_lms, ff.cam_from_world, ff.cameras, loss_px=default_max_epipolar(config.extractor)
+                all_lms,
+                ff.cam_from_world,
+                ff.cameras,
+                loss_px=default_max_epipolar(config.extractor),
+                order=matching_order(ff.cam_from_world),
             )
             if rotation.holds:
                 ff = replace(ff, cam_from_world=rotation.camera_poses(ff.cam_from_world))

@@ -20,31 +20,45 @@ from .geometry import camera_centers
 MAX_STEP_RATIO = 2.0
 
 
-def pose_distances(cam_from_world: np.ndarray) -> np.ndarray:
-    """(N, N) how far apart two frames' views are: the distance between their camera centres over the
-    median distance of a frame to its nearest one, plus the angle between their optical axes over the
-    median angle to the nearest in that sense (both 0 on the diagonal)."""
-    centres = camera_centers(cam_from_world)
-    axes = cam_from_world[:, 2, :3]  # each camera's optical axis in the world
-    dist = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
-    off = ~np.eye(len(cam_from_world), dtype=bool)
-    scale = [max(float(np.median(np.where(off, m, np.inf).min(1))), 1e-12) for m in (dist, angle)]
-    return dist / scale[0] + angle / scale[1]
+def pose_points(cam_from_world: np.ndarray) -> np.ndarray:
+    """(N, 6) each frame's view as a point: its camera centre over the median distance of a frame's centre
+    to its nearest one, beside its optical axis over the median distance of an axis to its nearest one (for
+    near axes the angle between them), so that nearby points are frames that see nearly the same."""
+    from scipy.spatial import cKDTree
+
+    T = np.asarray(cam_from_world, np.float64)
+    parts = [camera_centers(T), T[:, 2, :3]]  # centres and optical axes in the world
+    out = []
+    for p in parts:
+        nearest = cKDTree(p).query(p, k=2)[0][:, 1] if len(p) > 1 else np.ones(1)
+        positive = nearest[nearest > 0]
+        out.append(p / (float(np.median(positive)) if len(positive) else 1.0))
+    return np.hstack(out)
 
 
-def path_through_poses(distance: np.ndarray) -> np.ndarray:
-    """Frame indices along a greedy path: from the frame whose nearest frame is farthest (an end), each
-    step to the nearest frame not yet visited."""
-    n = len(distance)
-    d = distance + np.diag(np.full(n, np.inf))
-    order = [int(np.argmax(d.min(1)))]
+def path_through_poses(points: np.ndarray) -> np.ndarray:
+    """Frame indices along a greedy path through ``points`` (:func:`pose_points`): from the frame whose
+    nearest frame is farthest (an end), each step to the nearest frame not yet visited."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 3:
+        return np.arange(n, dtype=np.int64)
+    tree = cKDTree(points)
+    order = [int(np.argmax(tree.query(points, k=2)[0][:, 1]))]
     free = np.ones(n, bool)
     free[order[0]] = False
     for _ in range(n - 1):
-        nxt = int(np.argmin(np.where(free, d[order[-1]], np.inf)))
-        order.append(nxt)
-        free[nxt] = False
+        k = 8
+        while True:  # the nearest frames until one is not yet visited
+            _, near = tree.query(points[order[-1]], k=min(k, n))
+            near = np.atleast_1d(near)
+            unvisited = near[free[near]]
+            if len(unvisited) or k >= n:
+                break
+            k *= 4
+        order.append(int(unvisited[0]))
+        free[order[-1]] = False
     return np.array(order, np.int64)
 
 
@@ -55,8 +69,10 @@ def matching_order(cam_from_world: np.ndarray) -> np.ndarray:
     given = np.arange(n, dtype=np.int64)
     if n < 3:
         return given
-    distance = pose_distances(np.asarray(cam_from_world, np.float64))
-    path = path_through_poses(distance)
-    step = float(np.median(distance[given[:-1], given[1:]]))
-    path_step = float(np.median(distance[path[:-1], path[1:]]))
-    return path if step > MAX_STEP_RATIO * path_step else given
+    points = pose_points(cam_from_world)
+    path = path_through_poses(points)
+
+    def median_step(order):
+        return float(np.median(np.linalg.norm(np.diff(points[order], axis=0), axis=1)))
+
+    return path if median_step(given) > MAX_STEP_RATIO * median_step(path) else given
