@@ -2,9 +2,9 @@
 
 Frames are matched with their next ``window`` neighbours (in the order the frames are listed, or along
 a path through their poses where that order is none: :mod:`favormap.frame_order`) by mutual nearest
-neighbours on the descriptors; the known poses reject wrong matches (symmetric epipolar distance in pixels). Matches
-are joined into tracks by connected components; a track that holds two different keypoints of one
-frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
+neighbours on the descriptors; the known poses reject wrong matches (symmetric epipolar distance in
+pixels). Matches are joined into tracks by connected components; a track that holds two different
+keypoints of one frame is ambiguous and dropped. Tracks shorter than ``min_track`` are discarded.
 """
 
 from __future__ import annotations
