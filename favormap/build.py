@@ -48,7 +48,6 @@ from .extraction import (
 )
 from .features.base import check_patch
 from .features.cache import FeatureCache
-from .frame_order import matching_order
 from .heap import release_free_memory, reuse_freed_blocks
 from .io import Sequence
 from .mapfile.model import MapData
@@ -384,7 +383,7 @@ def _landmark_stage(
                 ff.cam_from_world,
                 ff.cameras,
                 loss_px=default_max_epipolar(config.extractor),
-                order=matching_order(ff.cam_from_world),
+                order=tracks.frame_order,
             )
             if rotation.holds:
                 ff = replace(ff, cam_from_world=rotation.camera_poses(ff.cam_from_world))

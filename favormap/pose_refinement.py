@@ -340,7 +340,7 @@ def estimate_camera_rotation(
     """The one rotation ``cam_from_rig`` shared by every frame that, with the landmarks, best explains the
     observations of ``lms`` when the given poses ``rig_from_world`` (M, 4, 4) stay fixed, from all frames and
     from each half of them (CameraRotation.holds); see :func:`_solve_camera_rotation`. ``order``: the frames
-    in the order the recording went (None: as given; the build passes favormap.frame_order.matching_order),
+    in the order the recording went (None: as given; the build passes the order tracking walked, Tracks.frame_order),
     whose first and second half are the halves."""
     T = np.asarray(rig_from_world, np.float64)
     Q, rms0, rms1 = _solve_camera_rotation(lms, T, cameras, loss_px, iterations)

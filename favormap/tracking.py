@@ -43,6 +43,8 @@ class Tracks:
     # their epipolar line that chose it when the limit was measured (epipolar_limit; nan when it was given)
     max_epipolar_px: float = float("nan")
     epipolar_median_px: float = float("nan")
+    # the order the run walked the frames in (favormap.frame_order.matching_order; None for derived tracks)
+    frame_order: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -248,16 +250,19 @@ def track_features(
     counts = _counts(features)
     base = np.concatenate([[0], np.cumsum(counts)])  # global keypoint id of each frame's first keypoint
     workers = thread_count() if workers is None else int(workers)
-    pairs = _match_pairs(features, counts, cam_from_world, cameras, window, min_similarity, workers)
+    order = matching_order(cam_from_world)
+    pairs = _match_pairs(features, counts, cam_from_world, cameras, order, window, min_similarity, workers)
     check = _EpipolarCheck.of(pairs, max_epipolar_px, min_epipolar_px)
     edges = _MatchEdges.within(pairs, check.max_epipolar_px, base)
     del pairs
     if not edges.count:
         empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(1, np.int64))
-        return check.recorded_in(Tracks(*empty))
+        return check.recorded_in(Tracks(*empty, frame_order=order))
     graph = _MatchGraph.of(edges, base)
     del edges
-    return check.recorded_in(_consistent_tracks(graph, len(features), min_track))
+    tracks = check.recorded_in(_consistent_tracks(graph, len(features), min_track))
+    tracks.frame_order = order
+    return tracks
 
 
 @dataclass
@@ -278,14 +283,15 @@ def _match_pairs(
     counts: np.ndarray,
     cam_from_world: np.ndarray,
     cameras: list[Camera],
+    order: np.ndarray,
     window: int,
     min_similarity: float,
     workers: int,
 ) -> list[_PairMatches]:
-    """Every frame matched with its next ``window`` frames (mutual nearest neighbours) in the order
-    :func:`favormap.frame_order.matching_order` walks them, holding at most ``window + 1`` frames' keypoints
-    and descriptors at a time."""
-    order = [int(i) for i in matching_order(cam_from_world)]
+    """Every frame matched with its next ``window`` frames (mutual nearest neighbours) in ``order``
+    (:func:`favormap.frame_order.matching_order`), holding at most ``window + 1`` frames' keypoints and
+    descriptors at a time."""
+    order = [int(i) for i in order]
     held: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (keypoints, descriptors)
 
     def frame(i):
