@@ -57,15 +57,24 @@ def count_observations(
     from scipy.spatial import cKDTree
 
     landmark, lframe, lxy = tracks
-    held = []
-    for f in range(len(detected)):
+    frame = np.asarray(frame, np.int64)
+    # every observation looked up once per frame: the landmark that holds a keypoint within the radius (-1:
+    # none), and whether favormap's extractor finds a keypoint there at the cap / without it
+    owner = np.full(len(frame), -1, np.int64)
+    found = np.zeros(len(frame), bool)
+    anywhere = np.zeros(len(frame), bool)
+    for f in np.unique(frame):
+        obs = np.flatnonzero(frame == f)
         on = lframe == f
-        held.append((cKDTree(lxy[on]) if on.any() else None, landmark[on]))
-    found = [cKDTree(k) if len(k) else None for k in detected]
-    anywhere = [cKDTree(k) if len(k) else None for k in everywhere]
-
-    def near(tree, q) -> bool:
-        return tree is not None and tree.query(q)[0] <= radius_px
+        if on.any():
+            d, j = cKDTree(lxy[on]).query(xy[obs])
+            owner[obs] = np.where(d <= radius_px, landmark[on][j], -1)
+        for hit, keys in ((found, detected), (anywhere, everywhere)):
+            if f < len(keys) and len(keys[f]):
+                hit[obs] = cKDTree(keys[f]).query(xy[obs])[0] <= radius_px
+    by_landmark = np.argsort(landmark, kind="stable")  # each landmark's frames, grouped once
+    bounds = np.r_[np.unique(landmark[by_landmark], return_index=True)[1], len(landmark)]
+    frames_of = {int(landmark[by_landmark[a]]): lframe[by_landmark[a:b]] for a, b in zip(bounds[:-1], bounds[1:])}
 
     counts: Counter = Counter()
     order = np.argsort(point, kind="stable")
@@ -73,28 +82,20 @@ def count_observations(
     points = 0
     for p in range(len(starts) - 1):
         obs = order[starts[p] : starts[p + 1]]
-        if len(obs) < min_length:
-            continue
-        owner = np.full(len(obs), -1)
-        for i, o in enumerate(obs):
-            tree, lm = held[frame[o]]
-            if tree is not None:
-                d, j = tree.query(xy[o])
-                owner[i] = lm[j] if d <= radius_px else -1
-        if (owner < 0).all():
+        if len(obs) < min_length or (owner[obs] < 0).all():
             continue
         points += 1
-        main = np.bincount(owner[owner >= 0]).argmax()
-        main_frames = lframe[landmark == main]
-        for o, who in zip(obs, owner):
-            f = frame[o]
+        main = np.bincount(owner[obs][owner[obs] >= 0]).argmax()
+        main_frames = frames_of[int(main)]
+        for o in obs:
+            who, f = owner[o], frame[o]
             if who == main:
                 counts["in track"] += 1
             elif who >= 0:
                 counts["other landmark"] += 1
-            elif near(found[f], xy[o]):
+            elif found[o]:
                 counts["beyond the window" if np.abs(main_frames - f).min() > window else "not tracked"] += 1
-            elif near(anywhere[f], xy[o]):
+            elif anywhere[o]:
                 counts["beyond the cap"] += 1
             else:
                 counts["not detected"] += 1
